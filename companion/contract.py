@@ -1,0 +1,113 @@
+"""The contract every part of visland shares with the companion: Command and Observation.
+
+Frames are MAVLink's: NED world, FRD body. Times are simulation (or autopilot boot) seconds.
+
+* ``Command`` is exactly a SET_ATTITUDE_TARGET with ``type_mask = 128`` (attitude ignored):
+  collective thrust normalised to ``[0, 1]`` of the vehicle's total maximum thrust, and body
+  rates in FRD. Expert labels and learned policies speak this same space.
+* ``Observation`` is what a deployable policy may see: the downward camera image, the attitude
+  estimate and body rates (ATTITUDE), the radar range (DISTANCE_SENSOR, along the body down axis)
+  and the specific force (HIGHRES_IMU). Ground truth never travels in an Observation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["CAMERA_FOV_DEG", "IMAGE_SIZE_PX", "Command", "ContractError", "Observation"]
+
+IMAGE_SIZE_PX = 128
+"""Side of the square mono8 camera image every policy is trained on (paper Table 1)."""
+CAMERA_FOV_DEG = 45.0
+"""Full field of view of that image (paper Table 1)."""
+
+
+class ContractError(ValueError):
+    """A Command or Observation that breaks the contract (shape, range, finiteness)."""
+
+
+def _vec3(name: str, value: object) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ContractError(f"{name}: expected shape (3,), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ContractError(f"{name}: expected finite values, got {arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Command:
+    """Collective thrust + body rates: SET_ATTITUDE_TARGET with type_mask 128.
+
+    Attributes:
+        thrust_norm: collective thrust as a fraction of the total maximum thrust, in [0, 1].
+        rate_frd_rad_s: (3,) body rates p, q, r about FRD axes, rad/s.
+    """
+
+    thrust_norm: float
+    rate_frd_rad_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        thrust = float(self.thrust_norm)
+        if not math.isfinite(thrust) or not 0.0 <= thrust <= 1.0:
+            raise ContractError(f"thrust_norm: expected a finite value in [0, 1], got {thrust}")
+        object.__setattr__(self, "thrust_norm", thrust)
+        object.__setattr__(self, "rate_frd_rad_s", _vec3("rate_frd_rad_s", self.rate_frd_rad_s))
+
+    @classmethod
+    def from_array(cls, action: np.ndarray) -> Command:
+        """Build from a gymnasium action ``[thrust_norm, p, q, r]`` (shape (4,))."""
+        arr = np.asarray(action, dtype=np.float64)
+        if arr.shape != (4,):
+            raise ContractError(f"action: expected shape (4,) [thrust_norm, p, q, r], got {arr.shape}")
+        return cls(thrust_norm=float(arr[0]), rate_frd_rad_s=arr[1:4])
+
+    def as_array(self) -> np.ndarray:
+        """``[thrust_norm, p, q, r]`` as float32, the gymnasium action layout."""
+        return np.concatenate(([self.thrust_norm], self.rate_frd_rad_s)).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What a deployable (non-privileged) policy sees at one camera frame.
+
+    Attributes:
+        image: (128, 128) uint8 mono8 image, row 0 = top = body forward, column 0 = body left.
+        image_time_s: sim time the frame was rendered.
+        attitude_rad: (3,) roll, pitch, yaw (rad), from ATTITUDE.
+        rate_frd_rad_s: (3,) body rates from ATTITUDE.
+        attitude_time_s: time stamp of the attitude sample.
+        range_m: radar range along the body down axis (m); NaN when the sensor reports invalid.
+        range_time_s: time stamp of the range sample.
+        accel_frd_m_s2: (3,) specific force from HIGHRES_IMU (about (0, 0, -g) at hover).
+        imu_time_s: time stamp of the IMU sample.
+    """
+
+    image: np.ndarray
+    image_time_s: float
+    attitude_rad: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    attitude_time_s: float
+    range_m: float
+    range_time_s: float
+    accel_frd_m_s2: np.ndarray
+    imu_time_s: float
+    frame_id: int = field(default=0)
+
+    def __post_init__(self) -> None:
+        img = np.asarray(self.image)
+        if img.shape != (IMAGE_SIZE_PX, IMAGE_SIZE_PX) or img.dtype != np.uint8:
+            raise ContractError(
+                f"image: expected ({IMAGE_SIZE_PX}, {IMAGE_SIZE_PX}) uint8, "
+                f"got {img.shape} {img.dtype}"
+            )
+        for name in ("attitude_rad", "rate_frd_rad_s", "accel_frd_m_s2"):
+            object.__setattr__(self, name, _vec3(name, getattr(self, name)))
+        rng = float(self.range_m)
+        if not (math.isnan(rng) or rng >= 0.0):
+            raise ContractError(f"range_m: expected >= 0 or NaN (invalid), got {rng}")
+        object.__setattr__(self, "range_m", rng)

@@ -1,0 +1,325 @@
+"""6-DoF quadrotor dynamics in NED/FRD: the project's one physics.
+
+State vector (17 floats, layout fixed by :data:`LAYOUT`, never sliced by bare numbers elsewhere):
+``pos_ned_m`` (3), ``vel_ned_m_s`` (3), ``quat_wxyz`` (4, body FRD -> world NED), ``rate_frd_rad_s``
+(3), ``rotor_thrust_n`` (4). The input is the commanded thrust of each rotor (N); each rotor follows
+its command with a first-order lag, which is part of the integrated state.
+
+Forces and torques:
+
+* gravity ``(0, 0, m g)`` in NED;
+* rotor thrust along body ``-z`` (up), summed;
+* quadratic body drag ``F_i = -1/2 rho C_D A_i |v_i| v_i`` per body axis, with ``v`` the air-relative
+  velocity in FRD (bluff-body drag; Beard & McLain, *Small Unmanned Aircraft*, 2012, sec. 4.2;
+  the per-axis form as in Bangura & Mahony, "Nonlinear dynamic modeling for high performance
+  control of a quadrotor", ACRA 2012). Zero wind;
+* roll/pitch torques from the rotors' lever arms (X configuration) and yaw torque from rotor
+  drag, ``tau_z = k_m * sum(s_i T_i)`` with ``s_i = +1`` for CCW rotors;
+* Euler's rigid-body equation ``J w' = tau - w x J w``; quaternion kinematics ``q' = q (x) (0, w) / 2``.
+
+The ground is the plane ``down = 0``. :func:`step` integrates with classic RK4 and then resolves
+contact so that the vehicle never goes below it (see :func:`_resolve_ground_contact`).
+
+The functions take plain floats internally: at 17 states, Python scalars are several times faster
+than small numpy arrays, and the simulator has to run tens of times faster than real time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sitl_sim.config import Planet, VehicleConfig
+
+__all__ = [
+    "LAYOUT",
+    "STATE_SIZE",
+    "ContactEvent",
+    "Physics",
+    "StateLayout",
+    "derivative",
+    "euler_from_quat",
+    "make_state",
+    "quat_from_euler",
+    "quat_to_rotation",
+    "rk4_step",
+    "step",
+    "translational_accel_ned",
+]
+
+
+class StateLayout:
+    """Named slices of the 17-float state vector."""
+
+    pos_ned_m = slice(0, 3)
+    vel_ned_m_s = slice(3, 6)
+    quat_wxyz = slice(6, 10)
+    rate_frd_rad_s = slice(10, 13)
+    rotor_thrust_n = slice(13, 17)
+
+
+LAYOUT = StateLayout()
+STATE_SIZE = 17
+
+
+class Physics:
+    """Constants of one vehicle on one planet, precomputed once for the integrator.
+
+    Rotor geometry (PX4 quad X): positions ``(x_i, y_i)`` in FRD at ``arm / sqrt(2)``, spin
+    ``s_i`` (+1 CCW seen from above).
+    """
+
+    ROTOR_X = (1.0, -1.0, 1.0, -1.0)
+    ROTOR_Y = (1.0, -1.0, -1.0, 1.0)
+    ROTOR_SPIN = (1.0, 1.0, -1.0, -1.0)
+
+    def __init__(self, vehicle: VehicleConfig, world: Planet) -> None:
+        self.vehicle = vehicle
+        self.world = world
+        self.mass = vehicle.mass_kg
+        self.g = world.gravity_m_s2
+        self.ixx, self.iyy, self.izz = vehicle.inertia_diag_kg_m2
+        d = vehicle.arm_length_m / math.sqrt(2.0)
+        self.rx = tuple(d * s for s in self.ROTOR_X)
+        self.ry = tuple(d * s for s in self.ROTOR_Y)
+        self.km = vehicle.yaw_torque_per_thrust_m
+        self.tau_motor = vehicle.motor_time_constant_s
+        self.max_rotor_thrust = vehicle.max_rotor_thrust_n
+        half_rho = 0.5 * world.air_density_kg_m3
+        self.kdrag = tuple(half_rho * c for c in vehicle.drag_coefficient_area_m2)
+        # Allocation: rotor thrusts (4) -> [collective N, tau_x, tau_y, tau_z] (N, N m).
+        self.allocation = np.array(
+            [
+                [1.0, 1.0, 1.0, 1.0],
+                [-y for y in self.ry],
+                list(self.rx),
+                [self.km * s for s in self.ROTOR_SPIN],
+            ]
+        )
+        self.allocation_inv = np.linalg.inv(self.allocation)
+
+    @property
+    def hover_rotor_thrust_n(self) -> float:
+        return self.mass * self.g / 4.0
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def quat_to_rotation(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation body FRD -> world NED of a unit quaternion ``(w, x, y, z)``."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` of ZYX Euler angles (yaw, then pitch, then roll)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def euler_from_quat(q: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles ``(roll, pitch, yaw)`` in rad, as MAVLink's ATTITUDE reports them."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array([roll, pitch, yaw])
+
+
+def make_state(
+    pos_ned_m=(0.0, 0.0, 0.0),
+    vel_ned_m_s=(0.0, 0.0, 0.0),
+    quat_wxyz=(1.0, 0.0, 0.0, 0.0),
+    rate_frd_rad_s=(0.0, 0.0, 0.0),
+    rotor_thrust_n=(0.0, 0.0, 0.0, 0.0),
+) -> np.ndarray:
+    """Pack named quantities into a state vector (the only place the layout is filled)."""
+    x = np.empty(STATE_SIZE)
+    x[LAYOUT.pos_ned_m] = pos_ned_m
+    x[LAYOUT.vel_ned_m_s] = vel_ned_m_s
+    q = np.asarray(quat_wxyz, dtype=float)
+    x[LAYOUT.quat_wxyz] = q / np.linalg.norm(q)
+    x[LAYOUT.rate_frd_rad_s] = rate_frd_rad_s
+    x[LAYOUT.rotor_thrust_n] = rotor_thrust_n
+    return x
+
+
+# --------------------------------------------------------------------------- equations of motion
+
+
+def translational_accel_ned(
+    quat_wxyz, vel_ned_m_s, collective_thrust_n: float, phys: Physics
+) -> tuple[float, float, float]:
+    """Acceleration (NED, m/s^2) from gravity, collective thrust along body -z and body drag.
+
+    Used by :func:`derivative` and, through it or directly, by the MPC expert's linearisation.
+    """
+    qw, qx, qy, qz = quat_wxyz
+    vn, ve, vd = vel_ned_m_s
+    # Rotation body -> NED, row-major.
+    r00 = 1 - 2 * (qy * qy + qz * qz)
+    r01 = 2 * (qx * qy - qw * qz)
+    r02 = 2 * (qx * qz + qw * qy)
+    r10 = 2 * (qx * qy + qw * qz)
+    r11 = 1 - 2 * (qx * qx + qz * qz)
+    r12 = 2 * (qy * qz - qw * qx)
+    r20 = 2 * (qx * qz - qw * qy)
+    r21 = 2 * (qy * qz + qw * qx)
+    r22 = 1 - 2 * (qx * qx + qy * qy)
+    # Air-relative velocity in body axes (R^T v).
+    vbx = r00 * vn + r10 * ve + r20 * vd
+    vby = r01 * vn + r11 * ve + r21 * vd
+    vbz = r02 * vn + r12 * ve + r22 * vd
+    kx, ky, kz = phys.kdrag
+    fbx = -kx * abs(vbx) * vbx
+    fby = -ky * abs(vby) * vby
+    fbz = -kz * abs(vbz) * vbz - collective_thrust_n
+    inv_m = 1.0 / phys.mass
+    return (
+        (r00 * fbx + r01 * fby + r02 * fbz) * inv_m,
+        (r10 * fbx + r11 * fby + r12 * fbz) * inv_m,
+        (r20 * fbx + r21 * fby + r22 * fbz) * inv_m + phys.g,
+    )
+
+
+def derivative(x, rotor_cmd_n, phys: Physics) -> list[float]:
+    """Time derivative of the 17-float state for commanded rotor thrusts ``rotor_cmd_n`` (4, N)."""
+    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
+    p, q, r = x[10], x[11], x[12]
+    t1, t2, t3, t4 = x[13], x[14], x[15], x[16]
+    an, ae, ad = translational_accel_ned((qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys)
+    rx, ry = phys.rx, phys.ry
+    tau_x = -(ry[0] * t1 + ry[1] * t2 + ry[2] * t3 + ry[3] * t4)
+    tau_y = rx[0] * t1 + rx[1] * t2 + rx[2] * t3 + rx[3] * t4
+    tau_z = phys.km * (t1 + t2 - t3 - t4)
+    ixx, iyy, izz = phys.ixx, phys.iyy, phys.izz
+    # Euler: J w' = tau - w x (J w), J diagonal.
+    dp = (tau_x + (iyy - izz) * q * r) / ixx
+    dq = (tau_y + (izz - ixx) * r * p) / iyy
+    dr = (tau_z + (ixx - iyy) * p * q) / izz
+    # q' = 1/2 q (x) (0, w)
+    dqw = 0.5 * (-qx * p - qy * q - qz * r)
+    dqx = 0.5 * (qw * p + qy * r - qz * q)
+    dqy = 0.5 * (qw * q - qx * r + qz * p)
+    dqz = 0.5 * (qw * r + qx * q - qy * p)
+    tau_m = phys.tau_motor
+    if tau_m > 0.0:
+        inv = 1.0 / tau_m
+        c1, c2, c3, c4 = rotor_cmd_n
+        dt1, dt2, dt3, dt4 = (c1 - t1) * inv, (c2 - t2) * inv, (c3 - t3) * inv, (c4 - t4) * inv
+    else:
+        dt1 = dt2 = dt3 = dt4 = 0.0
+    return [x[3], x[4], x[5], an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, dt1, dt2, dt3, dt4]
+
+
+def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics) -> list[float]:
+    """One classic Runge-Kutta 4 step of :func:`derivative` (no ground, no renormalisation)."""
+    n = STATE_SIZE
+    k1 = derivative(x, rotor_cmd_n, phys)
+    h = 0.5 * dt
+    x2 = [x[i] + h * k1[i] for i in range(n)]
+    k2 = derivative(x2, rotor_cmd_n, phys)
+    x3 = [x[i] + h * k2[i] for i in range(n)]
+    k3 = derivative(x3, rotor_cmd_n, phys)
+    x4 = [x[i] + dt * k3[i] for i in range(n)]
+    k4 = derivative(x4, rotor_cmd_n, phys)
+    s = dt / 6.0
+    return [x[i] + s * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(n)]
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    """First ground contact of a flight, interpolated inside the physics step where it happened.
+
+    Attributes:
+        time_s: sim time of contact.
+        pos_ned_m: (3,) position at contact (down = 0).
+        vel_ned_m_s: (3,) velocity just before contact.
+        tilt_rad: angle between body down and world down at contact.
+    """
+
+    time_s: float
+    pos_ned_m: np.ndarray
+    vel_ned_m_s: np.ndarray
+    tilt_rad: float
+
+
+def _tilt(qx: float, qy: float) -> float:
+    # R[2][2] = cos(tilt) = 1 - 2 (qx^2 + qy^2)
+    return math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (qx * qx + qy * qy))))
+
+
+def _resolve_ground_contact(x_prev, x_new: list[float], t_prev: float, dt: float):
+    """Keep the vehicle on or above ``down = 0``; report a contact that happened in this step.
+
+    Contact is fully inelastic with full friction (skids on flat ground): the vehicle stops, its
+    roll and pitch settle level (the landing gear rests on the plane) and its yaw is kept. It
+    lifts off again as soon as thrust exceeds weight (then ``down`` decreases in the next step).
+    """
+    if x_new[2] < 0.0:
+        return x_new, None
+    d_prev, d_new = x_prev[2], x_new[2]
+    event = None
+    if d_prev < 0.0:
+        frac = d_prev / (d_prev - d_new) if d_new != d_prev else 1.0
+        lerp = [x_prev[i] + frac * (x_new[i] - x_prev[i]) for i in range(6)]
+        event = ContactEvent(
+            time_s=t_prev + frac * dt,
+            pos_ned_m=np.array([lerp[0], lerp[1], 0.0]),
+            vel_ned_m_s=np.array(lerp[3:6]),
+            tilt_rad=_tilt(x_new[7], x_new[8]),
+        )
+    # Resting on the ground: level attitude with the same heading, no motion.
+    qw, qz = x_new[6], x_new[9]
+    yaw = math.atan2(2 * qw * qz + 2 * x_new[7] * x_new[8], 1 - 2 * (x_new[8] ** 2 + qz * qz))
+    out = list(x_new)
+    out[2] = 0.0
+    out[3] = out[4] = out[5] = 0.0
+    out[6], out[7], out[8], out[9] = math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)
+    out[10] = out[11] = out[12] = 0.0
+    return out, event
+
+
+def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0):
+    """Advance the state by ``dt``: RK4, quaternion renormalisation, ground contact.
+
+    Args:
+        x: state (17 floats, :data:`LAYOUT`).
+        rotor_cmd_n: commanded thrust of each rotor, already within [0, max rotor thrust].
+        dt: step length (s).
+        phys: vehicle and planet constants.
+        t_s: sim time at the start of the step (for the contact time stamp).
+
+    Returns:
+        ``(x_next, contact)``: the new state as a list, and a :class:`ContactEvent` if the vehicle
+        came down onto the ground during this step, else ``None``.
+    """
+    on_ground = x[2] >= 0.0
+    x_new = rk4_step(x, rotor_cmd_n, dt, phys)
+    n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
+    x_new[6] /= n
+    x_new[7] /= n
+    x_new[8] /= n
+    x_new[9] /= n
+    x_new, event = _resolve_ground_contact(x, x_new, t_s, dt)
+    if on_ground:
+        event = None  # still resting: not a new touchdown
+    return x_new, event

@@ -1,0 +1,116 @@
+"""Landing metrics, defined once for the env, the SITL, the expert and every evaluation.
+
+DESIGN.md: landing error is the horizontal distance of the vehicle centre from the pad centre at
+touchdown (first ground contact); success means error <= 1 m, vertical speed <= 1 m/s and tilt
+<= 20 deg at touchdown.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from sitl_sim.dynamics import ContactEvent
+
+__all__ = [
+    "SUCCESS_MAX_ERROR_M",
+    "SUCCESS_MAX_TILT_DEG",
+    "SUCCESS_MAX_VERTICAL_SPEED_M_S",
+    "EpisodeResult",
+    "summarize",
+]
+
+SUCCESS_MAX_ERROR_M = 1.0
+SUCCESS_MAX_VERTICAL_SPEED_M_S = 1.0
+SUCCESS_MAX_TILT_DEG = 20.0
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """How one episode ended.
+
+    Attributes:
+        landed: the vehicle touched the ground (False: timeout).
+        time_s: sim time at touchdown (or at the timeout).
+        landing_error_m: horizontal distance from the pad centre at touchdown (at the timeout:
+            the horizontal distance then; ``success`` is False either way).
+        touchdown_speed_m_s: norm of the velocity at touchdown.
+        touchdown_vertical_speed_m_s: downward speed at touchdown.
+        tilt_deg: angle between body down and world down at touchdown.
+        success: the DESIGN.md success criterion.
+    """
+
+    landed: bool
+    time_s: float
+    landing_error_m: float
+    touchdown_speed_m_s: float
+    touchdown_vertical_speed_m_s: float
+    tilt_deg: float
+    success: bool
+
+    @classmethod
+    def from_contact(cls, contact: ContactEvent) -> EpisodeResult:
+        err = float(math.hypot(contact.pos_ned_m[0], contact.pos_ned_m[1]))
+        speed = float(np.linalg.norm(contact.vel_ned_m_s))
+        vz = float(contact.vel_ned_m_s[2])
+        tilt = math.degrees(contact.tilt_rad)
+        return cls(
+            landed=True,
+            time_s=contact.time_s,
+            landing_error_m=err,
+            touchdown_speed_m_s=speed,
+            touchdown_vertical_speed_m_s=vz,
+            tilt_deg=tilt,
+            success=err <= SUCCESS_MAX_ERROR_M
+            and vz <= SUCCESS_MAX_VERTICAL_SPEED_M_S
+            and tilt <= SUCCESS_MAX_TILT_DEG,
+        )
+
+    @classmethod
+    def timeout(cls, time_s: float, pos_ned_m, vel_ned_m_s) -> EpisodeResult:
+        return cls(
+            landed=False,
+            time_s=float(time_s),
+            landing_error_m=float(math.hypot(pos_ned_m[0], pos_ned_m[1])),
+            touchdown_speed_m_s=math.nan,
+            touchdown_vertical_speed_m_s=math.nan,
+            tilt_deg=math.nan,
+            success=False,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    arr = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
+    if arr.size == 0:
+        return {"min": math.nan, "max": math.nan, "mean": math.nan, "std": math.nan}
+    return {
+        "min": float(arr.min()),
+        "max": float(arr.max()),
+        "mean": float(arr.mean()),
+        "std": float(arr.std()),
+    }
+
+
+def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
+    """min/max/mean/std of landing error, touchdown speed, tilt, time; success rate.
+
+    Timeouts count as failures; their (non-)touchdown speed is excluded from the speed stats,
+    and ``timeouts`` says how many there were so nothing is hidden.
+    """
+    n = len(results)
+    return {
+        "episodes": n,
+        "landing_error_m": _stats([r.landing_error_m for r in results]),
+        "touchdown_speed_m_s": _stats([r.touchdown_speed_m_s for r in results]),
+        "touchdown_vertical_speed_m_s": _stats([r.touchdown_vertical_speed_m_s for r in results]),
+        "tilt_deg": _stats([r.tilt_deg for r in results]),
+        "time_s": _stats([r.time_s for r in results]),
+        "success_rate": (sum(r.success for r in results) / n) if n else math.nan,
+        "timeouts": sum(not r.landed for r in results),
+    }

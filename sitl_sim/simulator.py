@@ -1,0 +1,212 @@
+"""The vehicle simulator: physics + autopilot rate loop + sensors + camera, advanced in sim time.
+
+One :class:`Simulator` is one vehicle in one world. It knows nothing of episodes' start or end
+rules beyond reporting the first ground contact; the gymnasium env and the MAVLink SITL build on
+it. Randomness comes from the seed given to :meth:`Simulator.reset` only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.contract import Command, Observation
+from sitl_sim.config import SimConfig, VehicleConfig
+from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
+from sitl_sim.errors import SimStateError
+from sitl_sim.rate_controller import RateController
+from sitl_sim.scenario import InitialState
+from sitl_sim.scene import Camera, Scene
+from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
+
+__all__ = ["GroundTruth", "Simulator"]
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Privileged state (never part of an Observation).
+
+    Attributes:
+        time_s: sim time.
+        pos_ned_m: (3,) position of the vehicle centre, pad centre = origin.
+        vel_ned_m_s: (3,) velocity.
+        quat_wxyz: (4,) attitude, body FRD -> NED.
+        rate_frd_rad_s: (3,) body rates.
+        accel_ned_m_s2: (3,) acceleration.
+        rotor_thrust_n: (4,) rotor thrusts.
+    """
+
+    time_s: float
+    pos_ned_m: np.ndarray
+    vel_ned_m_s: np.ndarray
+    quat_wxyz: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    accel_ned_m_s2: np.ndarray
+    rotor_thrust_n: np.ndarray
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        """The gymnasium ``info["groundtruth"]`` layout."""
+        return {
+            "pos_ned_m": self.pos_ned_m.copy(),
+            "vel_ned_m_s": self.vel_ned_m_s.copy(),
+            "quat_wxyz": self.quat_wxyz.copy(),
+            "rate_frd_rad_s": self.rate_frd_rad_s.copy(),
+        }
+
+
+class Simulator:
+    """Physics at ``physics_rate_hz``, camera and control at ``control_rate_hz``.
+
+    Args:
+        vehicle: the vehicle and rate-loop configuration.
+        sim: rates, planet and sensor models.
+        scene: a pybullet scene to render from (created on demand when ``render`` is True;
+            pass one to share it between simulators in one process).
+        render: whether observations carry a rendered camera image (False gives a black frame,
+            for physics-only use such as the expert's fast paths and benchmarks).
+    """
+
+    def __init__(
+        self,
+        vehicle: VehicleConfig,
+        sim: SimConfig,
+        *,
+        scene: Scene | None = None,
+        render: bool = True,
+    ) -> None:
+        self.vehicle = vehicle
+        self.sim = sim
+        self.phys = Physics(vehicle, sim.planet)
+        self.rate_controller = RateController(vehicle.rate_controller, self.phys)
+        self._render = render
+        self._owns_scene = scene is None and render
+        self.scene = scene if scene is not None else (Scene() if render else None)
+        self._x: list[float] | None = None
+        self._t = 0.0
+        self._step_count = 0
+        self._rotor_cmd = [0.0] * 4
+        self.contact: ContactEvent | None = None
+        """The first ground contact since reset, if any."""
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def reset(self, initial: InitialState, seed: int | np.random.SeedSequence) -> None:
+        """Place the vehicle at ``initial`` (rotors at hover thrust), reseed every sensor."""
+        ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+        imu_ss, att_ss, radar_ss, cam_ss = ss.spawn(4)
+        self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))
+        self.attitude_sensor = AttitudeSensor(self.sim.attitude, np.random.default_rng(att_ss))
+        self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss))
+        self.camera = (
+            Camera(self.scene, self.sim.camera, np.random.default_rng(cam_ss))
+            if self.scene is not None
+            else None
+        )
+        hover = self.phys.hover_rotor_thrust_n
+        self._x = list(
+            make_state(
+                pos_ned_m=initial.pos_ned_m,
+                vel_ned_m_s=initial.vel_ned_m_s,
+                quat_wxyz=initial.quat_wxyz,
+                rate_frd_rad_s=initial.rate_frd_rad_s,
+                rotor_thrust_n=(hover,) * 4,
+            )
+        )
+        self._rotor_cmd = [hover] * 4
+        self._t = 0.0
+        self._step_count = 0
+        self.rate_controller.reset()
+        self.contact = None
+
+    def close(self) -> None:
+        if self._owns_scene and self.scene is not None:
+            self.scene.close()
+            self.scene = None
+
+    # ------------------------------------------------------------------ stepping
+
+    @property
+    def time_s(self) -> float:
+        return self._t
+
+    def _state(self) -> list[float]:
+        if self._x is None:
+            raise SimStateError("Simulator.reset() must be called before stepping or reading")
+        return self._x
+
+    def step_physics(self, command: Command | None) -> ContactEvent | None:
+        """One physics step. ``command=None`` means disarmed: rotors commanded to zero."""
+        x = self._state()
+        dt = self.sim.physics_dt_s
+        if command is None:
+            self.rate_controller.reset()
+            rotor_cmd = [0.0] * 4
+        else:
+            rotor_cmd = self.rate_controller.update(command, x[10:13], dt)
+        self._rotor_cmd = rotor_cmd
+        x_new, event = step(x, rotor_cmd, dt, self.phys, self._t)
+        self._step_count += 1
+        self._t = self._step_count * dt  # integer count: no drift in sim time
+        self._x = x_new
+        if event is not None and self.contact is None:
+            self.contact = event
+        return event
+
+    def step(self, command: Command | None) -> ContactEvent | None:
+        """Advance one control period (``substeps`` physics steps) holding ``command``.
+
+        Returns the first contact that happened in this period, if any.
+        """
+        first = None
+        for _ in range(self.sim.substeps):
+            event = self.step_physics(command)
+            if event is not None and first is None:
+                first = event
+        return first
+
+    # ------------------------------------------------------------------ truth and sensors
+
+    def ground_truth(self) -> GroundTruth:
+        x = self._state()
+        arr = np.asarray(x)
+        d = derivative(x, self._rotor_cmd, self.phys)
+        accel = np.asarray(d[3:6])
+        if x[2] >= 0.0 and accel[2] >= 0.0:
+            accel = np.zeros(3)  # resting on the ground: the normal force balances the rest
+        return GroundTruth(
+            time_s=self._t,
+            pos_ned_m=arr[LAYOUT.pos_ned_m].copy(),
+            vel_ned_m_s=arr[LAYOUT.vel_ned_m_s].copy(),
+            quat_wxyz=arr[LAYOUT.quat_wxyz].copy(),
+            rate_frd_rad_s=arr[LAYOUT.rate_frd_rad_s].copy(),
+            accel_ned_m_s2=accel,
+            rotor_thrust_n=arr[LAYOUT.rotor_thrust_n].copy(),
+        )
+
+    def observe(self, frame_id: int = 0, truth: GroundTruth | None = None) -> Observation:
+        """Read every sensor now and render the camera: the deployable policy's input."""
+        gt = truth or self.ground_truth()
+        t = gt.time_s
+        imu = self.imu.read(
+            t, gt.quat_wxyz, gt.accel_ned_m_s2, gt.rate_frd_rad_s, self.sim.planet.gravity_m_s2
+        )
+        att = self.attitude_sensor.read(t, gt.quat_wxyz, gt.rate_frd_rad_s)
+        rng = self.radar.read(gt.pos_ned_m, gt.quat_wxyz)
+        if self.camera is not None:
+            image = self.camera.capture(gt.pos_ned_m, gt.quat_wxyz)
+        else:
+            cam = self.sim.camera
+            image = np.zeros((cam.height_px, cam.width_px), dtype=np.uint8)
+        return Observation(
+            image=image,
+            image_time_s=t,
+            attitude_rad=att.attitude_rad,
+            rate_frd_rad_s=att.rate_frd_rad_s,
+            attitude_time_s=t,
+            range_m=rng,
+            range_time_s=t,
+            accel_frd_m_s2=imu.accel_frd_m_s2,
+            imu_time_s=t,
+            frame_id=frame_id,
+        )
