@@ -63,7 +63,9 @@ class Command:
         """Build from a gymnasium action ``[thrust_norm, p, q, r]`` (shape (4,))."""
         arr = np.asarray(action, dtype=np.float64)
         if arr.shape != (4,):
-            raise ContractError(f"action: expected shape (4,) [thrust_norm, p, q, r], got {arr.shape}")
+            raise ContractError(
+                f"action: expected shape (4,) [thrust_norm, p, q, r], got {arr.shape}"
+            )
         return cls(thrust_norm=float(arr[0]), rate_frd_rad_s=arr[1:4])
 
     def as_array(self) -> np.ndarray:

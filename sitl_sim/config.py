@@ -19,9 +19,9 @@ from sitl_sim.errors import ConfigError
 __all__ = [
     "CONFIG_DIR",
     "PLANETS",
+    "AttitudeConfig",
     "CameraConfig",
     "ImuConfig",
-    "AttitudeConfig",
     "Planet",
     "RadarConfig",
     "RateControllerConfig",
@@ -108,7 +108,9 @@ class _Fields:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{self._where}: {key} must be an integer, got {value!r}")
         if not lo <= value <= hi:
-            raise ConfigError(f"{self._where}: {key} = {value}; expected an integer in [{lo}, {hi}]")
+            raise ConfigError(
+                f"{self._where}: {key} = {value}; expected an integer in [{lo}, {hi}]"
+            )
         return value
 
     def vector(
@@ -131,9 +133,7 @@ class _Fields:
     def string(self, key: str, choices: tuple[str, ...], default: str | None = None) -> str:
         value = self._raw(key, default)
         if not isinstance(value, str) or value not in choices:
-            raise ConfigError(
-                f"{self._where}: {key} = {value!r}; expected one of {list(choices)}"
-            )
+            raise ConfigError(f"{self._where}: {key} = {value!r}; expected one of {list(choices)}")
         return value
 
     def check_unknown(self) -> None:

@@ -205,7 +205,9 @@ def derivative(x, rotor_cmd_n, phys: Physics) -> list[float]:
     qw, qx, qy, qz = x[6], x[7], x[8], x[9]
     p, q, r = x[10], x[11], x[12]
     t1, t2, t3, t4 = x[13], x[14], x[15], x[16]
-    an, ae, ad = translational_accel_ned((qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys)
+    an, ae, ad = translational_accel_ned(
+        (qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys
+    )
     rx, ry = phys.rx, phys.ry
     tau_x = -(ry[0] * t1 + ry[1] * t2 + ry[2] * t3 + ry[3] * t4)
     tau_y = rx[0] * t1 + rx[1] * t2 + rx[2] * t3 + rx[3] * t4

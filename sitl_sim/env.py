@@ -129,9 +129,15 @@ class LandingEnv(gym.Env):
             raise ContractError(
                 f"action: expected shape (4,) [thrust_norm, p, q, r], got {act.shape}"
             )
-        bad = [n for n, v in zip(("thrust_norm", "p", "q", "r"), act, strict=True) if not math.isfinite(v)]
+        bad = [
+            n
+            for n, v in zip(("thrust_norm", "p", "q", "r"), act, strict=True)
+            if not math.isfinite(v)
+        ]
         if bad:
-            raise ContractError(f"action: non-finite {bad} in {act.tolist()}; expected finite values")
+            raise ContractError(
+                f"action: non-finite {bad} in {act.tolist()}; expected finite values"
+            )
         act = np.clip(act, self.action_space.low, self.action_space.high)
         contact = self._sim.step(Command.from_array(act))
         self._frame += 1

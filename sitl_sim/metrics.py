@@ -56,10 +56,10 @@ class EpisodeResult:
         err = float(math.hypot(contact.pos_ned_m[0], contact.pos_ned_m[1]))
         speed = float(np.linalg.norm(contact.vel_ned_m_s))
         vz = float(contact.vel_ned_m_s[2])
-        tilt = math.degrees(contact.tilt_rad)
+        tilt = math.degrees(float(contact.tilt_rad))
         return cls(
             landed=True,
-            time_s=contact.time_s,
+            time_s=float(contact.time_s),
             landing_error_m=err,
             touchdown_speed_m_s=speed,
             touchdown_vertical_speed_m_s=vz,

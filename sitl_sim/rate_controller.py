@@ -27,6 +27,11 @@ class RateController:
         self._phys = phys
         self._integral = [0.0, 0.0, 0.0]
         self._prev_error: list[float] | None = None
+        inv = phys.allocation_inv
+        # Per-rotor thrust per unit torque (columns 1..3 of the inverse allocation), as floats.
+        self._rp_x = tuple(float(v) for v in inv[:, 1])
+        self._rp_y = tuple(float(v) for v in inv[:, 2])
+        self._yaw = tuple(float(v) for v in inv[:, 3])
         self.saturated = False
         """True when the last output was limited by the rotors."""
 
@@ -70,10 +75,10 @@ class RateController:
 
     def _mix(self, collective_n: float, tau) -> tuple[list[float], tuple[bool, bool, bool]]:
         """Allocate with priorities roll/pitch > yaw > collective. Returns rotors, limited axes."""
-        inv = self._phys.allocation_inv
         tmax = self._phys.max_rotor_thrust
-        rp = [inv[i][1] * tau[0] + inv[i][2] * tau[1] for i in range(4)]
-        yw = [inv[i][3] * tau[2] for i in range(4)]
+        rx, ry, yz = self._rp_x, self._rp_y, self._yaw
+        rp = [rx[i] * tau[0] + ry[i] * tau[1] for i in range(4)]
+        yw = [yz[i] * tau[2] for i in range(4)]
         limited_rp = limited_y = False
         spread = max(rp) - min(rp)
         if spread > tmax:

@@ -27,7 +27,7 @@ from sitl_sim.errors import SimError
 __all__ = ["Camera", "PadGeometry", "Scene", "ned_to_scene"]
 
 _NED_TO_SCENE = np.diag([1.0, -1.0, -1.0])
-_LUMA = np.array([0.299, 0.587, 0.114])
+_LUMA_Q8 = (77, 150, 29)  # ITU-R BT.601 luma weights 0.299, 0.587, 0.114 in 1/256ths
 
 
 def ned_to_scene(v_ned) -> np.ndarray:
@@ -96,6 +96,12 @@ class Scene:
 
     def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
         """Noise-free mono8 image (height, width) from a camera at the vehicle's pose."""
+        rgb = self.render_rgb(pos_ned_m, quat_wxyz, cfg).astype(np.uint16)
+        r, g, b = _LUMA_Q8
+        return ((r * rgb[..., 0] + g * rgb[..., 1] + b * rgb[..., 2] + 128) >> 8).astype(np.uint8)
+
+    def render_rgb(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
+        """Noise-free colour image (height, width, 3) uint8, row 0 = body forward."""
         rot = quat_to_rotation(quat_wxyz)
         eye = ned_to_scene(pos_ned_m)
         look = ned_to_scene(rot[:, 2])  # body +z (down) in the scene
@@ -111,7 +117,10 @@ class Scene:
         near = 0.02
         far = max(50.0, 4.0 * altitude + 50.0)
         proj = pb.computeProjectionMatrixFOV(
-            fov=cfg.fov_deg, aspect=cfg.width_px / cfg.height_px, nearVal=near, farVal=far,
+            fov=cfg.fov_deg,
+            aspect=cfg.width_px / cfg.height_px,
+            nearVal=near,
+            farVal=far,
             physicsClientId=c,
         )
         _, _, rgba, _, _ = pb.getCameraImage(
@@ -128,8 +137,7 @@ class Scene:
             lightSpecularCoeff=0.0,
             physicsClientId=c,
         )
-        rgb = np.asarray(rgba, dtype=np.uint8).reshape(cfg.height_px, cfg.width_px, 4)[..., :3]
-        return np.clip(rgb @ _LUMA + 0.5, 0, 255).astype(np.uint8)
+        return np.asarray(rgba, dtype=np.uint8).reshape(cfg.height_px, cfg.width_px, 4)[..., :3]
 
     def close(self) -> None:
         if self._client >= 0:
@@ -163,9 +171,8 @@ class Camera:
         img = self._scene.render(pos_ned_m, quat_wxyz, self._cfg)
         sigma = self._cfg.noise_std_px
         if sigma > 0:
-            noisy = img.astype(np.float32) + self._rng.normal(0.0, sigma, img.shape).astype(
-                np.float32
-            )
+            noise = self._rng.standard_normal(img.shape, dtype=np.float32)
+            noisy = img.astype(np.float32) + np.float32(sigma) * noise
             img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
         return img
 
@@ -174,7 +181,7 @@ def _ground_texture(seed: int, size: int) -> Path:
     """A deterministic, terrain-like PNG texture (multi-octave value noise), cached on disk."""
     from PIL import Image
 
-    path = Path(tempfile.gettempdir()) / f"visland_ground_{seed}_{size}.png"
+    path = Path(tempfile.gettempdir()) / f"visland_ground_v2_{seed}_{size}.png"
     if path.exists():
         return path
     rng = np.random.default_rng(seed)
@@ -184,8 +191,8 @@ def _ground_texture(seed: int, size: int) -> Path:
         reps = size // octave
         field += weight * np.kron(coarse, np.ones((reps, reps)))
     field = (field - field.min()) / (np.ptp(field) + 1e-9)
-    # Dry, reddish-brown terrain (Mars-like), dimmer than the pad's green.
-    base = np.array([125.0, 100.0, 80.0])
+    # Dry, reddish-brown terrain (Mars-like): in mono8 always darker than the pad's green.
+    base = np.array([100.0, 80.0, 65.0])
     rgb = base[None, None, :] * (0.6 + 0.8 * field[..., None])
     tmp = path.with_suffix(f".{rng.integers(1 << 30)}.tmp.png")
     Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8), "RGB").save(tmp)

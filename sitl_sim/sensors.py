@@ -57,11 +57,15 @@ class Imu:
         self._last_t = time_s
         rot = quat_to_rotation(quat_wxyz)
         specific_ned = np.asarray(accel_ned_m_s2, dtype=float) - np.array([0.0, 0.0, gravity_m_s2])
-        accel = rot.T @ specific_ned + self._accel_bias + self._rng.normal(
-            0.0, cfg.accel_noise_std_m_s2, 3
+        accel = (
+            rot.T @ specific_ned
+            + self._accel_bias
+            + self._rng.normal(0.0, cfg.accel_noise_std_m_s2, 3)
         )
-        gyro = np.asarray(rate_frd_rad_s, dtype=float) + self._gyro_bias + self._rng.normal(
-            0.0, cfg.gyro_noise_std_rad_s, 3
+        gyro = (
+            np.asarray(rate_frd_rad_s, dtype=float)
+            + self._gyro_bias
+            + self._rng.normal(0.0, cfg.gyro_noise_std_rad_s, 3)
         )
         return ImuReading(time_s, accel, gyro)
 
