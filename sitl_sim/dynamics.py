@@ -9,13 +9,14 @@ Forces and torques:
 
 * gravity ``(0, 0, m g)`` in NED;
 * rotor thrust along body ``-z`` (up), summed;
-* quadratic body drag ``F_i = -1/2 rho C_D A_i |v_i| v_i`` per body axis, with ``v`` the air-relative
-  velocity in FRD (bluff-body drag; Beard & McLain, *Small Unmanned Aircraft*, 2012, sec. 4.2;
-  the per-axis form as in Bangura & Mahony, "Nonlinear dynamic modeling for high performance
-  control of a quadrotor", ACRA 2012). Zero wind;
+* quadratic body drag ``F_i = -1/2 rho C_D A_i |v_i| v_i`` per body axis, with ``v`` the
+  air-relative velocity in FRD (bluff-body drag; Beard & McLain, *Small Unmanned Aircraft*,
+  2012, sec. 4.2; the per-axis form as in Bangura & Mahony, "Nonlinear dynamic modeling for
+  high performance control of a quadrotor", ACRA 2012). Zero wind;
 * roll/pitch torques from the rotors' lever arms (X configuration) and yaw torque from rotor
   drag, ``tau_z = k_m * sum(s_i T_i)`` with ``s_i = +1`` for CCW rotors;
-* Euler's rigid-body equation ``J w' = tau - w x J w``; quaternion kinematics ``q' = q (x) (0, w) / 2``.
+* Euler's rigid-body equation ``J w' = tau - w x J w``; quaternion kinematics
+  ``q' = q (x) (0, w) / 2``.
 
 The ground is the plane ``down = 0``. :func:`step` integrates with classic RK4 and then resolves
 contact so that the vehicle never goes below it (see :func:`_resolve_ground_contact`).
