@@ -65,16 +65,20 @@ class RateController:
             izz * alpha[2] + (iyy - ixx) * p * q,
         )
         collective = command.thrust_norm * phys.vehicle.max_total_thrust_n
-        rotors, limited = self._mix(collective, tau)
-        self.saturated = any(limited)
+        rotors, limited, collective_limited = self._mix(collective, tau)
+        self.saturated = any(limited) or collective_limited
         for i in range(3):
             if not limited[i]:
                 lim = g.integrator_limit_rad_s2[i]
                 self._integral[i] = max(-lim, min(lim, self._integral[i] + g.ki[i] * err[i] * dt))
         return rotors
 
-    def _mix(self, collective_n: float, tau) -> tuple[list[float], tuple[bool, bool, bool]]:
-        """Allocate with priorities roll/pitch > yaw > collective. Returns rotors, limited axes."""
+    def _mix(self, collective_n: float, tau) -> tuple[list[float], tuple[bool, bool, bool], bool]:
+        """Allocate with priorities roll/pitch > yaw > collective.
+
+        Returns the rotor thrusts, which torque axes were limited, and whether the collective
+        had to be shifted.
+        """
         tmax = self._phys.max_rotor_thrust
         rx, ry, yz = self._rp_x, self._rp_y, self._yaw
         rp = [rx[i] * tau[0] + ry[i] * tau[1] for i in range(4)]
@@ -104,5 +108,6 @@ class RateController:
         base = collective_n / 4.0
         base_fit = min(max(base, -min(delta)), tmax - max(delta))
         rotors = [min(tmax, max(0.0, base_fit + d)) for d in delta]
-        # Collective shifted to protect torque: the vehicle is thrust-limited, not torque-limited.
-        return rotors, (limited_rp, limited_rp, limited_y)
+        # A shifted collective protects the torque: thrust-limited, but the axes are not, so the
+        # integrators keep running.
+        return rotors, (limited_rp, limited_rp, limited_y), abs(base_fit - base) > 1e-9

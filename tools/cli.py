@@ -45,7 +45,9 @@ def _print_json(obj: Any) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from tools.demo import DemoConfig, run
 
-    result = run(DemoConfig(seed=args.seed, scenario=args.scenario), sys.stdout)
+    # With --json the narration goes to stderr so stdout is one JSON document.
+    narration = sys.stderr if args.json else sys.stdout
+    result = run(DemoConfig(seed=args.seed, scenario=args.scenario), narration)
     if args.json:
         _print_json(result)
     return 0 if result["landed"] else 1
@@ -84,7 +86,7 @@ def _parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="fly one simulated descent and print what happened")
     d.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
     d.add_argument("--scenario", type=Path, default=None, help="scenario TOML")
-    d.add_argument("--json", action="store_true", help="also print the result as JSON")
+    d.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     d.set_defaults(func=_cmd_demo)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")

@@ -1,0 +1,37 @@
+"""CLI smoke tests on tiny budgets: the commands a user types, as separate processes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def _visland(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def test_demo_lands_and_prints_json():
+    proc = _visland("demo", "--seed", "1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    assert result["landed"] and result["success"]
+    assert "LANDED" in proc.stderr
+
+
+def test_bench_sim_prints_a_real_time_factor():
+    proc = _visland("bench", "sim", "--seconds", "2", "--repeats", "1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert res["realtime_factor"] > 1.0
+    assert res["realtime_factor_physics_only"] > res["realtime_factor"]
+
+
+@pytest.mark.parametrize("args", [["--help"], ["demo", "--help"], ["bench", "--help"]])
+def test_help(args):
+    proc = _visland(*args)
+    assert proc.returncode == 0 and "usage: visland" in proc.stdout

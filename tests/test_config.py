@@ -1,0 +1,154 @@
+"""Configuration and scenario files: typed errors naming the file and field."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import qmc
+
+from sitl_sim.config import CONFIG_DIR, load_sim, load_vehicle, planet
+from sitl_sim.errors import ConfigError
+from sitl_sim.scenario import InitialStateSampler, load_scenario
+
+
+def _edit(tmp_path: Path, name: str, old: str, new: str) -> Path:
+    text = (CONFIG_DIR / name).read_text()
+    assert old in text
+    out = tmp_path / name
+    out.write_text(text.replace(old, new))
+    return out
+
+
+def test_default_configs_match_table_1():
+    v = load_vehicle()
+    assert v.mass_kg == 1.0 and v.arm_length_m == 0.125
+    assert v.inertia_diag_kg_m2 == (0.009, 0.009, 0.016)
+    assert v.max_total_thrust_n == 25.0
+    s = load_sim()
+    assert s.physics_rate_hz % s.control_rate_hz == 0 and s.physics_rate_hz >= 250
+    assert (s.camera.width_px, s.camera.height_px, s.camera.fov_deg) == (128, 128, 45.0)
+    assert s.control_rate_hz == 10 and s.radar.max_range_m == 150.0
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        (
+            "mass_kg = 1.0 ",
+            "mass_kg = -1.0 ",
+            r"vehicle.toml \[vehicle\]: mass_kg = -1.0 is out of range",
+        ),
+        ("mass_kg = 1.0 ", 'mass_kg = "heavy" ', r"mass_kg must be a number"),
+        (
+            "inertia_diag_kg_m2 = [0.009, 0.009, 0.016]",
+            "inertia_diag_kg_m2 = [0.009, 0.009]",
+            r"inertia_diag_kg_m2 must be a list of 3 numbers",
+        ),
+        ("mass_kg = 1.0 ", "mass_kgg = 1.0 ", r"missing key 'mass_kg'"),
+        ("[rate_controller]", "[rate_control]", r"missing table \[rate_controller\]"),
+    ],
+)
+def test_bad_vehicle_values_name_file_and_field(tmp_path, old, new, match):
+    with pytest.raises(ConfigError, match=match):
+        load_vehicle(_edit(tmp_path, "vehicle.toml", old, new))
+
+
+def test_unknown_key_is_reported(tmp_path):
+    path = _edit(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "mass_kg = 1.0\nmas_kg = 2.0 ")
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['mas_kg'\]"):
+        load_vehicle(path)
+
+
+def test_rates_must_be_integer_multiples(tmp_path):
+    path = _edit(tmp_path, "sim.toml", "physics_rate_hz = 250", "physics_rate_hz = 255")
+    with pytest.raises(ConfigError, match="integer multiple"):
+        load_sim(path)
+
+
+def test_unknown_planet(tmp_path):
+    with pytest.raises(ConfigError, match=r"planet = 'venus'; expected one of \['earth', 'mars'\]"):
+        load_sim(_edit(tmp_path, "sim.toml", 'planet = "earth"', 'planet = "venus"'))
+    with pytest.raises(ConfigError, match="unknown planet 'pluto'"):
+        planet("pluto")
+    with pytest.raises(ConfigError, match=r"\[world\] planet = 'venus'"):
+        load_scenario(_edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"'))
+
+
+def test_malformed_toml_names_the_file(tmp_path):
+    bad = tmp_path / "scenario.toml"
+    bad.write_text("[initial_state\nroll_pitch_deg = [")
+    with pytest.raises(ConfigError, match=r"scenario.toml: not valid TOML"):
+        load_scenario(bad)
+    with pytest.raises(ConfigError, match="file not found"):
+        load_scenario(tmp_path / "nope.toml")
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        ("altitude_m = [75.0, 100.0]", "altitude_m = [100.0, 75.0]", "lo <= hi"),
+        ("altitude_m = [75.0, 100.0]", "altitude_m = [-5.0, 100.0]", "expected > 0"),
+        ("altitude_m = [75.0, 100.0]", 'altitude_m = "high"', r"expected \[lo, hi\]"),
+        ('sampler = "sobol+uniform"', 'sampler = "halton"', "sampler = 'halton'"),
+        ("yaw_deg = [-180.0, 180.0]\n", "", "missing key 'yaw_deg'"),
+    ],
+)
+def test_bad_scenarios(tmp_path, old, new, match):
+    with pytest.raises(ConfigError, match=match):
+        load_scenario(_edit(tmp_path, "scenario.toml", old, new))
+
+
+def test_sampler_is_deterministic_and_within_ranges():
+    sc = load_scenario()
+    a = [InitialStateSampler(sc, 11).sample(i) for i in range(64)]
+    b = InitialStateSampler(sc, 11)
+    assert [b.sample(i) for i in reversed(range(64))][::-1] == a  # order of asking is irrelevant
+    assert InitialStateSampler(sc, 12).sample(0) != a[0]
+    for st in a:
+        assert -5 <= st.pos_ned_m[0] <= 5 and -5 <= st.pos_ned_m[1] <= 5
+        assert 75 <= -st.pos_ned_m[2] <= 100
+        assert 0.0 <= st.vel_ned_m_s[2] <= 0.5
+        assert all(abs(np.degrees(e)) <= 1.5 for e in st.euler_rad[:2])
+        assert st.rate_frd_rad_s == (0.0, 0.0, 0.0)
+
+
+def test_sobol_covers_the_space_more_evenly_than_uniform():
+    sc = load_scenario()
+    from dataclasses import replace
+
+    uni = replace(sc, sampler="uniform")
+
+    def unit(scn) -> np.ndarray:
+        pts = []
+        for i in range(256):
+            st = InitialStateSampler(scn, 3).sample(i)
+            pts.append(
+                [
+                    (st.pos_ned_m[0] + 5) / 10,
+                    (st.pos_ned_m[1] + 5) / 10,
+                    (-st.pos_ned_m[2] - 75) / 25,
+                    (st.vel_ned_m_s[0] + 1) / 2,
+                    (st.vel_ned_m_s[1] + 1) / 2,
+                    st.vel_ned_m_s[2] / 0.5,
+                ]
+            )
+        return np.asarray(pts)
+
+    assert qmc.discrepancy(unit(sc)) < 0.5 * qmc.discrepancy(unit(uni))
+
+
+def test_cli_reports_a_bad_scenario_in_one_line(tmp_path):
+    bad = _edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"')
+    proc = subprocess.run(
+        [sys.executable, "-m", "tools.cli", "demo", "--scenario", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert "visland demo: error:" in proc.stderr and "venus" in proc.stderr
