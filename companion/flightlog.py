@@ -1,0 +1,381 @@
+"""Flight logs: MCAP files written while flying, crash-tolerant, readable after a crash.
+
+The topics and schemas here are part of the companion's contract: the SITL, the expert's data
+collection and the companion all write them, and training reads them. Conventions (DESIGN.md,
+shared/reference/mcap_notes.md):
+
+* one file per flight and process; JSON messages with a jsonschema whose ``title`` is the schema
+  name (Foxglove plots them directly); camera frames as ``foxglove.RawImage`` mono8 (lossless,
+  base64 ``data`` in JSON encoding); ground truth pose also as ``foxglove.PoseInFrame``;
+* log time = the file's epoch (wall time at the start) + sim time, in ns; every message also
+  carries ``time_s`` (sim time);
+* small zstd chunks, flushed whenever 1 s of wall time or 1 s of sim time has passed since the
+  last flush, so a killed process loses at most the last second;
+* the effective configuration goes into MCAP metadata records at the start of the file.
+
+Reading (:func:`read_log`) never seeks: a truncated file yields every message up to the cut and
+says so (``FlightLog.truncated``); a file that is not MCAP at all raises :class:`FlightLogError`.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import struct
+import time
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zstandard
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+__all__ = [
+    "TOPIC_COMMAND",
+    "TOPIC_EVENTS",
+    "TOPIC_GROUNDTRUTH",
+    "TOPIC_GROUNDTRUTH_POSE",
+    "TOPIC_IMAGE",
+    "TOPIC_OBSERVATION",
+    "TOPIC_RESULT",
+    "TOPIC_SCENARIO",
+    "FlightLog",
+    "FlightLogError",
+    "FlightLogWriter",
+    "read_log",
+]
+
+TOPIC_IMAGE = "/camera/image"
+TOPIC_OBSERVATION = "/observation"
+TOPIC_GROUNDTRUTH = "/groundtruth/state"
+TOPIC_GROUNDTRUTH_POSE = "/groundtruth/pose"
+TOPIC_COMMAND = "/command"
+TOPIC_SCENARIO = "/episode/scenario"
+TOPIC_RESULT = "/episode/result"
+TOPIC_EVENTS = "/events"
+
+_FLUSH_PERIOD_S = 1.0
+_CHUNK_BYTES = 256 * 1024
+
+_TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
+_VEC = {"type": "array", "items": {"type": "number"}}
+
+_SCHEMAS: dict[str, dict[str, Any]] = {
+    "foxglove.RawImage": {
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "frame_id": {"type": "string"},
+            "width": {"type": "integer"},
+            "height": {"type": "integer"},
+            "encoding": {"type": "string"},
+            "step": {"type": "integer"},
+            "data": {"type": "string", "contentEncoding": "base64"},
+        },
+    },
+    "foxglove.PoseInFrame": {
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "frame_id": {"type": "string"},
+            "pose": {
+                "type": "object",
+                "properties": {
+                    "position": {
+                        "type": "object",
+                        "properties": {k: {"type": "number"} for k in "xyz"},
+                    },
+                    "orientation": {
+                        "type": "object",
+                        "properties": {k: {"type": "number"} for k in "xyzw"},
+                    },
+                },
+            },
+        },
+    },
+}
+
+
+def _generic_schema(name: str, example: Mapping[str, Any]) -> dict[str, Any]:
+    props: dict[str, Any] = {}
+    for key, value in example.items():
+        if isinstance(value, bool):
+            props[key] = {"type": "boolean"}
+        elif isinstance(value, int | float) or value is None:
+            props[key] = {"type": ["number", "null"]}
+        elif isinstance(value, str):
+            props[key] = {"type": "string"}
+        elif isinstance(value, list | tuple | np.ndarray):
+            props[key] = _VEC
+        else:
+            props[key] = {"type": "object"}
+    return {"title": name, "type": "object", "properties": props}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return [_jsonable(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # JSON has no NaN: null = "not defined" (an invalid radar reading)
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+class FlightLogError(Exception):
+    """A flight log cannot be written or read (names the file and the reason)."""
+
+
+class FlightLogWriter:
+    """Writes one flight's MCAP file as it flies. Use as a context manager, or call close().
+
+    Args:
+        path: the file to create (parent folders are created).
+        metadata: name -> JSON-serialisable dict (e.g. ``{"config": {...}, "episode": {...}}``),
+            each written as one MCAP metadata record whose values are JSON strings.
+        epoch_ns: the file's time origin; defaults to the wall time at creation.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        metadata: Mapping[str, Mapping[str, Any]] | None = None,
+        epoch_ns: int | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._fh = self.path.open("wb")
+        except OSError as exc:
+            raise FlightLogError(f"{self.path}: cannot create flight log: {exc}") from None
+        self._writer = Writer(self._fh, chunk_size=_CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="visland")
+        self.epoch_ns = int(time.time_ns() if epoch_ns is None else epoch_ns)
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._seq: dict[str, int] = defaultdict(int)
+        self._last_flush_wall = time.monotonic()
+        self._last_flush_sim = 0.0
+        self._closed = False
+        for name, data in (metadata or {}).items():
+            self._writer.add_metadata(
+                name, {str(k): json.dumps(_jsonable(v)) for k, v in data.items()}
+            )
+        self._writer.flush()
+
+    # ------------------------------------------------------------------ writing
+
+    def _channel(self, topic: str, schema_name: str, example: Mapping[str, Any]) -> int:
+        chan = self._channels.get(topic)
+        if chan is None:
+            sid = self._schemas.get(schema_name)
+            if sid is None:
+                schema = _SCHEMAS.get(schema_name) or _generic_schema(schema_name, example)
+                schema = {"title": schema_name, **schema}
+                sid = self._writer.register_schema(
+                    schema_name, "jsonschema", json.dumps(schema).encode()
+                )
+                self._schemas[schema_name] = sid
+            chan = self._writer.register_channel(topic, "json", sid)
+            self._channels[topic] = chan
+        return chan
+
+    def log_time_ns(self, time_s: float) -> int:
+        return self.epoch_ns + round(time_s * 1e9)
+
+    def write(self, topic: str, schema_name: str, time_s: float, msg: Mapping[str, Any]) -> None:
+        """Write one JSON message stamped with sim time ``time_s``."""
+        if self._closed:
+            raise FlightLogError(f"{self.path}: write after close")
+        body = {"time_s": float(time_s), **_jsonable(msg)}
+        chan = self._channel(topic, schema_name, body)
+        t_ns = self.log_time_ns(time_s)
+        self._writer.add_message(
+            channel_id=chan,
+            log_time=t_ns,
+            publish_time=t_ns,
+            data=json.dumps(body, separators=(",", ":")).encode(),
+            sequence=self._seq[topic],
+        )
+        self._seq[topic] += 1
+        self._maybe_flush(time_s)
+
+    def write_image(self, time_s: float, image: np.ndarray, frame_id: int) -> None:
+        """A mono8 frame as ``foxglove.RawImage`` on :data:`TOPIC_IMAGE`."""
+        img = np.ascontiguousarray(image, dtype=np.uint8)
+        if img.ndim != 2:
+            raise FlightLogError(f"{self.path}: image must be 2-D mono8, got shape {img.shape}")
+        t_ns = self.log_time_ns(time_s)
+        self.write(
+            TOPIC_IMAGE,
+            "foxglove.RawImage",
+            time_s,
+            {
+                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+                "frame_id": f"camera/{frame_id}",
+                "width": int(img.shape[1]),
+                "height": int(img.shape[0]),
+                "encoding": "mono8",
+                "step": int(img.shape[1]),
+                "data": base64.b64encode(img.tobytes()).decode("ascii"),
+            },
+        )
+
+    def write_pose(self, time_s: float, pos_ned_m, quat_wxyz) -> None:
+        """Ground-truth pose as ``foxglove.PoseInFrame`` in frame ``ned`` (pad centre origin)."""
+        t_ns = self.log_time_ns(time_s)
+        w, x, y, z = (float(v) for v in quat_wxyz)
+        n, e, d = (float(v) for v in pos_ned_m)
+        self.write(
+            TOPIC_GROUNDTRUTH_POSE,
+            "foxglove.PoseInFrame",
+            time_s,
+            {
+                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+                "frame_id": "ned",
+                "pose": {
+                    "position": {"x": n, "y": e, "z": d},
+                    "orientation": {"x": x, "y": y, "z": z, "w": w},
+                },
+            },
+        )
+
+    def _maybe_flush(self, time_s: float) -> None:
+        now = time.monotonic()
+        if (
+            now - self._last_flush_wall >= _FLUSH_PERIOD_S
+            or time_s - self._last_flush_sim >= _FLUSH_PERIOD_S
+        ):
+            self.flush(time_s)
+
+    def flush(self, time_s: float | None = None) -> None:
+        """Close the chunk in progress and push it to the file."""
+        self._writer.flush()
+        self._last_flush_wall = time.monotonic()
+        if time_s is not None:
+            self._last_flush_sim = time_s
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            try:
+                self._writer.finish()
+            finally:
+                self._fh.close()
+
+    def __enter__(self) -> FlightLogWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass
+class FlightLog:
+    """Everything readable in one flight log.
+
+    Attributes:
+        path: the file.
+        metadata: metadata record name -> {key: decoded JSON value}.
+        messages: topic -> list of decoded JSON messages, in file order.
+        truncated: the file ended early (crash); ``messages`` holds the readable prefix.
+        error: why reading stopped early, if it did.
+    """
+
+    path: Path
+    metadata: dict[str, dict[str, Any]] = field(default_factory=dict)
+    messages: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
+    truncated: bool = False
+    error: str | None = None
+
+    def topic(self, name: str) -> list[dict[str, Any]]:
+        return self.messages.get(name, [])
+
+    def images(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(times_s (N,), frames (N, H, W) uint8)`` from the camera topic."""
+        msgs = self.topic(TOPIC_IMAGE)
+        if not msgs:
+            return np.zeros(0), np.zeros((0, 0, 0), dtype=np.uint8)
+        frames = np.stack(
+            [
+                np.frombuffer(base64.b64decode(m["data"]), dtype=np.uint8).reshape(
+                    m["height"], m["width"]
+                )
+                for m in msgs
+            ]
+        )
+        return np.array([m["time_s"] for m in msgs]), frames
+
+    @property
+    def duration_s(self) -> float:
+        times = [m["time_s"] for msgs in self.messages.values() for m in msgs if "time_s" in m]
+        return (max(times) - min(times)) if times else 0.0
+
+
+def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog:
+    """Read a flight log without seeking; a truncated file gives its readable prefix.
+
+    Raises:
+        FlightLogError: the file does not exist or is not an MCAP file at all.
+    """
+    path = Path(path)
+    wanted = set(topics) if topics is not None else None
+    log = FlightLog(path=path)
+    try:
+        fh = path.open("rb")
+    except OSError as exc:
+        raise FlightLogError(f"{path}: cannot open: {exc}") from None
+    with fh:
+        magic = fh.read(8)
+        if magic != b"\x89MCAP0\r\n":
+            raise FlightLogError(f"{path}: not an MCAP file (bad magic {magic[:8]!r})")
+        fh.seek(0)
+        channels: dict[int, str] = {}
+        try:
+            for record in StreamReader(fh, skip_magic=False).records:
+                if isinstance(record, Metadata):
+                    log.metadata[record.name] = {
+                        k: json.loads(v) for k, v in record.metadata.items()
+                    }
+                    continue
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = channels.get(record.channel_id)
+                    if topic is None or (wanted is not None and topic not in wanted):
+                        continue
+                    try:
+                        msg = json.loads(record.data)
+                    except ValueError as exc:
+                        log.truncated = True
+                        log.error = f"undecodable message on {topic}: {exc}"
+                        break
+                    log.messages[topic].append(msg)
+                elif isinstance(record, Footer):
+                    break
+            else:
+                log.truncated = True
+                log.error = "file ends before the MCAP footer"
+        except McapError as exc:
+            log.truncated = True
+            log.error = f"{type(exc).__name__}: {exc}"
+        except (struct.error, zstandard.ZstdError, ValueError, EOFError, OSError) as exc:
+            # What a file cut mid-record raises below the MCAP layer.
+            log.truncated = True
+            log.error = f"{type(exc).__name__}: {exc}"
+    log.messages = dict(log.messages)
+    return log

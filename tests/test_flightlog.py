@@ -1,0 +1,119 @@
+"""MCAP flight logs: round trip, Foxglove schemas, truncated and corrupt files, crash bound."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from companion.flightlog import (
+    TOPIC_GROUNDTRUTH,
+    TOPIC_IMAGE,
+    FlightLogError,
+    FlightLogWriter,
+    read_log,
+)
+
+
+def _write(path, n=40):
+    with FlightLogWriter(path, {"config": {"seed": 3, "planet": "earth"}}) as w:
+        for k in range(n):
+            t = k * 0.1
+            w.write_image(t, np.full((128, 128), k % 256, np.uint8), k)
+            w.write(TOPIC_GROUNDTRUTH, "visland.GroundTruth", t, {"pos_ned_m": [k, 0.0, -1.0]})
+            w.write_pose(t, [k, 0.0, -1.0], [1.0, 0.0, 0.0, 0.0])
+
+
+def test_round_trip(tmp_path):
+    path = tmp_path / "f.mcap"
+    _write(path)
+    log = read_log(path)
+    assert not log.truncated and log.error is None
+    assert log.metadata["config"] == {"seed": 3, "planet": "earth"}
+    times, frames = log.images()
+    assert frames.shape == (40, 128, 128) and frames[7, 5, 5] == 7
+    np.testing.assert_allclose(times, np.arange(40) * 0.1)
+    assert [m["pos_ned_m"][0] for m in log.topic(TOPIC_GROUNDTRUTH)] == list(range(40))
+    assert log.duration_s == pytest.approx(3.9)
+
+
+def test_schemas_are_foxglove_names_with_json_schema(tmp_path):
+    from mcap.reader import make_reader
+
+    path = tmp_path / "f.mcap"
+    _write(path, 3)
+    with path.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    schemas = {s.name: json.loads(s.data) for s in summary.schemas.values()}
+    assert {"foxglove.RawImage", "foxglove.PoseInFrame", "visland.GroundTruth"} <= set(schemas)
+    assert all(s["type"] == "object" and s["title"] == n for n, s in schemas.items())
+    assert all(c.message_encoding == "json" for c in summary.channels.values())
+
+
+def test_truncated_file_gives_its_prefix(tmp_path):
+    path = tmp_path / "f.mcap"
+    _write(path, 60)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    log = read_log(cut)
+    assert log.truncated and log.error
+    n = len(log.topic(TOPIC_IMAGE))
+    assert 0 < n < 60
+    assert [m["time_s"] for m in log.topic(TOPIC_IMAGE)] == pytest.approx(np.arange(n) * 0.1)
+
+
+@pytest.mark.parametrize(
+    "content", [b"", b"not an mcap file at all", b"\x89MCAP0\r\n" + b"\xff" * 64]
+)
+def test_corrupt_files(tmp_path, content):
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(content)
+    if content.startswith(b"\x89MCAP0\r\n"):
+        log = read_log(path)  # right magic, garbage after: an empty, truncated log
+        assert log.truncated and not log.messages
+    else:
+        with pytest.raises(FlightLogError, match=r"bad\.mcap: not an MCAP file"):
+            read_log(path)
+    with pytest.raises(FlightLogError, match="cannot open"):
+        read_log(tmp_path / "missing.mcap")
+
+
+def test_sigkill_loses_at_most_the_last_second(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = textwrap.dedent(
+        f"""
+        import sys, time
+        import numpy as np
+        from companion.flightlog import FlightLogWriter, TOPIC_GROUNDTRUTH
+        w = FlightLogWriter({str(path)!r})
+        t = 0.0
+        while True:  # real time: 10 Hz frames and state, until killed
+            w.write_image(t, np.zeros((128, 128), np.uint8), int(t * 10))
+            w.write(TOPIC_GROUNDTRUTH, "visland.GroundTruth", t, {{"wall": time.time()}})
+            if t == 0.0:
+                print("started", flush=True)
+            t += 0.1
+            time.sleep(0.1)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "started"
+        time.sleep(3.5)
+        kill_wall = time.time()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    log = read_log(path)
+    last = log.topic(TOPIC_GROUNDTRUTH)[-1]["wall"]
+    assert kill_wall - last <= 1.2  # flushed at least every second (+ scheduling slack)
