@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.contract import Command
+from expert.policy import MissingGroundTruthError
 from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.dynamics import quat_to_rotation
 
@@ -35,12 +36,27 @@ class CascadeGains:
 
 
 class CascadeLander:
-    """Ground truth in, Command out: ``command(pos, vel, quat) -> Command``."""
+    """Ground truth in, Command out: ``command(pos, vel, quat) -> Command``.
+
+    Also a (privileged, stateless) :class:`expert.policy.Policy`.
+    """
+
+    privileged = True
 
     def __init__(self, vehicle: VehicleConfig, world: Planet, gains: CascadeGains | None = None):
         self.vehicle = vehicle
         self.world = world
         self.gains = gains or CascadeGains()
+
+    def initial_state(self) -> None:
+        return None
+
+    def act(self, observation, groundtruth, state):
+        """The Policy interface: needs ``groundtruth`` (privileged)."""
+        if groundtruth is None:
+            raise MissingGroundTruthError("CascadeLander is privileged: act() needs groundtruth")
+        gt = groundtruth
+        return self.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz), state
 
     def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command:
         g = self.gains

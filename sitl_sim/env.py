@@ -13,8 +13,9 @@
   so RL baselines have a sensible target.
 
 ``reset(seed=s)`` starts the episode sequence of seed ``s`` (episode 0 of the scenario sampler);
-each later ``reset()`` without a seed takes the next episode. ``options={"initial_state": st}``
-starts from a given :class:`~sitl_sim.scenario.InitialState`. Same seed, same actions: identical
+each later ``reset()`` without a seed takes the next episode; ``options={"episode_index": i}``
+takes episode ``i`` of the seed, ``options={"initial_state": st}`` starts from a given
+:class:`~sitl_sim.scenario.InitialState`. Same seed, same actions: identical
 observations, bit for bit.
 """
 
@@ -99,13 +100,16 @@ class LandingEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        opts = options or {}
         if seed is not None or self._sampler is None:
             self._seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
             self._sampler = InitialStateSampler(self.scenario, self._seed)
             self._episode_index = 0
         else:
             self._episode_index += 1
-        initial = (options or {}).get("initial_state")
+        if "episode_index" in opts:  # jump to episode i of the seed (parallel workers, resume)
+            self._episode_index = int(opts["episode_index"])
+        initial = opts.get("initial_state")
         if initial is None:
             initial = self._sampler.sample(self._episode_index)
         elif not isinstance(initial, InitialState):

@@ -53,7 +53,101 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if result["landed"] else 1
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from training.evaluate import EvalConfig, evaluate, format_table
+
+    report = evaluate(
+        EvalConfig(
+            policy=args.policy,
+            episodes=args.episodes,
+            seed=args.seed,
+            scenario=str(args.scenario) if args.scenario else None,
+            workers=args.workers,
+            render_camera=not args.no_camera,
+            progress=not args.json,
+        )
+    )
+    if args.json:
+        _print_json(report)
+    else:
+        format_table(report, sys.stdout)
+    return 0
+
+
+def _cmd_collect(args: argparse.Namespace) -> int:
+    from training.evaluate import CollectConfig, collect, format_table
+
+    summary = collect(
+        CollectConfig(
+            out=args.out,
+            episodes=args.episodes,
+            seed=args.seed,
+            scenario=str(args.scenario) if args.scenario else None,
+            workers=args.workers,
+        )
+    )
+    if args.json:
+        _print_json(summary)
+    else:
+        print(
+            f"{summary['flown_now']} flown now, {summary['already_complete']} already complete; "
+            f"logs in {summary['flights_dir']}"
+        )
+        if summary["flown_now"]:
+            format_table({**summary, "episodes": summary["flown_now"]}, sys.stdout)
+    failed = summary.get("policy_stats", {}).get("failed", 0)
+    return 0 if summary["timeouts"] == 0 and not failed else 1
+
+
+def _cmd_relabel(args: argparse.Namespace) -> int:
+    import time
+
+    from expert.relabel import relabel
+
+    t0 = time.perf_counter()
+    reports = relabel(args.logs, args.out, workers=args.workers)
+    wall = time.perf_counter() - t0
+    steps = sum(r.steps for r in reports)
+    failed = [r for r in reports if not r.ok]
+    for r in reports:
+        if not r.ok:
+            print(f"visland relabel: {r.error}", file=sys.stderr)
+        elif r.truncated:
+            print(
+                f"visland relabel: {r.log}: truncated log, labelled its readable prefix "
+                f"({r.steps} steps)",
+                file=sys.stderr,
+            )
+    summary = {
+        "logs": len(reports),
+        "failed": len(failed),
+        "steps": steps,
+        "wall_s": wall,
+        "steps_per_s": steps / wall if wall > 0 else None,
+        "labels_dir": str(args.out),
+        "per_log": [r.__dict__ for r in reports],
+    }
+    if args.json:
+        _print_json(summary)
+    else:
+        print(
+            f"labelled {steps} steps of {len(reports) - len(failed)}/{len(reports)} logs in "
+            f"{wall:.1f} s ({summary['steps_per_s'] or 0:.0f} steps/s) -> {args.out}"
+        )
+    return 1 if failed else 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "mpc":
+        from expert.bench import bench_mpc
+
+        res = bench_mpc()
+        if args.json:
+            _print_json(res)
+        else:
+            for k, v in res.items():
+                print(f"{k:>28}: {v:.4g}" if isinstance(v, float) else f"{k:>28}: {v}")
+        return 0
     if args.what == "sim":
         from tools.bench import SimBenchConfig, bench_sim
 
@@ -90,23 +184,56 @@ def _parser() -> argparse.ArgumentParser:
     d.set_defaults(func=_cmd_demo)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")
-    b.add_argument("what", choices=["sim"], help="sim: simulator real-time factor on one core")
+    b.add_argument(
+        "what",
+        choices=["sim", "mpc"],
+        help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's",
+    )
     b.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per repeat")
     b.add_argument("--repeats", type=int, default=3, help="repeats (median reported)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true", help="machine-readable output")
     b.set_defaults(func=_cmd_bench)
+
+    e = sub.add_parser("eval", help="fly a policy over the scenario and print landing metrics")
+    e.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
+    e.add_argument("--episodes", type=int, default=20)
+    e.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
+    e.add_argument("--scenario", type=Path, default=None)
+    e.add_argument("--workers", type=int, default=1, help="parallel processes")
+    e.add_argument(
+        "--no-camera", action="store_true", help="skip rendering (privileged policies only)"
+    )
+    e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.set_defaults(func=_cmd_eval)
+
+    c = sub.add_parser("collect", help="fly the expert and write one MCAP log per episode")
+    c.add_argument("--episodes", type=int, default=300)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", type=Path, required=True, help="run folder (logs in OUT/flights)")
+    c.add_argument("--scenario", type=Path, default=None)
+    c.add_argument("--workers", type=int, default=1)
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=_cmd_collect)
+
+    r = sub.add_parser("relabel", help="expert labels for every control step of flight logs")
+    r.add_argument("logs", nargs="+", type=Path, help="MCAP flight logs")
+    r.add_argument("--out", type=Path, required=True, help="folder for the .labels.mcap files")
+    r.add_argument("--workers", type=int, default=1)
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=_cmd_relabel)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     from companion.contract import ContractError
+    from companion.flightlog import FlightLogError
     from sitl_sim.errors import SimError
 
     try:
         return int(args.func(args))
-    except (SimError, ContractError) as exc:
+    except (SimError, ContractError, FlightLogError, FileNotFoundError, ValueError) as exc:
         print(f"visland {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,147 @@
+"""``visland eval`` and ``visland collect``: fly a policy over the scenario, report or record.
+
+The metrics are ``sitl_sim.metrics`` (one definition everywhere); the JSON has at least the keys
+DESIGN.md lists: episodes, transport, seed, landing_error_m {min, max, mean, std},
+touchdown_speed_m_s {...}, success_rate and per_episode rows.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+from tqdm import tqdm
+
+from sitl_sim.metrics import summarize
+from training.rollout import (
+    EpisodeOutcome,
+    RolloutSpec,
+    completed_episode,
+    log_name,
+    run_episodes,
+)
+
+__all__ = ["CollectConfig", "EvalConfig", "collect", "evaluate", "format_table"]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Options of ``visland eval``."""
+
+    policy: str = "expert"
+    """``expert`` (MPC), ``cascade`` (PD baseline) or a checkpoint path."""
+    episodes: int = 20
+    seed: int = 1_000_000
+    """Evaluation seed; keep it disjoint from training/collection seeds."""
+    scenario: str | None = None
+    workers: int = 1
+    render_camera: bool = True
+    """Render the camera (needed by vision policies; privileged ones can skip it)."""
+    progress: bool = True
+
+
+def _totals(outcomes: list[EpisodeOutcome]) -> dict[str, int]:
+    total: dict[str, int] = {}
+    for o in outcomes:
+        for k, v in o.policy_stats.items():
+            total[k] = total.get(k, 0) + v
+    return total
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    return tqdm(total=total, desc=desc, unit="ep", file=sys.stderr, disable=not enabled)
+
+
+def evaluate(cfg: EvalConfig) -> dict[str, Any]:
+    if cfg.episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    spec = RolloutSpec(
+        policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, render_camera=cfg.render_camera
+    )
+    t0 = time.perf_counter()
+    with _progress(cfg.episodes, cfg.progress, f"eval {cfg.policy}") as bar:
+        outcomes = run_episodes(
+            spec, list(range(cfg.episodes)), cfg.workers, on_done=lambda _: bar.update()
+        )
+    results = [o.result for o in outcomes]
+    return {
+        "policy": cfg.policy,
+        "transport": "inprocess",
+        "seed": cfg.seed,
+        "scenario": cfg.scenario or "configs/scenario.toml",
+        **summarize(results),
+        "policy_stats": _totals(outcomes),
+        "wall_s": time.perf_counter() - t0,
+        "per_episode": [o.row() for o in outcomes],
+    }
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """Options of ``visland collect``."""
+
+    out: Path
+    """Run folder; logs go to ``<out>/flights/``."""
+    episodes: int = 300
+    seed: int = 0
+    scenario: str | None = None
+    workers: int = 1
+    policy: str = "expert"
+    progress: bool = True
+
+
+def collect(cfg: CollectConfig) -> dict[str, Any]:
+    """Fly the expert and write one flight log per episode; resumable (skips complete logs)."""
+    flights = Path(cfg.out) / "flights"
+    flights.mkdir(parents=True, exist_ok=True)
+    todo, done = [], []
+    for i in range(cfg.episodes):
+        (done if completed_episode(flights / log_name(cfg.seed, i)) else todo).append(i)
+    spec = RolloutSpec(
+        policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, log_dir=str(flights)
+    )
+    t0 = time.perf_counter()
+    with _progress(len(todo), cfg.progress, f"collect {cfg.policy}") as bar:
+        outcomes = run_episodes(spec, todo, cfg.workers, on_done=lambda _: bar.update())
+    summary = {
+        "policy": cfg.policy,
+        "seed": cfg.seed,
+        "episodes": cfg.episodes,
+        "flown_now": len(todo),
+        "already_complete": len(done),
+        "flights_dir": str(flights),
+        **{k: v for k, v in summarize([o.result for o in outcomes]).items() if k != "episodes"},
+        "policy_stats": _totals(outcomes),
+        "wall_s": time.perf_counter() - t0,
+        "per_episode": [o.row() for o in outcomes],
+    }
+    (Path(cfg.out) / f"collect_s{cfg.seed}.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def format_table(report: dict[str, Any], out: TextIO) -> None:
+    """A human summary of an eval/collect report."""
+
+    def row(name: str, key: str, unit: str) -> None:
+        s = report.get(key) or {}
+        if not s:
+            return
+        out.write(
+            f"  {name:<22} min {s['min']:8.3f}  max {s['max']:8.3f}  mean {s['mean']:8.3f}"
+            f"  std {s['std']:8.3f} {unit}\n"
+        )
+
+    n = report.get("episodes")
+    out.write(f"{report.get('policy')}: {n} episodes, seed {report.get('seed')}\n")
+    row("landing error", "landing_error_m", "m")
+    row("touchdown speed", "touchdown_speed_m_s", "m/s")
+    row("tilt at touchdown", "tilt_deg", "deg")
+    row("time to touchdown", "time_s", "s")
+    out.write(
+        f"  success rate {100 * report['success_rate']:.1f} %   timeouts {report['timeouts']}"
+        f"   policy counters {report.get('policy_stats', {})}\n"
+    )

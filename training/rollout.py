@@ -1,0 +1,270 @@
+"""Fly policies in process: one episode, many episodes in parallel workers, expert collection.
+
+The in-process path writes the same flight-log topics as the MAVLink SITL
+(``sitl_sim.flight_record``), so ``visland relabel`` and training read both alike.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, is_dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from companion.flightlog import TOPIC_RESULT, FlightLogError, FlightLogWriter, read_log
+from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.env import LandingEnv
+from sitl_sim.flight_record import (
+    write_control_step,
+    write_episode_result,
+    write_episode_start,
+)
+from sitl_sim.metrics import EpisodeResult
+
+__all__ = [
+    "EpisodeOutcome",
+    "RolloutSpec",
+    "fly_episode",
+    "git_commit",
+    "log_name",
+    "make_policy",
+    "run_episodes",
+]
+
+
+def git_commit() -> str:
+    """The repository's HEAD commit (``unknown`` outside a git checkout)."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+            check=True,
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def make_policy(name: str, env: LandingEnv):
+    """``expert`` (the MPC), ``cascade`` (the PD baseline), or a checkpoint path."""
+    if name == "expert":
+        from expert.mpc import MpcExpert
+
+        return MpcExpert(env.vehicle, env.sim_config)
+    if name == "cascade":
+        from expert.cascade import CascadeLander
+
+        return CascadeLander(env.vehicle, env.sim_config.planet)
+    path = Path(name)
+    if not path.exists():
+        raise FileNotFoundError(
+            f"policy {name!r}: not 'expert', 'cascade' or an existing checkpoint file"
+        )
+    from training.checkpoint import load_policy  # the learned policies (training issue)
+
+    return load_policy(path)
+
+
+@dataclass(frozen=True)
+class RolloutSpec:
+    """What a worker needs to fly episodes: picklable, so it crosses process boundaries."""
+
+    policy: str = "expert"
+    seed: int = 0
+    scenario: str | None = None
+    vehicle: str | None = None
+    sim: str | None = None
+    render_camera: bool = True
+    log_dir: str | None = None
+    """Write one MCAP flight log per episode here (None: no logs)."""
+
+
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    """How one episode went, plus the pilot's counters (e.g. MPC solve statistics)."""
+
+    seed: int
+    episode_index: int
+    result: EpisodeResult
+    steps: int
+    log_path: str | None = None
+    policy_stats: dict[str, int] = field(default_factory=dict)
+
+    def row(self) -> dict[str, Any]:
+        return {
+            "seed": self.seed,
+            "episode": self.episode_index,
+            **self.result.to_dict(),
+            "steps": self.steps,
+            "log": self.log_path,
+            **{f"policy_{k}": v for k, v in self.policy_stats.items()},
+        }
+
+
+def _policy_counts(policy) -> dict[str, int]:
+    """A policy's integer counters (e.g. the MPC's solve statistics), if it keeps any."""
+    stats = getattr(policy, "stats", None)
+    if stats is None or not is_dataclass(stats):
+        return {}
+    return {k: int(v) for k, v in asdict(stats).items()}
+
+
+def log_name(seed: int, index: int) -> str:
+    return f"ep_s{seed}_{index:05d}.mcap"
+
+
+def fly_episode(
+    env: LandingEnv,
+    policy,
+    seed: int,
+    index: int,
+    log_path: Path | None = None,
+    source: str = "policy",
+    metadata: dict[str, Any] | None = None,
+) -> EpisodeOutcome:
+    """Fly episode ``index`` of ``seed`` with ``policy`` (``act(obs, gt, state)``).
+
+    With ``log_path``, the flight log is written to ``<log_path>.part`` and renamed when the
+    episode has ended, so an existing ``.mcap`` is always a complete flight.
+    """
+    env.reset(seed=seed, options={"episode_index": index})
+    sim = env.simulator
+    stats_before = _policy_counts(policy)
+    log = None
+    tmp = None
+    if log_path is not None:
+        tmp = log_path.with_suffix(".mcap.part")
+        meta = {
+            "config": {
+                "vehicle": env.vehicle.to_dict(),
+                "sim": env.sim_config.to_dict(),
+                "scenario": env.scenario.to_dict(),
+            },
+            "episode": {"seed": seed, "episode_index": index, "source": source},
+            **(metadata or {}),
+        }
+        log = FlightLogWriter(tmp, meta)
+        write_episode_start(log, env.initial_state, env.scenario.to_dict(), seed, index)
+    try:
+        state = policy.initial_state()
+        steps = 0
+        frame = 0
+        truth = sim.ground_truth()
+        obs = sim.observe(frame_id=frame, truth=truth)
+        max_steps = math.ceil(env.sim_config.episode_timeout_s * env.sim_config.control_rate_hz)
+        result = None
+        while result is None:
+            command, state = policy.act(obs, truth, state)
+            if log is not None:
+                write_control_step(log, obs, truth, command, source)
+            contact = sim.step(command)
+            steps += 1
+            truth = sim.ground_truth()
+            if contact is not None:
+                result = EpisodeResult.from_contact(contact)
+            elif steps >= max_steps:
+                result = EpisodeResult.timeout(truth.time_s, truth.pos_ned_m, truth.vel_ned_m_s)
+            else:
+                frame += 1
+                obs = sim.observe(frame_id=frame, truth=truth)
+        if log is not None:
+            write_episode_result(log, result)
+    finally:
+        if log is not None:
+            log.close()
+    if log_path is not None and tmp is not None:
+        tmp.replace(log_path)
+    delta = {k: v - stats_before.get(k, 0) for k, v in _policy_counts(policy).items()}
+    return EpisodeOutcome(
+        seed=seed,
+        episode_index=index,
+        result=result,
+        steps=steps,
+        log_path=str(log_path) if log_path is not None else None,
+        policy_stats=delta,
+    )
+
+
+# --------------------------------------------------------------------------- parallel workers
+
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(spec: RolloutSpec) -> None:
+    env = LandingEnv(
+        vehicle=load_vehicle(spec.vehicle),
+        sim=load_sim(spec.sim),
+        scenario=spec.scenario,
+        render_camera=spec.render_camera,
+    )
+    _WORKER["env"] = env
+    _WORKER["policy"] = make_policy(spec.policy, env)
+    _WORKER["spec"] = spec
+    _WORKER["commit"] = git_commit()
+
+
+def _worker_run(index: int) -> EpisodeOutcome:
+    spec: RolloutSpec = _WORKER["spec"]
+    log_path = Path(spec.log_dir) / log_name(spec.seed, index) if spec.log_dir else None
+    return fly_episode(
+        _WORKER["env"],
+        _WORKER["policy"],
+        spec.seed,
+        index,
+        log_path,
+        source=spec.policy,
+        metadata={"provenance": {"git_commit": _WORKER["commit"], "policy": spec.policy}},
+    )
+
+
+def run_episodes(
+    spec: RolloutSpec,
+    indices: list[int],
+    workers: int = 1,
+    on_done: Callable[[EpisodeOutcome], None] | None = None,
+) -> list[EpisodeOutcome]:
+    """Fly the given episode indices, in ``workers`` processes; results sorted by index."""
+    outcomes: list[EpisodeOutcome] = []
+
+    def consume(it: Iterator[EpisodeOutcome]) -> None:
+        for out in it:
+            outcomes.append(out)
+            if on_done is not None:
+                on_done(out)
+
+    if workers <= 1 or len(indices) <= 1:
+        _worker_init(spec)
+        try:
+            consume(_worker_run(i) for i in indices)
+        finally:
+            _WORKER["env"].close()
+            _WORKER.clear()
+    else:
+        # spawn: workers never inherit a pybullet client or torch threads from the parent.
+        ctx = get_context("spawn")
+        with ProcessPoolExecutor(
+            max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(spec,)
+        ) as pool:
+            consume(pool.map(_worker_run, indices, chunksize=1))
+    return sorted(outcomes, key=lambda o: o.episode_index)
+
+
+def completed_episode(path: Path) -> bool:
+    """True when ``path`` is a complete, readable flight log with an episode result."""
+    try:
+        log = read_log(path, topics=[TOPIC_RESULT])
+    except FlightLogError:
+        return False
+    return not log.truncated and bool(log.topic(TOPIC_RESULT))
+
+
+def default_workers() -> int:
+    return max(1, min(os.cpu_count() or 1, 8))
