@@ -3,36 +3,42 @@
 Model. State ``x`` (9, :class:`ModelState`): position NED (m), velocity NED (m/s), roll/pitch/yaw
 (rad, ZYX). Input ``u`` (4, :class:`ModelInput`): ``thrust_norm`` and FRD body rates (rad/s) —
 exactly the :class:`~companion.contract.Command` space, so expert labels are what the companion
-sends. The autopilot's rate loop is treated as ideal at the 10 Hz planning rate. ``f(x, u)`` is
-evaluated through ``sitl_sim.dynamics.derivative`` (gravity, collective thrust, body drag and
-quaternion kinematics), so no physics constant is retyped here; the Jacobians about hover are
-central differences of it, discretised by zero-order hold (``scipy.linalg.expm``) at the control
-period. The residual ``f(x0, u_hover) - A x0`` at the current state (mostly body drag, which is
-quadratic and so invisible in a hover linearisation) is fed forward as a constant affine term
-over the horizon.
+sends. ``f(x, u)`` is evaluated through ``sitl_sim.dynamics.derivative`` (gravity, collective
+thrust, body drag and quaternion kinematics), so no physics constant is retyped here; the
+Jacobians about hover are central differences of it, discretised by zero-order hold
+(``scipy.linalg.expm``) at the control period. Two cheap corrections keep the hover model honest
+away from hover, both computed per solve from the same physics:
+
+* the residual ``f(x0, u_hover) - A x0`` at the current state (mostly body drag, quadratic and
+  so invisible to a hover linearisation) is fed forward as a constant affine term;
+* the rate loop follows a setpoint with a lag (``1/kp`` + rotor lag, from the vehicle config)
+  the model does not have, so the start attitude is led by the rotation still under way.
 
 Yaw. The model is linearised at yaw 0; every solve works in the *heading frame*: horizontal
-position and velocity rotated by ``-yaw`` so the current yaw is 0 in the model. The yaw held is
-the one of the episode's first step (kept in the policy state); its error is a state the MPC
-drives to zero with ``r``, and the rate loop damps any yaw rate.
+position and velocity rotated by ``-yaw`` so the current yaw is 0 in the model. The heading held
+is the one of the episode's first step (kept in the policy state, :class:`MpcState`); its error
+is a state the MPC drives to zero with ``r``, and the rate loop damps any yaw rate.
 
-QP (OSQP, sparse, built once). Variables ``z = [x_1..x_N, du_0..du_{N-1}, s_1..s_N]`` with
-``du = u - u_hover`` and ``s_k >= 0`` one slack per step for the safety constraints. Cost: control effort
-about hover, tracking of a descent-speed profile that slows down near the ground, and — as the
-paper's proximity switch — two cost sets: *far* (efficiency first, the pad only as a terminal
+QP (OSQP, sparse, built once). Variables ``z = [x_1..x_N, du_0..du_{N-1}, s_1..s_N]``, with
+``du = u - u_hover`` and ``s_k >= 0`` one slack per step for the soft constraints. Cost: control
+effort about hover; tracking of a descent-speed profile that slows down near the ground; and, as
+the paper's proximity switch, two cost sets: *far* (efficiency first, the pad only as a terminal
 cost) and *near* (a position-tracking cost at every step). Each cost set has its own OSQP
 instance, set up once; per step only the vectors ``q``, ``l``, ``u`` change. Constraints:
-dynamics; ``0 <= thrust <= max_thrust_mg * m g`` and body rates within the autopilot's
-``max_rate_rad_s`` (hard: inputs can always meet them); and, softened by ``s_k`` with an exact
-(linear + quadratic) penalty, ``|roll|, |pitch| <= max_tilt_deg``, altitude ``>= 0`` (up to
-``ground_margin_m``: touchdown is an event the plan flies through, not a state it must stop at)
-and downward speed ``<= at_ground + slope * altitude``. Soft safety constraints hold whenever
-they can; at a state where they cannot (a learner's DAgger state too low, fast or tilted) the QP
-stays feasible and the label is the best effort instead of no label at all.
+
+* dynamics;
+* ``0 <= thrust <= max_thrust_mg * m g``, body rates within the autopilot's ``max_rate_rad_s``;
+* ``|roll|, |pitch| <= max_tilt_deg`` (hard; from a state already beyond it, a funnel back to it
+  that the rate limits can follow, so the QP is feasible from any attitude);
+* soft, with an exact (linear + quadratic) slack penalty so they hold whenever they can and a
+  state a learner drove too low or too fast still gets a best-effort label: altitude
+  ``>= -ground_margin_m`` (paper: ``z >= 0``; touchdown is an event the plan flies through, not
+  a state it must stop at) and downward speed ``<= at_ground + slope * altitude`` (what makes
+  the touchdown soft).
 
 A solve whose status is not *solved* is never used: the same QP goes to Clarabel (interior
-point), and if that fails too :class:`MpcSolveError` is raised for the caller to record. Counts
-are in :attr:`MpcExpert.stats`.
+point, direct API), and if that fails too :class:`MpcSolveError` is raised for the caller to
+record. Counts are in :attr:`MpcExpert.stats`.
 """
 
 from __future__ import annotations
@@ -114,6 +120,12 @@ class MpcConfig:
     )
     descent_limit_slope_1_s: float = _param(
         "descent", 0.0, 10.0, "1/s", "growth of that limit per metre of altitude"
+    )
+    approach_slope: float = _param(
+        "descent", 0.0, 100.0, "m/m", "approach cone: altitude kept per metre off the pad"
+    )
+    approach_deadband_m: float = _param(
+        "descent", 0.0, 100.0, "m", "horizontal distance within which the cone does not apply"
     )
     max_thrust_mg: float = _param("limits", 1.0, 10.0, "m g", "collective thrust limit")
     max_tilt_deg: float = _param("limits", 1.0, 80.0, "deg", "roll and pitch limit")
@@ -245,6 +257,7 @@ NU = len(ModelInput)
 _EULER = slice(ModelState.ROLL, ModelState.YAW + 1)
 _VEL = slice(ModelState.VN, ModelState.VD + 1)
 _QUAT_STEP = 1e-6  # s: central-difference step of the Euler angles along the quaternion rate
+_OSQP_RHO = 0.1  # OSQP's initial ADMM step size (its default), restored at every episode start
 
 
 def model_derivative(phys: Physics, x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -270,9 +283,9 @@ def model_derivative(phys: Physics, x: np.ndarray, u: np.ndarray) -> np.ndarray:
     qdot = d[6:10]
     plus = quat + _QUAT_STEP * qdot
     minus = quat - _QUAT_STEP * qdot
-    euler_rate = (
-        euler_from_quat(plus / np.linalg.norm(plus)) - euler_from_quat(minus / np.linalg.norm(minus))
-    ) / (2.0 * _QUAT_STEP)
+    euler_plus = euler_from_quat(plus / np.linalg.norm(plus))
+    euler_minus = euler_from_quat(minus / np.linalg.norm(minus))
+    euler_rate = (euler_plus - euler_minus) / (2.0 * _QUAT_STEP)
     return np.concatenate((d[0:6], euler_rate))
 
 
@@ -479,7 +492,7 @@ class _Qp:
         self.u_hi = u_hi + u_hover
 
     def cost_diagonal(self, cfg: MpcConfig, pos_ne: float, vel_ne: float) -> np.ndarray:
-        """Diagonal of the quadratic cost (weights, not yet doubled for OSQP's 1/2 z'Pz)."""
+        """(nz,) diagonal of the quadratic cost (weights, not yet doubled for OSQP's 1/2 z'Pz)."""
         q = np.zeros(NX)
         q[[ModelState.N, ModelState.E]] = pos_ne
         q[[ModelState.VN, ModelState.VE]] = vel_ne
@@ -492,7 +505,12 @@ class _Qp:
         q_terminal[[ModelState.VN, ModelState.VE]] += cfg.terminal_vel_ne
         r = np.array([cfg.thrust_norm, cfg.rate_roll_pitch, cfg.rate_roll_pitch, cfg.rate_yaw])
         return np.concatenate(
-            (np.tile(q, self.n - 1), q_terminal, np.tile(r, self.n), np.full(self.n, 0.0))
+            (
+                np.tile(q, self.n - 1),
+                q_terminal,
+                np.tile(r, self.n),
+                np.full(self.n, cfg.slack_quadratic),
+            )
         )
 
 
@@ -529,7 +547,6 @@ class MpcExpert:
             ("near", cfg.near_pos_ne, cfg.near_vel_ne),
         ):
             w = qp.cost_diagonal(cfg, pos_ne, vel_ne)
-            w[qp.s0 :] = cfg.slack_quadratic
             self._weights[mode] = w
             solver = osqp.OSQP()
             solver.setup(
@@ -544,16 +561,26 @@ class MpcExpert:
                 max_iter=cfg.osqp_max_iter,
                 polishing=False,
                 warm_starting=True,
+                rho=_OSQP_RHO,
                 # A fixed rho-adaptation interval (not a fraction of setup time) keeps the
                 # iterates, and so the flights, bit-for-bit reproducible.
                 adaptive_rho_interval=25,
             )
             self._solvers[mode] = solver
         self._counts = {"solves": 0, "unsolved_osqp": 0, "fallback_used": 0, "failed": 0}
+        self.last_plan: MpcPlan | None = None
+        """The plan behind the latest :meth:`act` command (predicted trajectory, solver, time)."""
 
     # ------------------------------------------------------------------ Policy API
 
     def initial_state(self) -> MpcState:
+        """A new episode. Also returns both OSQP instances to their just-set-up state (cold
+        iterate and the initial step size rho, which OSQP adapts while solving), so an episode's
+        commands never depend on which episodes this instance flew before: one worker and N
+        workers fly the same flights, bit for bit."""
+        for solver in self._solvers.values():
+            solver.update_settings(rho=_OSQP_RHO)
+            solver.warm_start(x=np.zeros(self._qp.nz), y=np.zeros(self._qp.a.shape[0]))
         return MpcState()
 
     def act(
@@ -577,6 +604,7 @@ class MpcExpert:
         if yaw_hold is None:
             yaw_hold = float(euler_from_quat(groundtruth.quat_wxyz)[2])
             state = MpcState(yaw_hold_rad=yaw_hold)
+        self.last_plan = None  # a failed solve must not leave the previous plan looking current
         plan = self.plan(
             groundtruth.pos_ned_m,
             groundtruth.vel_ned_m_s,
@@ -584,6 +612,7 @@ class MpcExpert:
             yaw_hold,
             groundtruth.rate_frd_rad_s,
         )
+        self.last_plan = plan
         return plan.command, state
 
     # ------------------------------------------------------------------ solving
@@ -611,21 +640,34 @@ class MpcExpert:
         lead = quat + qdot  # one unit-time Euler step of q' = q (x) (0, w lag) / 2
         return lead / np.linalg.norm(lead)
 
-    def _reference(self, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Reference altitude (m) and downward speed (m/s) at steps 1..N of the descent profile."""
+    def _reference(self, altitude_m: float, horizontal_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Reference altitude (m) and downward speed (m/s) at steps 1..N of the descent profile.
+
+        The profile is ``clip(gain * altitude, touchdown, max)``, scaled by the approach cone
+        ``clip(1 - slope * max(d - deadband, 0) / altitude, 0, 1)`` of the horizontal distance
+        ``d`` to the pad: far off the pad (a learner's DAgger state, say) the expert flies over
+        the pad first instead of touching down short of it; on the pad the cone is inactive.
+        """
         cfg = self.config
         dt = self.model.dt_s
         n = cfg.horizon_steps
+        off_cone = cfg.approach_slope * max(horizontal_m - cfg.approach_deadband_m, 0.0)
         h = max(altitude_m, 0.0)
         alt = np.empty(n)
         v_down = np.empty(n)
-        for k in range(n):
-            v = min(cfg.max_descent_m_s, max(cfg.touchdown_descent_m_s, cfg.descent_gain_1_s * h))
-            h = max(h - v * dt, 0.0)
-            alt[k] = h
-            v_down[k] = min(
-                cfg.max_descent_m_s, max(cfg.touchdown_descent_m_s, cfg.descent_gain_1_s * h)
+
+        def speed(height: float) -> float:
+            profile = min(
+                cfg.max_descent_m_s, max(cfg.touchdown_descent_m_s, cfg.descent_gain_1_s * height)
             )
+            if off_cone <= 0.0:
+                return profile
+            return profile * min(1.0, max(0.0, 1.0 - off_cone / max(height, 1e-6)))
+
+        for k in range(n):
+            h = max(h - speed(h) * dt, 0.0)
+            alt[k] = h
+            v_down[k] = speed(h)
         return alt, v_down
 
     def plan(
@@ -662,9 +704,19 @@ class MpcExpert:
         c, s = math.cos(yaw), math.sin(yaw)
         pn, pe, pd = (float(v) for v in pos_ned_m)
         vn, ve, vd = (float(v) for v in vel_ned_m_s)
+        # (9,) in ModelState order: N, E, D, VN, VE, VD, roll, pitch, yaw (0 in this frame).
         x0 = np.array(
-            [c * pn + s * pe, -s * pn + c * pe, pd, c * vn + s * ve, -s * vn + c * ve, vd]
-            + [roll, pitch, 0.0]
+            [
+                c * pn + s * pe,
+                -s * pn + c * pe,
+                pd,
+                c * vn + s * ve,
+                -s * vn + c * ve,
+                vd,
+                roll,
+                pitch,
+                0.0,
+            ]
         )
         # Affine residual of the nonlinear model at x0 with hover input (mostly body drag).
         acc = translational_accel_ned(
@@ -688,7 +740,7 @@ class MpcExpert:
         lo[qp.tilt_rows] = -tilt_k
         hi[qp.tilt_rows] = tilt_k
         # Reference trajectory and the proximity switch of the paper.
-        alt_ref, vd_ref = self._reference(-pd)
+        alt_ref, vd_ref = self._reference(-pd, math.hypot(pn, pe))
         ref = np.zeros((qp.n, NX))
         ref[:, ModelState.D] = -alt_ref
         ref[:, ModelState.VD] = vd_ref

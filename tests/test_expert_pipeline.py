@@ -1,0 +1,168 @@
+"""Expert data pipeline: collect (resumable), relabel (exact, truncated, corrupt, wrong vehicle,
+NaN), eval JSON, and the landing-metric definitions on hand-made episodes."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from companion.flightlog import (
+    TOPIC_COMMAND,
+    TOPIC_GROUNDTRUTH,
+    TOPIC_IMAGE,
+    TOPIC_RESULT,
+    FlightLogWriter,
+    read_log,
+)
+from expert.relabel import TOPIC_LABEL, RelabelError, relabel, relabel_log
+from sitl_sim.dynamics import ContactEvent
+from sitl_sim.metrics import EpisodeResult, summarize
+from training.evaluate import CollectConfig, EvalConfig, collect, evaluate
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    summary = collect(CollectConfig(out=out, episodes=2, seed=77, progress=False))
+    assert summary["flown_now"] == 2 and summary["success_rate"] == 1.0
+    return out
+
+
+def test_collect_writes_complete_logs_and_resumes(run_dir):
+    logs = sorted((run_dir / "flights").glob("*.mcap"))
+    assert [p.name for p in logs] == ["ep_s77_00000.mcap", "ep_s77_00001.mcap"]
+    log = read_log(logs[0])
+    assert not log.truncated
+    assert log.metadata["config"]["vehicle"]["mass_kg"] == 1.0
+    assert log.metadata["episode"] == {"seed": 77, "episode_index": 0, "source": "expert"}
+    n = len(log.topic(TOPIC_IMAGE))
+    assert n > 100 and len(log.topic(TOPIC_GROUNDTRUTH)) == n == len(log.topic(TOPIC_COMMAND))
+    assert log.topic(TOPIC_RESULT)[0]["success"] is True
+    again = collect(CollectConfig(out=run_dir, episodes=2, seed=77, progress=False))
+    assert again["flown_now"] == 0 and again["already_complete"] == 2
+
+
+def test_relabel_reproduces_the_commands_the_expert_flew(run_dir, tmp_path):
+    rep = relabel_log(run_dir / "flights" / "ep_s77_00000.mcap", tmp_path)
+    assert rep.ok and not rep.truncated
+    labels = read_log(rep.labels).topic(TOPIC_LABEL)
+    assert len(labels) == rep.steps > 100
+    for lab in labels:
+        assert lab["thrust_norm"] == pytest.approx(lab["recorded_thrust_norm"], abs=1e-6)
+        np.testing.assert_allclose(lab["rate_frd_rad_s"], lab["recorded_rate_frd_rad_s"], atol=1e-6)
+    assert read_log(run_dir / "flights" / "ep_s77_00000.mcap").topic(TOPIC_RESULT)  # untouched
+
+
+def test_truncated_log_labels_its_prefix_and_corrupt_files_fail_alone(run_dir, tmp_path):
+    src = (run_dir / "flights" / "ep_s77_00001.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(src[: len(src) // 2])
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file")
+    good = run_dir / "flights" / "ep_s77_00000.mcap"
+    reports = relabel([cut, junk, good], tmp_path / "labels")
+    by = {r.log.rsplit("/", 1)[-1]: r for r in reports}
+    assert by["cut.mcap"].ok and by["cut.mcap"].truncated and 0 < by["cut.mcap"].steps
+    assert not by["junk.mcap"].ok and "junk.mcap: not an MCAP file" in by["junk.mcap"].error
+    assert by["ep_s77_00000.mcap"].ok
+
+
+def _copy_with(run_dir, tmp_path, edit_meta=None, edit_truth=None):
+    """Rewrite a flight log with its metadata or a ground-truth message altered."""
+    log = read_log(run_dir / "flights" / "ep_s77_00000.mcap")
+    meta = json.loads(json.dumps(log.metadata))
+    if edit_meta:
+        edit_meta(meta)
+    out = tmp_path / "edited.mcap"
+    with FlightLogWriter(out, meta) as w:
+        for topic, msgs in log.messages.items():
+            if topic == TOPIC_IMAGE:
+                continue
+            for k, m in enumerate(msgs):
+                if topic == TOPIC_GROUNDTRUTH and edit_truth and k == 5:
+                    m = edit_truth(dict(m))
+                w.write(
+                    topic, "visland.Any", m["time_s"], {x: v for x, v in m.items() if x != "time_s"}
+                )
+    return out
+
+
+def test_log_from_another_vehicle_is_refused(run_dir, tmp_path):
+    def heavier(meta):
+        meta["config"]["vehicle"]["mass_kg"] = 2.0
+
+    with pytest.raises(RelabelError, match=r"another vehicle config \(differs in \['mass_kg'\]\)"):
+        relabel_log(_copy_with(run_dir, tmp_path, edit_meta=heavier), tmp_path / "l")
+
+
+def test_nan_in_a_log_names_the_frame(run_dir, tmp_path):
+    def nan_pos(m):
+        m["pos_ned_m"] = [None, 0.0, -50.0]
+        return m
+
+    path = _copy_with(run_dir, tmp_path, edit_truth=nan_pos)
+    with pytest.raises(RelabelError, match=r"frame 5: bad record: pos_ned_m"):
+        relabel_log(path, tmp_path / "l")
+
+
+def test_eval_json_has_the_design_keys():
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "eval",
+            "--policy",
+            "expert",
+            "--episodes",
+            "2",
+            "--seed",
+            "123",
+            "--no-camera",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads(proc.stdout)
+    for key in ("episodes", "transport", "seed", "success_rate", "per_episode"):
+        assert key in rep
+    for key in ("landing_error_m", "touchdown_speed_m_s"):
+        assert set(rep[key]) == {"min", "max", "mean", "std"}
+    assert rep["episodes"] == 2 and rep["transport"] == "inprocess" and rep["seed"] == 123
+    assert len(rep["per_episode"]) == 2 and rep["policy_stats"]["failed"] == 0
+
+
+def test_eval_is_deterministic_across_worker_counts():
+    a = evaluate(EvalConfig(episodes=2, seed=9, workers=1, render_camera=False, progress=False))
+    b = evaluate(EvalConfig(episodes=2, seed=9, workers=2, render_camera=False, progress=False))
+    assert a["per_episode"] == [dict(r, log=None) for r in b["per_episode"]]
+
+
+def _contact(n, e, vel, tilt_deg, t=10.0):
+    return ContactEvent(t, np.array([n, e, 0.0]), np.array(vel), math.radians(tilt_deg))
+
+
+def test_metric_definitions_on_hand_made_episodes():
+    good = EpisodeResult.from_contact(_contact(0.3, 0.4, [0.0, 0.3, 0.4], 5.0))
+    assert good.landing_error_m == pytest.approx(0.5)
+    assert good.touchdown_speed_m_s == pytest.approx(0.5)
+    assert good.touchdown_vertical_speed_m_s == pytest.approx(0.4)
+    assert good.success
+    far = EpisodeResult.from_contact(_contact(1.2, 0.0, [0, 0, 0.2], 0.0))
+    hard = EpisodeResult.from_contact(_contact(0.0, 0.0, [0, 0, 1.5], 0.0))
+    tilted = EpisodeResult.from_contact(_contact(0.0, 0.0, [0, 0, 0.2], 25.0))
+    timeout = EpisodeResult.timeout(90.0, [3.0, 4.0, -10.0], [0, 0, 0])
+    assert not any(r.success for r in (far, hard, tilted, timeout))
+    assert timeout.landing_error_m == 5.0 and math.isnan(timeout.touchdown_speed_m_s)
+    s = summarize([good, far, hard, tilted, timeout])
+    assert s["episodes"] == 5 and s["timeouts"] == 1 and s["success_rate"] == pytest.approx(0.2)
+    assert s["landing_error_m"]["max"] == 5.0 and s["landing_error_m"]["min"] == 0.0
+    assert s["touchdown_speed_m_s"]["max"] == pytest.approx(1.5)  # the timeout has no speed
