@@ -63,14 +63,15 @@ def make_policy(name: str, env: LandingEnv):
         from expert.cascade import CascadeLander
 
         return CascadeLander(env.vehicle, env.sim_config.planet)
-    path = Path(name)
-    if not path.exists():
+    if not Path(name).exists():
         raise FileNotFoundError(
             f"policy {name!r}: not 'expert', 'cascade' or an existing checkpoint file"
         )
-    from training.checkpoint import load_policy  # the learned policies (training issue)
-
-    return load_policy(path)
+    # Learned-policy checkpoints come with the training pipeline; say so rather than guess.
+    raise ValueError(
+        f"policy {name!r}: loading learned-policy checkpoints is not available yet "
+        "(training pipeline); use --policy expert or --policy cascade"
+    )
 
 
 @dataclass(frozen=True)
