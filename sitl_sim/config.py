@@ -327,7 +327,19 @@ def load_sim(path: str | Path | None = None) -> SimConfig:
     path = Path(path) if path is not None else CONFIG_DIR / "sim.toml"
     root = _Fields(load_toml(path), str(path))
     s, i, a, r, c = (root.table(k) for k in ("sim", "imu", "attitude", "radar", "camera"))
-    cfg = SimConfig(
+    try:
+        cfg = _build_sim(s, i, a, r, c)
+    except ConfigError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ConfigError(f"{path}: {exc}") from None  # cross-field checks name the file too
+    for section in (root, s, i, a, r, c):
+        section.check_unknown()
+    return cfg
+
+
+def _build_sim(s: _Fields, i: _Fields, a: _Fields, r: _Fields, c: _Fields) -> SimConfig:
+    return SimConfig(
         physics_rate_hz=s.integer("physics_rate_hz", 1, 100_000),
         control_rate_hz=s.integer("control_rate_hz", 1, 1000),
         episode_timeout_s=s.number("episode_timeout_s", 0.0, 3600.0, lo_open=True),
@@ -354,6 +366,3 @@ def load_sim(path: str | Path | None = None) -> SimConfig:
             noise_std_px=c.number("noise_std_px", 0.0, 64.0),
         ),
     )
-    for section in (root, s, i, a, r, c):
-        section.check_unknown()
-    return cfg

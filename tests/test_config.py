@@ -65,7 +65,9 @@ def test_unknown_key_is_reported(tmp_path):
 
 def test_rates_must_be_integer_multiples(tmp_path):
     path = _edit(tmp_path, "sim.toml", "physics_rate_hz = 250", "physics_rate_hz = 255")
-    with pytest.raises(ConfigError, match="integer multiple"):
+    with pytest.raises(
+        ConfigError, match=r"sim\.toml: \[sim\] physics_rate_hz = 255 .*integer multiple"
+    ):
         load_sim(path)
 
 
