@@ -1,0 +1,766 @@
+"""Flight cards for ``visland sitl``: a real UDP MAVLink 2 link on loopback, pymavlink clients.
+
+Every SITL runs in a thread (or a subprocess) that the fixtures stop even when a test fails;
+every wait has a timeout; each test gets its own ports. Most flights start 5-6 m above the pad
+(``low_scenario``) with rendering off, so the whole file stays within seconds.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.flightlog import read_log
+from expert.cascade import CascadeLander
+from sitl_sim.autopilot import (
+    Autopilot,
+    AutopilotParams,
+    FlightMode,
+    MavResult,
+    SetpointRejected,
+    custom_mode,
+    mode_from_custom,
+    setpoint_from_target,
+)
+from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig, SitlPortInUseError, signing_key_bytes
+from tools.sitl_client import (
+    HOLD_CUSTOM_MODE,
+    LAND_CUSTOM_MODE,
+    OFFBOARD_CUSTOM_MODE,
+    ClientTimeout,
+    SitlClient,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+ACCEPTED = int(MavResult.ACCEPTED)
+
+LOW_SCENARIO = """
+[initial_state]
+roll_pitch_deg = [-1.5, 1.5]
+yaw_deg = [-180.0, 180.0]
+north_east_m = [-1.0, 1.0]
+altitude_m = [5.0, 6.0]
+vel_north_east_m_s = [-0.2, 0.2]
+vel_down_m_s = [0.0, 0.2]
+rate_rad_s = [0.0, 0.0]
+sampler = "uniform"
+[world]
+planet = "earth"
+"""
+
+# --------------------------------------------------------------------------- fixtures
+
+_ports_handed_out: set[int] = set()
+
+
+def _free_udp_port() -> int:
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _ports_handed_out:
+            _ports_handed_out.add(port)
+            return port
+
+
+@pytest.fixture
+def ports() -> SimpleNamespace:
+    return SimpleNamespace(
+        mavlink=_free_udp_port(), remote=_free_udp_port(), camera=_free_udp_port()
+    )
+
+
+@pytest.fixture(scope="module")
+def low_scenario(tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("scenario") / "low.toml"
+    path.write_text(LOW_SCENARIO)
+    return str(path)
+
+
+class _Runner:
+    """A SITL on a thread; ``finish`` joins it and re-raises whatever it raised."""
+
+    def __init__(self, sitl: MavlinkSitl) -> None:
+        self.sitl = sitl
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True, name="sitl")
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.sitl.run()
+        except BaseException as exc:  # re-raised in the test thread by finish()
+            self.error = exc
+
+    def finish(self, timeout_s: float = 30.0) -> list:
+        self.thread.join(timeout_s)
+        if self.thread.is_alive():
+            self.sitl.stop()
+            self.thread.join(10)
+            raise AssertionError(f"SITL still running after {timeout_s} s")
+        if self.error is not None:
+            raise self.error
+        return self.sitl.results
+
+    def stop(self) -> None:
+        self.sitl.stop()
+        self.thread.join(10)
+        assert not self.thread.is_alive(), "SITL thread did not stop"
+
+
+@pytest.fixture
+def start_sitl(ports, low_scenario, tmp_path):
+    runners: list[_Runner] = []
+
+    def start(**overrides) -> _Runner:
+        values = dict(
+            mavlink_port=ports.mavlink,
+            remote_port=ports.remote,
+            camera_port=ports.camera,
+            scenario=low_scenario,
+            log_dir=str(tmp_path / "logs"),
+            render=False,
+            lockstep_timeout_s=0.1,
+            max_wall_s=60.0,
+        )
+        values.update(overrides)
+        runner = _Runner(MavlinkSitl(SitlConfig(**values)))
+        runners.append(runner)
+        return runner
+
+    yield start
+    for runner in runners:
+        runner.stop()
+    for runner in runners:
+        if runner.error is not None:
+            raise runner.error
+
+
+@pytest.fixture
+def client(ports):
+    c = SitlClient(("127.0.0.1", ports.mavlink), ports.remote, ports.camera)
+    yield c
+    c.close()
+
+
+def _hover_thrust(client: SitlClient) -> float:
+    """MPC_THR_HOVER, read over the link as a companion would."""
+    client.send(client.mav.param_request_read_encode(1, 1, b"MPC_THR_HOVER", -1))
+    msg = client.wait_for("PARAM_VALUE", 3.0, lambda m: m.param_id == "MPC_THR_HOVER")
+    return float(msg.param_value)
+
+
+def _engage_offboard(client: SitlClient, thrust: float, frames: int = 3) -> None:
+    """Pre-stream setpoints (answering frames), then request OFFBOARD."""
+    for _ in range(frames):
+        frame = client.next_frame(5.0)
+        client.setpoint(thrust, (0.0, 0.0, 0.0), frame.time_us // 1000)
+    assert client.set_offboard() == ACCEPTED
+
+
+def _fly(client: SitlClient, frames: int, thrust: float, rates=(0.0, 0.0, 0.0)) -> None:
+    for _ in range(frames):
+        frame = client.next_frame(5.0)
+        client.setpoint(thrust, rates, frame.time_us // 1000)
+
+
+def _fly_cascade(
+    client: SitlClient, runner: _Runner, timeout_s: float = 30.0, max_delay_s: float = 0.0
+) -> int:
+    """A privileged scripted pilot (CascadeLander on ODOMETRY) until the SITL thread ends;
+    each answer is delayed by up to ``max_delay_s`` (uniform, seeded)."""
+    sitl = runner.sitl
+    rng = np.random.default_rng(11)
+    lander = CascadeLander(sitl.vehicle, sitl.sim_cfg.planet)
+    hover = sitl.params.mpc_thr_hover
+    deadline = time.monotonic() + timeout_s
+    n = 0
+    while time.monotonic() < deadline:
+        try:
+            frame = client.next_frame(0.2)
+        except ClientTimeout:
+            if not runner.thread.is_alive():
+                return n
+            continue
+        if n < 3:
+            client.setpoint(hover, (0.0, 0.0, 0.0), frame.time_us // 1000)
+            if n == 2:
+                assert client.set_offboard() == ACCEPTED
+        else:
+            gt = client.truth_at(frame.time_us)
+            if max_delay_s > 0:
+                time.sleep(rng.uniform(0.0, max_delay_s))
+            client.command(
+                lander.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz), frame.time_us // 1000
+            )
+        n += 1
+    raise AssertionError(f"flight not over after {timeout_s} s")
+
+
+# --------------------------------------------------------------------------- autopilot units
+
+
+def test_px4_custom_modes_match_the_reference_table():
+    assert custom_mode(FlightMode.OFFBOARD) == 393216
+    assert custom_mode(FlightMode.LAND) == 100925440
+    assert custom_mode(FlightMode.HOLD) == 50593792
+    assert mode_from_custom(6, 0) is FlightMode.OFFBOARD
+    assert mode_from_custom(4, 9) is FlightMode.LAND  # PRECLAND
+    assert mode_from_custom(3, 0) is False  # POSCTL exists but needs GPS
+    assert mode_from_custom(42, 0) is None
+
+
+def test_type_mask_128_is_the_command_contract_and_other_masks_follow_px4():
+    sp = setpoint_from_target(128, [1, 0, 0, 0], (0.1, -0.2, 0.3), 0.6, None, 1.0, None)
+    cmd = sp.command()
+    assert cmd.thrust_norm == 0.6 and cmd.rate_frd_rad_s.tolist() == [0.1, -0.2, 0.3]
+    # yaw-rate ignored -> 0; thrust clamped to [0, 1]
+    sp = setpoint_from_target(128 | 4, [1, 0, 0, 0], (0.1, 0.2, 0.3), 1.7, None, 0.0, None)
+    assert sp.command().rate_frd_rad_s[2] == 0.0 and sp.thrust_norm == 1.0
+    # attitude + roll/pitch rates both ignored: PX4 drops the message
+    with pytest.raises(SetpointRejected, match="drops"):
+        setpoint_from_target(128 | 1 | 2, [1, 0, 0, 0], (0, 0, 0), 0.5, None, 0.0, None)
+    with pytest.raises(SetpointRejected, match="non-finite"):
+        setpoint_from_target(128, [1, 0, 0, 0], (math.nan, 0, 0), 0.5, None, 0.0, None)
+    # THROTTLE_IGNORE keeps the previous thrust; THRUST_BODY_SET uses -thrust_body z
+    assert (
+        setpoint_from_target(128 | 64, [1, 0, 0, 0], (0, 0, 0), 0.9, None, 0, 0.4).thrust_norm
+        == 0.4
+    )
+    sp = setpoint_from_target(128 | 32, [1, 0, 0, 0], (0, 0, 0), 0.0, (0, 0, -0.55), 0, None)
+    assert sp.thrust_norm == pytest.approx(0.55)
+    # attitude branch (mask 7: rates ignored): a roll attitude error gives a positive roll rate
+    half = math.radians(10) / 2
+    sp = setpoint_from_target(
+        7, [math.cos(half), math.sin(half), 0, 0], (0, 0, 0), 0.5, None, 0, None
+    )
+    rates = sp.command(np.array([1.0, 0.0, 0.0, 0.0])).rate_frd_rad_s
+    assert rates[0] > 0.5 and abs(rates[1]) < 1e-9
+    with pytest.raises(SetpointRejected, match="rotation"):
+        setpoint_from_target(0, [0, 0, 0, 0], (0, 0, 0), 0.5, None, 0, None)
+
+
+def test_autopilot_offboard_rules_failsafe_and_auto_disarm():
+    ap = Autopilot(AutopilotParams())
+    assert ap.request_mode(FlightMode.OFFBOARD, 0.0) is MavResult.TEMPORARILY_REJECTED
+    ap.on_setpoint(setpoint_from_target(128, [1, 0, 0, 0], (0, 0, 0), 0.5, None, 0.0, None))
+    assert ap.request_mode(FlightMode.OFFBOARD, 0.5) is MavResult.ACCEPTED
+    assert ap.taken_over and ap.physics_running
+    ap.update(1.0, on_ground=False)
+    assert ap.mode is FlightMode.OFFBOARD  # 1.0 s of silence is still within COM_OF_LOSS_T
+    ap.update(1.1, on_ground=False)
+    assert ap.mode is FlightMode.LAND
+    assert any(e.kind == "failsafe" for e in ap.pop_events())
+    assert ap.request_arm(False, force=False, in_air=True) is MavResult.DENIED
+    ap.update(5.0, on_ground=True)
+    ap.update(6.9, on_ground=True)
+    assert ap.armed
+    ap.update(7.0, on_ground=True)
+    assert not ap.armed
+
+
+# --------------------------------------------------------------------------- flight cards
+
+
+def test_heartbeat_is_px4_quadrotor_and_a_mode_change_shows_in_the_next_one(start_sitl, client):
+    start_sitl()
+    hb = client.wait_for("HEARTBEAT", 5.0)
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1
+    assert hb.custom_mode == HOLD_CUSTOM_MODE and hb.base_mode == 157  # armed, auto
+    assert hb.get_msgbuf()[0] == mavlink.PROTOCOL_MARKER_V2  # MAVLink 2 on the wire
+    hover = _hover_thrust(client)
+    for _ in range(3):
+        frame = client.next_frame(5.0)
+        client.setpoint(hover, (0, 0, 0), frame.time_us // 1000)
+    client.inbox.clear()
+    client.send(
+        client.mav.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 6, 0, 0, 0, 0, 0)
+    )
+    seen = []
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline and not any(m.get_type() == "HEARTBEAT" for m in seen):
+        client.poll(0.05)
+        seen.extend(client.inbox)
+        client.inbox.clear()
+    names = [m.get_type() for m in seen]
+    ack = next(m for m in seen if m.get_type() == "COMMAND_ACK")
+    assert ack.result == ACCEPTED and ack.target_system == 255 and ack.target_component == 190
+    first_hb = next(m for m in seen if m.get_type() == "HEARTBEAT")
+    assert first_hb.custom_mode == OFFBOARD_CUSTOM_MODE
+    # the heartbeat was sent at once, not at the next 1 Hz slot
+    assert names.index("HEARTBEAT") <= names.index("COMMAND_ACK") + 3
+
+
+def test_offboard_is_refused_without_a_setpoint_stream(start_sitl, client):
+    start_sitl()
+    client.wait_for("HEARTBEAT", 5.0)
+    assert client.set_offboard() == int(MavResult.TEMPORARILY_REJECTED)
+    hb = client.wait_for("HEARTBEAT", 3.0)
+    assert hb.custom_mode == HOLD_CUSTOM_MODE
+
+
+def test_hold_freezes_the_vehicle_at_its_initial_state(start_sitl, client):
+    runner = start_sitl(groundtruth=True)
+    first = client.wait_for("ODOMETRY", 5.0)
+    later = client.wait_for("ODOMETRY", 3.0, lambda m: m.time_usec >= first.time_usec + 500_000)
+    assert (first.x, first.y, first.z, list(first.q)) == (later.x, later.y, later.z, list(later.q))
+    imu = client.wait_for("HIGHRES_IMU", 2.0)
+    assert imu.zacc == pytest.approx(-9.81, abs=0.5) and imu.fields_updated == 0b111111
+    init = runner.sitl.sampler.sample(0)
+    assert (first.x, first.y) == pytest.approx(init.pos_ned_m[:2], abs=1e-5)
+
+
+@pytest.mark.parametrize(("axis", "field"), [(0, "roll"), (1, "pitch")])
+def test_positive_body_rate_grows_that_attitude_angle(start_sitl, client, axis, field):
+    start_sitl()
+    client.wait_for("HEARTBEAT", 5.0)
+    hover = _hover_thrust(client)
+    _engage_offboard(client, hover)
+    _fly(client, 1, hover)
+    before = getattr(client.wait_for("ATTITUDE", 2.0), field)
+    rates = [0.0, 0.0, 0.0]
+    rates[axis] = 0.4
+    _fly(client, 10, hover, rates)  # 1 s at 0.4 rad/s
+    after = getattr(client.wait_for("ATTITUDE", 2.0), field)
+    assert after - before > 0.25, (before, after)
+
+
+def test_thrust_above_hover_climbs_on_the_radar(start_sitl, client):
+    start_sitl()
+    client.wait_for("HEARTBEAT", 5.0)
+    hover = _hover_thrust(client)
+    _engage_offboard(client, hover)
+    _fly(client, 1, hover)
+    ds = client.wait_for("DISTANCE_SENSOR", 2.0)
+    assert ds.type == mavlink.MAV_DISTANCE_SENSOR_RADAR and ds.orientation == 25
+    assert ds.min_distance == 0 and ds.max_distance == 15000
+    before = ds.current_distance
+    _fly(client, 15, min(1.0, hover + 0.2))
+    after = client.wait_for("DISTANCE_SENSOR", 2.0).current_distance
+    assert after - before > 50, (before, after)  # cm
+
+
+def test_setpoint_silence_fails_safe_to_land_and_touches_down_softly(start_sitl, client):
+    runner = start_sitl(lockstep_timeout_s=0.05)
+    client.wait_for("HEARTBEAT", 5.0)
+    hover = _hover_thrust(client)
+    _engage_offboard(client, hover)
+    _fly(client, 5, hover)
+    # silence: keep listening, send nothing
+    hb = client.wait_for("HEARTBEAT", 10.0, lambda m: m.custom_mode == LAND_CUSTOM_MODE)
+    assert hb.base_mode & 128  # still armed
+    assert any("Failsafe" in t for t in client.statustexts)
+    results = runner.finish(30.0)
+    assert len(results) == 1 and results[0].landed
+    assert results[0].touchdown_vertical_speed_m_s <= 1.0
+    flight = read_log(Path(runner.sitl.config.log_dir) / "sitl_seed0_ep0000.mcap")
+    last_sp = flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")[-1]["time_s"]
+    failsafe = next(e for e in flight.topic("/events") if e["kind"] == "failsafe")["time_s"]
+    assert 1.0 < failsafe - last_sp <= 1.1 + 1e-6  # COM_OF_LOSS_T + PX4's 10 Hz check
+
+
+def _flight_record(log_path: Path) -> tuple[list[tuple], list[tuple]]:
+    """(ground truth rows, ATTITUDE readings) of the flight part of one log."""
+    flight = read_log(log_path)
+    truth = [
+        (r["flight_time_s"], tuple(r["pos_ned_m"]), tuple(r["vel_ned_m_s"]), tuple(r["quat_wxyz"]))
+        for r in flight.topic("/groundtruth/state")
+        if r["flying"]
+    ]
+    start = next(e["time_s"] for e in flight.topic("/events") if e["kind"] == "flight")
+    attitude = [
+        (m["roll"], m["pitch"], m["yaw"], m["rollspeed"])
+        for m in flight.topic("/mavlink/out/ATTITUDE")
+        if m["time_s"] >= start
+    ]
+    return truth, attitude
+
+
+def test_lockstep_is_deterministic_for_the_same_seed_and_commands(ports, low_scenario, tmp_path):
+    """Same seed, same pilot: the same flight bit for bit — ground truth and noisy sensors —
+    although the second client answers each frame after a random delay (lockstep waits)."""
+    runs = []
+    for k in range(2):
+        p = SimpleNamespace(
+            mavlink=_free_udp_port(), remote=_free_udp_port(), camera=_free_udp_port()
+        )
+        log_dir = tmp_path / f"run{k}"
+        cfg = SitlConfig(
+            mavlink_port=p.mavlink,
+            remote_port=p.remote,
+            camera_port=p.camera,
+            scenario=low_scenario,
+            log_dir=str(log_dir),
+            render=False,
+            groundtruth=True,
+            seed=3,
+            max_wall_s=60.0,
+        )
+        with SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as c:
+            runner = _Runner(MavlinkSitl(cfg))
+            try:
+                _fly_cascade(c, runner, max_delay_s=0.02 * k)
+                results = runner.finish(30.0)
+            finally:
+                runner.stop()
+        assert results[0].landed and runner.sitl.lockstep_timeouts == 0
+        runs.append(_flight_record(log_dir / "sitl_seed3_ep0000.mcap"))
+    assert len(runs[0][0]) > 50 and len(runs[0][1]) > 250
+    assert runs[0][0] == runs[1][0]  # ground truth, bit for bit
+    assert runs[0][1] == runs[1][1]  # sensor noise too
+
+
+def test_signing_rejects_unsigned_and_wrongly_signed_setpoints(ports, start_sitl):
+    runner = start_sitl(signing_key="testpass")
+    key = signing_key_bytes("testpass")
+    with SitlClient(("127.0.0.1", ports.mavlink), ports.remote, ports.camera) as c:
+        hb = c.wait_for("HEARTBEAT", 5.0)
+        assert hb.get_msgbuf()[2] & mavlink.MAVLINK_IFLAG_SIGNED  # the SITL signs what it sends
+        stats = runner.sitl.stats
+        for _ in range(5):
+            c.setpoint(0.5)
+        with pytest.raises(ClientTimeout):
+            c.set_offboard(timeout_s=0.5)  # an unsigned command is dropped: no ACK at all
+        deadline = time.monotonic() + 2
+        while stats.rx_unsigned_rejected < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stats.rx_unsigned_rejected >= 6 and runner.sitl.autopilot.setpoint is None
+    with SitlClient(
+        ("127.0.0.1", ports.mavlink), ports.remote, ports.camera, signing_key=b"\x01" * 32
+    ) as wrong:
+        wrong.setpoint(0.5)
+        deadline = time.monotonic() + 2
+        while stats.rx_bad_signature < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stats.rx_bad_signature >= 1 and runner.sitl.autopilot.setpoint is None
+    with SitlClient(
+        ("127.0.0.1", ports.mavlink), ports.remote, ports.camera, signing_key=key
+    ) as good:
+        for _ in range(3):
+            frame = good.next_frame(5.0)
+            good.setpoint(0.5, (0, 0, 0), frame.time_us // 1000)
+        assert good.set_offboard() == ACCEPTED
+        status = good.wait_for("SYS_STATUS", 3.0)
+        assert status.errors_count1 >= 7  # signing rejections are visible over the link
+
+
+def _fuzz_datagrams(rng: np.random.Generator, mav) -> list[bytes]:
+    """Malformed or not-for-us datagrams of every kind (none is a valid order to us)."""
+    hb = mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav)
+    wrong_target_sp = mav.set_attitude_target_encode(0, 7, 1, 128, [1, 0, 0, 0], 0, 0, 0, 1.0)
+    nan_sp = mav.set_attitude_target_encode(0, 1, 1, 128, [1, 0, 0, 0], math.nan, 0, 0, 0.5)
+    unsupported = mav.command_long_encode(
+        1, 1, 31_000 + int(rng.integers(0, 999)), 0, *([math.nan] * 7)
+    )
+    req = mav.command_long_encode(
+        1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, float(rng.integers(0, 70_000)), 0, 0, 0, 0, 0, 0
+    )
+    wrong_cmd = mav.command_long_encode(42, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 6, 0, 0, 0, 0)
+    param = mav.param_request_read_encode(1, 1, b"\xff\xfeZZ", int(rng.integers(-5, 500)))
+    valid = [m.pack(mav) for m in (wrong_target_sp, nan_sp, unsupported, req, wrong_cmd, param)]
+    kind = int(rng.integers(0, 7))
+    if kind == 0:  # random bytes
+        return [rng.integers(0, 256, int(rng.integers(0, 300)), dtype=np.uint8).tobytes()]
+    if kind == 1:  # truncated frame
+        return [hb[: int(rng.integers(1, len(hb)))]]
+    if kind == 2:  # bad CRC / flipped byte
+        b = bytearray(valid[int(rng.integers(0, len(valid)))])
+        b[int(rng.integers(1, len(b)))] ^= 0x5A
+        return [bytes(b)]
+    if kind == 3:  # valid but wrong target / bad values / unsupported
+        return [valid[int(rng.integers(0, len(valid)))]]
+    if kind == 4:  # several frames and junk glued together
+        return [b"".join(valid) + b"\xfd\x09\x00" + hb[: int(rng.integers(1, 10))]]
+    if kind == 5:  # MAVLink 1 magic, random rest
+        return [b"\xfe" + rng.integers(0, 256, 40, dtype=np.uint8).tobytes()]
+    return [b"", b"\xfd" * int(rng.integers(1, 64)), bytes(int(rng.integers(1000, 60_000)))]
+
+
+def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
+    runner = start_sitl(groundtruth=True)
+    stop = threading.Event()
+    sent = [0]
+
+    def fuzz() -> None:
+        rng = np.random.default_rng(7)
+        mav = mavlink.MAVLink(None, srcSystem=66, srcComponent=66)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            while not stop.is_set():
+                for _ in range(20):  # about 4000 datagrams per second
+                    for d in _fuzz_datagrams(rng, mav):
+                        s.sendto(d, ("127.0.0.1", ports.mavlink))
+                        sent[0] += 1
+                time.sleep(0.005)
+
+    fuzzer = threading.Thread(target=fuzz, daemon=True)
+    fuzzer.start()
+    try:
+        t0 = time.monotonic()
+        _fly_cascade(client, runner)
+        results = runner.finish(30.0)
+        wall = time.monotonic() - t0
+    finally:
+        stop.set()
+        fuzzer.join(5)
+    assert sent[0] > 2000
+    assert results[0].landed and results[0].success
+    stats = runner.sitl.stats
+    assert stats.rx_bad_data > 100 and stats.rx_truncated > 100 and stats.rx_wrong_target > 100
+    assert stats.rx_rejected_setpoints > 10
+    status = client.last["SYS_STATUS"]
+    assert status.errors_comm > 0 and status.drop_rate_comm > 0
+    assert runner.sitl.lockstep_timeouts <= 2 and wall < 25.0
+
+
+def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_scenario, tmp_path):
+    log_dir = tmp_path / "killed"
+    cmd = [
+        sys.executable,
+        "-m",
+        "sitl_sim.mavlink_sitl",
+        "--mavlink-port",
+        str(ports.mavlink),
+        "--remote-port",
+        str(ports.remote),
+        "--camera-port",
+        str(ports.camera),
+        "--scenario",
+        low_scenario,
+        "--log-dir",
+        str(log_dir),
+        "--no-render",
+        "--no-lockstep",
+        "--max-wall-s",
+        "60",
+    ]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        with SitlClient(("127.0.0.1", ports.mavlink), ports.remote) as c:
+            c.wait_for("HEARTBEAT", 30.0)
+            c.wait_for("ATTITUDE", 5.0, lambda m: m.time_boot_ms >= 2500)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+            c.poll(0.2)
+            last_ms = c.last["ATTITUDE"].time_boot_ms
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    flight = read_log(log_dir / "sitl_seed0_ep0000.mcap")
+    assert flight.truncated  # no footer: it was killed
+    logged = max(m["time_s"] for m in flight.topic("/mavlink/out/ATTITUDE"))
+    # at most the last second is lost (the writer flushes every second), give or take one
+    # 50 Hz ATTITUDE period and the 4 ms loop step
+    assert logged >= last_ms / 1000 - 1.0 - 0.03, (logged, last_ms)
+    assert flight.metadata["config"]["sitl"]["mavlink_port"] == ports.mavlink
+
+
+def test_a_taken_port_is_a_clear_typed_error(ports, low_scenario):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", ports.mavlink))
+        cfg = SitlConfig(mavlink_port=ports.mavlink, scenario=low_scenario, log_dir=None)
+        with pytest.raises(SitlPortInUseError, match="already in use"):
+            MavlinkSitl(cfg)
+
+
+def test_params_commands_intervals_timesync(start_sitl, client):
+    runner = start_sitl()
+    client.wait_for("HEARTBEAT", 5.0)
+    client.inbox.clear()
+    client.send(client.mav.param_request_list_encode(1, 1))
+    values = {}
+    while len(values) < 5:
+        m = client.wait_for("PARAM_VALUE", 3.0, fresh=False)
+        values[m.param_id] = m
+    assert m.param_count == 5
+    assert values["COM_OF_LOSS_T"].param_value == 1.0
+    assert values["COM_DISARM_LAND"].param_value == 2.0
+    assert values["COM_OBL_RC_ACT"].param_type == mavlink.MAV_PARAM_TYPE_INT32
+    assert np.float32(values["COM_OBL_RC_ACT"].param_value).view(np.int32) == 4  # byte-wise
+    assert 0.2 < values["MPC_THR_HOVER"].param_value < 0.8
+    assert client.command_long(31_337) == int(MavResult.UNSUPPORTED)
+    with pytest.raises(ClientTimeout):  # addressed to system 42: ignored, counted
+        client.command_long(mavlink.MAV_CMD_NAV_LAND, target=(42, 1), timeout_s=0.3)
+    assert runner.sitl.stats.rx_wrong_target >= 1
+    # SET_MESSAGE_INTERVAL: ATTITUDE to 10 Hz
+    assert (
+        client.command_long(
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000
+        )
+        == ACCEPTED
+    )
+    first = client.wait_for("ATTITUDE", 2.0)
+    stamps = [first.time_boot_ms]
+    while stamps[-1] - stamps[0] < 1000:
+        stamps.append(client.wait_for("ATTITUDE", 2.0).time_boot_ms)
+    assert set(np.diff(stamps).tolist()) == {100}
+    assert (
+        client.command_long(
+            mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+        )
+        == ACCEPTED
+    )
+    assert client.counts["AUTOPILOT_VERSION"] >= 1 or client.wait_for("AUTOPILOT_VERSION", 2.0)
+    client.send(client.mav.timesync_encode(0, 123_456))
+    ts = client.wait_for("TIMESYNC", 2.0, lambda m: m.ts1 == 123_456)
+    now_ms = client.wait_for("SYSTEM_TIME", 2.0).time_boot_ms
+    assert abs(ts.tc1 / 1e6 - now_ms) < 1500  # sim clock, ns
+
+
+def test_land_requests_fly_consecutive_episodes_each_with_its_log(start_sitl, client):
+    """Episode 0 lands on COMMAND_LONG NAV_LAND, 1 on COMMAND_INT DO_SET_MODE AUTO.LAND, 2 on
+    the legacy SET_MODE; each touches down, auto-disarms and gets its own flight log."""
+    runner = start_sitl(episodes=3)
+    for episode in range(3):
+        client.wait_for(
+            "HEARTBEAT", 5.0, lambda m: m.custom_mode == HOLD_CUSTOM_MODE and m.base_mode & 128
+        )
+        mav = client.mav
+        if episode == 0:
+            assert client.command_long(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+        elif episode == 1:
+            client.inbox.clear()
+            cmd = mavlink.MAV_CMD_DO_SET_MODE
+            client.send(mav.command_int_encode(1, 1, 0, cmd, 0, 0, 1, 4, 6, 0, 0, 0, 0.0))
+            ack = client.wait_for("COMMAND_ACK", 3.0, fresh=False)
+            assert ack.command == mavlink.MAV_CMD_DO_SET_MODE and ack.result == ACCEPTED
+        else:
+            client.inbox.clear()
+            client.send(mav.set_mode_encode(1, 157, LAND_CUSTOM_MODE))
+        client.wait_for("HEARTBEAT", 3.0, lambda m: m.custom_mode == LAND_CUSTOM_MODE, fresh=False)
+        client.wait_for(
+            "EXTENDED_SYS_STATE",
+            20.0,
+            lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND,
+            fresh=False,
+        )
+        client.wait_for("HEARTBEAT", 20.0, lambda m: not m.base_mode & 128, fresh=False)
+    results = runner.finish(30.0)
+    assert [r.landed for r in results] == [True, True, True]
+    assert all(r.touchdown_vertical_speed_m_s <= 1.0 for r in results)
+    assert len({r.landing_error_m for r in results}) == 3  # three different initial states
+    log_dir = Path(runner.sitl.config.log_dir)
+    assert sorted(p.name for p in log_dir.iterdir()) == [
+        f"sitl_seed0_ep{i:04d}.mcap" for i in range(3)
+    ]
+
+
+def test_rendered_flight_log_has_every_record(start_sitl, client):
+    runner = start_sitl(render=True, groundtruth=True)
+    _fly_cascade(client, runner)
+    results = runner.finish(30.0)
+    assert results[0].success
+    flight = read_log(Path(runner.sitl.config.log_dir) / "sitl_seed0_ep0000.mcap")
+    assert not flight.truncated
+    for topic in (
+        "/groundtruth/state",
+        "/groundtruth/pose",
+        "/camera/image",
+        "/mavlink/in/SET_ATTITUDE_TARGET",
+        "/mavlink/in/COMMAND_LONG",
+        "/mavlink/out/HEARTBEAT",
+        "/mavlink/out/ATTITUDE",
+        "/mavlink/out/ODOMETRY",
+        "/episode/scenario",
+        "/episode/result",
+        "/autopilot/command",
+    ):
+        assert flight.topic(topic), topic
+    _, frames = flight.images()
+    assert len(frames) == len(flight.topic("/groundtruth/state")) >= client.frames_received
+    assert frames[-1].std() > 1.0  # a rendered picture, not a black frame
+    assert flight.topic("/episode/result")[0]["success"]
+    assert flight.metadata["config"]["sitl"]["groundtruth"] is True
+    assert flight.metadata["config"]["vehicle"]["mass_kg"] > 0
+
+
+def test_real_time_mode_follows_the_wall_clock(start_sitl, client):
+    start_sitl(lockstep=False, speed=2.0)
+    first = client.wait_for("SYSTEM_TIME", 5.0)
+    t0 = time.monotonic()
+    last = client.wait_for(
+        "SYSTEM_TIME", 5.0, lambda m: m.time_boot_ms >= first.time_boot_ms + 3000
+    )
+    wall = time.monotonic() - t0
+    sim = (last.time_boot_ms - first.time_boot_ms) / 1000
+    assert sim / wall == pytest.approx(2.0, rel=0.2)
+
+
+def test_a_stock_mavutil_client_sees_a_px4_vehicle(start_sitl, ports):
+    os.environ["MAVLINK20"] = "1"
+    os.environ.setdefault("MAVLINK_DIALECT", "common")
+    from pymavlink import mavutil
+
+    if not mavutil.mavlink20():
+        pytest.skip("mavutil was imported in MAVLink 1 mode by an earlier module")
+    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{ports.remote}", source_system=255)
+    try:
+        start_sitl()
+        hb = conn.wait_heartbeat(timeout=5)
+        assert hb is not None and conn.flightmode == "LOITER"  # PX4 AUTO.LOITER via mavutil
+        att = conn.recv_match(type="ATTITUDE", blocking=True, timeout=3)
+        assert att is not None and abs(att.roll) < 0.1
+    finally:
+        conn.close()
+
+
+def test_mavsdk_connects_arms_and_runs_offboard(start_sitl, ports):
+    pytest.importorskip("mavsdk.asyncio", reason="mavsdk (4.x native) not installed")
+    import asyncio
+
+    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+    from mavsdk.asyncio.plugins.action import ActionAsync
+    from mavsdk.asyncio.plugins.offboard import OffboardAsync
+    from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+    from mavsdk.plugins.action import ActionResult
+    from mavsdk.plugins.offboard import AttitudeRate, OffboardResult
+    from mavsdk.plugins.telemetry import FlightMode as MavsdkMode
+
+    # MAVSDK stamps setpoints with its own clock and streams at 20 Hz: fly it in real time.
+    runner = start_sitl(lockstep=False)
+
+    async def until(fn, ok, timeout_s=5.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            value = await fn()
+            if ok(value):
+                return value
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"timed out; last value {value}")
+
+    async def card() -> None:
+        cfg = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+        async with Mavsdk(cfg) as m:
+            await m.add_any_connection(f"udpin://127.0.0.1:{ports.remote}")
+            system = await m.first_autopilot(10)
+            assert system is not None
+            tel, act, off = TelemetryAsync(system), ActionAsync(system), OffboardAsync(system)
+            att = await until(tel.attitude_euler, lambda a: math.isfinite(a.roll_deg))
+            assert abs(att.roll_deg) < 5
+            dist = await until(tel.distance_sensor, lambda d: math.isfinite(d.current_distance_m))
+            assert 4.0 < dist.current_distance_m < 7.0
+            await until(tel.flight_mode, lambda f: MavsdkMode(f) == MavsdkMode.HOLD)
+            assert ActionResult(await act.arm()) == ActionResult.SUCCESS
+            hover = runner.sitl.params.mpc_thr_hover
+            await off.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, hover))
+            assert OffboardResult(await off.start()) == OffboardResult.SUCCESS
+            await until(tel.flight_mode, lambda f: MavsdkMode(f) == MavsdkMode.OFFBOARD)
+            await asyncio.sleep(0.5)
+            assert await off.is_active() and runner.sitl.autopilot.mode is FlightMode.OFFBOARD
+            assert OffboardResult(await off.stop()) == OffboardResult.SUCCESS
+            await until(tel.flight_mode, lambda f: MavsdkMode(f) == MavsdkMode.HOLD)
+
+    asyncio.run(asyncio.wait_for(card(), 30.0))
