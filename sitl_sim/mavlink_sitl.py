@@ -84,6 +84,7 @@ from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.errors import SimError
 from sitl_sim.mavlink_endpoint import (
     Inbound,
+    LinkStats,
     MavlinkEndpoint,
     RxError,
     SitlError,
@@ -466,7 +467,8 @@ class MavlinkSitl:
         return self._tick * 1_000_000 // self._rate_hz
 
     @property
-    def stats(self):
+    def stats(self) -> LinkStats:
+        """Link counters (read-only from other threads)."""
         return self.endpoint.stats
 
     def stop(self) -> None:

@@ -31,7 +31,9 @@ def test_bench_sim_prints_a_real_time_factor():
     assert res["realtime_factor_physics_only"] > res["realtime_factor"]
 
 
-@pytest.mark.parametrize("args", [["--help"], ["demo", "--help"], ["bench", "--help"]])
+@pytest.mark.parametrize(
+    "args", [["--help"], ["demo", "--help"], ["bench", "--help"], ["sitl", "--help"]]
+)
 def test_help(args):
     proc = _visland(*args)
     assert proc.returncode == 0 and "usage: visland" in proc.stdout

@@ -8,7 +8,6 @@ every wait has a timeout; each test gets its own ports. Most flights start 5-6 m
 from __future__ import annotations
 
 import math
-import os
 import signal
 import socket
 import subprocess
@@ -696,25 +695,35 @@ def test_real_time_mode_follows_the_wall_clock(start_sitl, client):
     )
     wall = time.monotonic() - t0
     sim = (last.time_boot_ms - first.time_boot_ms) / 1000
-    assert sim / wall == pytest.approx(2.0, rel=0.2)
+    assert sim / wall == pytest.approx(2.0, rel=0.3)
 
 
-def test_a_stock_mavutil_client_sees_a_px4_vehicle(start_sitl, ports):
-    os.environ["MAVLINK20"] = "1"
-    os.environ.setdefault("MAVLINK_DIALECT", "common")
+def test_a_stock_mavutil_client_sees_a_px4_vehicle(start_sitl, ports, monkeypatch):
+    # mavutil picks MAVLink 1/2 and the dialect from the environment at import time; import it
+    # here under MAVLink 2 and forget it afterwards, so that no later test inherits this choice.
+    already = "pymavlink.mavutil" in sys.modules
+    monkeypatch.setenv("MAVLINK20", "1")
+    monkeypatch.setenv("MAVLINK_DIALECT", "common")
+    import pymavlink
     from pymavlink import mavutil
 
-    if not mavutil.mavlink20():
-        pytest.skip("mavutil was imported in MAVLink 1 mode by an earlier module")
-    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{ports.remote}", source_system=255)
     try:
-        start_sitl()
-        hb = conn.wait_heartbeat(timeout=5)
-        assert hb is not None and conn.flightmode == "LOITER"  # PX4 AUTO.LOITER via mavutil
-        att = conn.recv_match(type="ATTITUDE", blocking=True, timeout=3)
-        assert att is not None and abs(att.roll) < 0.1
+        if not mavutil.mavlink20():
+            pytest.skip("mavutil was imported in MAVLink 1 mode by an earlier test")
+        conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{ports.remote}", source_system=255)
+        try:
+            start_sitl()
+            hb = conn.wait_heartbeat(timeout=5)
+            assert hb is not None and conn.flightmode == "LOITER"  # PX4 AUTO.LOITER
+            att = conn.recv_match(type="ATTITUDE", blocking=True, timeout=3)
+            assert att is not None and abs(att.roll) < 0.1
+        finally:
+            conn.close()
     finally:
-        conn.close()
+        if not already:
+            sys.modules.pop("pymavlink.mavutil", None)
+            if hasattr(pymavlink, "mavutil"):
+                delattr(pymavlink, "mavutil")
 
 
 def test_mavsdk_connects_arms_and_runs_offboard(start_sitl, ports):

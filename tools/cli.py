@@ -53,6 +53,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if result["landed"] else 1
 
 
+def _cmd_sitl(args: argparse.Namespace) -> int:
+    import logging
+
+    from sitl_sim.mavlink_sitl import run_sitl, sitl_config_from_args
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    return run_sitl(sitl_config_from_args(args))
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from training.evaluate import EvalConfig, evaluate, format_table
 
@@ -194,6 +203,14 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true", help="machine-readable output")
     b.set_defaults(func=_cmd_bench)
+
+    from sitl_sim.mavlink_sitl import add_sitl_arguments
+
+    st = sub.add_parser(
+        "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"
+    )
+    add_sitl_arguments(st)
+    st.set_defaults(func=_cmd_sitl)
 
     e = sub.add_parser("eval", help="fly a policy over the scenario and print landing metrics")
     e.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
