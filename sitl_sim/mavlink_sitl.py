@@ -44,6 +44,7 @@ import math
 import select
 import signal
 import socket
+import string
 import struct
 import sys
 import threading
@@ -82,6 +83,7 @@ from sitl_sim.autopilot import (
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.errors import SimError
+from sitl_sim.flight_record import groundtruth_msg
 from sitl_sim.mavlink_endpoint import (
     Inbound,
     LinkStats,
@@ -269,11 +271,8 @@ def signing_key_bytes(key: str) -> bytes:
     text = key.strip()
     if not text:
         raise SitlError("signing key is empty")
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
+    if len(text) == 64 and all(c in string.hexdigits for c in text):
+        return bytes.fromhex(text)
     return hashlib.sha256(text.encode()).digest()
 
 
@@ -813,17 +812,11 @@ class MavlinkSitl:
                 TOPIC_GROUNDTRUTH,
                 "visland.GroundTruth",
                 {
+                    **groundtruth_msg(gt, frame_id),  # the same record as the in-process path
                     "flight_time_s": gt.time_s,
                     "flying": self._flying,
-                    "frame_id": frame_id,
                     "mode": ap.mode.label,
                     "armed": ap.armed,
-                    "pos_ned_m": gt.pos_ned_m,
-                    "vel_ned_m_s": gt.vel_ned_m_s,
-                    "quat_wxyz": gt.quat_wxyz,
-                    "rate_frd_rad_s": gt.rate_frd_rad_s,
-                    "accel_ned_m_s2": gt.accel_ned_m_s2,
-                    "rotor_thrust_n": gt.rotor_thrust_n,
                 },
             )
 
