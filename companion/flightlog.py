@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import zstandard
 from mcap.exceptions import McapError
-from mcap.records import Channel, Footer, Message, Metadata
+from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -294,6 +294,8 @@ class FlightLog:
         messages: topic -> list of decoded JSON messages, in file order.
         truncated: the file ended early (crash); ``messages`` holds the readable prefix.
         error: why reading stopped early, if it did.
+        schemas: topic -> schema name, for every channel in the readable part (read or not,
+            with or without messages).
     """
 
     path: Path
@@ -301,6 +303,7 @@ class FlightLog:
     messages: dict[str, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
     truncated: bool = False
     error: str | None = None
+    schemas: dict[str, str] = field(default_factory=dict)
 
     def topic(self, name: str) -> list[dict[str, Any]]:
         return self.messages.get(name, [])
@@ -345,6 +348,7 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
             raise FlightLogError(f"{path}: not an MCAP file (bad magic {magic[:8]!r})")
         fh.seek(0)
         channels: dict[int, str] = {}
+        schema_names: dict[int, str] = {}
         try:
             for record in StreamReader(fh, skip_magic=False).records:
                 if isinstance(record, Metadata):
@@ -352,8 +356,11 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
                         k: json.loads(v) for k, v in record.metadata.items()
                     }
                     continue
-                if isinstance(record, Channel):
+                if isinstance(record, Schema):
+                    schema_names[record.id] = record.name
+                elif isinstance(record, Channel):
                     channels[record.id] = record.topic
+                    log.schemas[record.topic] = schema_names.get(record.schema_id, "")
                 elif isinstance(record, Message):
                     topic = channels.get(record.channel_id)
                     if topic is None or (wanted is not None and topic not in wanted):
@@ -372,7 +379,7 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
                 log.error = "file ends before the MCAP footer"
         except McapError as exc:
             log.truncated = True
-            log.error = f"{type(exc).__name__}: {exc}"
+            log.error = f"{type(exc).__name__}: {str(exc) or 'the file is cut inside a record'}"
         except (struct.error, zstandard.ZstdError, ValueError, EOFError, OSError) as exc:
             # What a file cut mid-record raises below the MCAP layer.
             log.truncated = True

@@ -146,6 +146,27 @@ def _cmd_relabel(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _cmd_log(args: argparse.Namespace) -> int:
+    from tools.logtool import format_info, log_info, plot_flight
+
+    if args.what == "info":
+        info = log_info(args.file)
+        if args.json:
+            _print_json(info)
+        else:
+            print(format_info(info))
+        return 0
+    if args.what == "plot":
+        report = plot_flight(args.file, args.out)
+        print(f"wrote {report.out} ({report.kind} log)")
+        for line in report.missing:
+            print(f"  missing {line}")
+        if report.truncated:
+            print(f"  truncated log: plotted its readable prefix ({report.error})")
+        return 0
+    raise AssertionError(args.what)
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "mpc":
         from expert.bench import bench_mpc
@@ -239,6 +260,19 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=int, default=1)
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=_cmd_relabel)
+
+    lg = sub.add_parser("log", help="look into an MCAP flight log: info, plot")
+    lg_sub = lg.add_subparsers(dest="what", required=True)
+    li = lg_sub.add_parser("info", help="topics, counts, schemas, duration, metadata, result")
+    li.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
+    li.add_argument("--json", action="store_true", help="print one JSON object")
+    li.set_defaults(func=_cmd_log)
+    lp = lg_sub.add_parser(
+        "plot", help="PNG: top view, altitude, attitude and commands vs time (matplotlib Agg)"
+    )
+    lp.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
+    lp.add_argument("--out", type=Path, default=None, help="PNG path (default: FILE's stem.png)")
+    lp.set_defaults(func=_cmd_log)
     return p
 
 

@@ -1,0 +1,215 @@
+"""``visland log info`` / ``log plot`` on real flight logs of every kind.
+
+The logs are made by the real code: an in-process episode (``training.rollout.fly_episode``, the
+``collect`` path), a SITL episode over UDP landed by the SITL's own AUTO.LAND, and a
+companion-style log (telemetry + commands, no ground truth) written with the flight-log writer.
+Every flight starts 5-6 m above the pad with rendering off, so the file runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.flightlog import (
+    TOPIC_COMMAND,
+    TOPIC_OBSERVATION,
+    FlightLogError,
+    FlightLogWriter,
+    read_log,
+)
+from sitl_sim.env import LandingEnv
+from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
+from tools.cli import main
+from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
+from tools.sitl_client import SitlClient
+from training.rollout import fly_episode, make_policy
+
+LOW_SCENARIO = """
+[initial_state]
+roll_pitch_deg = [-1.5, 1.5]
+yaw_deg = [-180.0, 180.0]
+north_east_m = [-1.0, 1.0]
+altitude_m = [5.0, 6.0]
+vel_north_east_m_s = [-0.2, 0.2]
+vel_down_m_s = [0.0, 0.2]
+rate_rad_s = [0.0, 0.0]
+sampler = "uniform"
+[world]
+planet = "earth"
+"""
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory) -> dict[str, Path]:
+    """One log of each kind (plus a truncated copy of the rollout log)."""
+    root = tmp_path_factory.mktemp("logs")
+    scenario = root / "low.toml"
+    scenario.write_text(LOW_SCENARIO)
+
+    env = LandingEnv(scenario=str(scenario), render_camera=False)
+    try:
+        rollout = root / "rollout.mcap"
+        fly_episode(env, make_policy("cascade", env), 0, 0, rollout, source="cascade")
+    finally:
+        env.close()
+
+    mav_port, remote_port, cam_port = _free_udp_port(), _free_udp_port(), _free_udp_port()
+    cfg = SitlConfig(
+        mavlink_port=mav_port,
+        remote_port=remote_port,
+        camera_port=cam_port,
+        scenario=str(scenario),
+        log_dir=str(root / "sitl"),
+        render=False,
+        max_wall_s=30.0,
+    )
+    sitl = MavlinkSitl(cfg)
+    thread = threading.Thread(target=sitl.run, daemon=True, name="sitl")
+    thread.start()
+    try:
+        with SitlClient(("127.0.0.1", mav_port), remote_port, cam_port) as client:
+            client.wait_for("HEARTBEAT", 5.0)
+            assert client.command_long(mavlink.MAV_CMD_NAV_LAND) == 0
+            thread.join(30.0)
+    finally:
+        sitl.stop()
+        thread.join(10.0)
+    assert not thread.is_alive() and sitl.results and sitl.results[0].landed
+
+    # The on-board record: telemetry as received and commands, no ground truth, no result.
+    source = read_log(rollout)
+    companion = root / "companion.mcap"
+    with FlightLogWriter(companion, {"config": {"companion": {"policy": "test"}}}) as w:
+        observations, commands = source.topic(TOPIC_OBSERVATION), source.topic(TOPIC_COMMAND)
+        for obs, cmd in zip(observations, commands, strict=True):
+            w.write(TOPIC_OBSERVATION, "visland.Observation", obs["time_s"], obs)
+            w.write(TOPIC_COMMAND, "visland.Command", cmd["time_s"], {**cmd, "latency_s": 0.01})
+
+    data = rollout.read_bytes()
+    truncated = root / "truncated.mcap"
+    truncated.write_bytes(data[: len(data) // 2])
+    return {
+        "rollout": rollout,
+        "sitl": root / "sitl" / "sitl_seed0_ep0000.mcap",
+        "companion": companion,
+        "truncated": truncated,
+    }
+
+
+def test_info_of_a_rollout_log_counts_every_topic_and_gives_the_result(logs):
+    info = log_info(logs["rollout"])
+    assert info["kind"] == "rollout" and not info["truncated"] and info["error"] is None
+    steps = info["topics"]["/command"]["count"]
+    assert steps > 50
+    for topic in ("/camera/image", "/observation", "/groundtruth/state", "/groundtruth/pose"):
+        assert info["topics"][topic]["count"] == steps, topic
+    assert info["topics"]["/camera/image"]["schema"] == "foxglove.RawImage"
+    assert info["topics"]["/groundtruth/state"]["schema"] == "visland.GroundTruth"
+    assert info["messages"] == sum(row["count"] for row in info["topics"].values())
+    assert info["metadata"] == {
+        "config": ["scenario", "sim", "vehicle"],
+        "episode": ["episode_index", "seed", "source"],
+    }
+    assert info["result"]["landed"] and info["result"]["success"]
+    assert info["duration_s"] == pytest.approx(info["result"]["time_s"])
+    assert info["plot_missing"] == []
+    json.dumps(info)  # JSON-ready as is
+
+
+def test_info_of_a_sitl_log_names_mavlink_topics_and_schemas(logs):
+    info = log_info(logs["sitl"])
+    assert info["kind"] == "sitl" and not info["truncated"]
+    topics = info["topics"]
+    assert topics["/mavlink/in/COMMAND_LONG"] == {"count": 1, "schema": "mavlink.COMMAND_LONG"}
+    assert topics["/mavlink/out/HEARTBEAT"]["schema"] == "mavlink.HEARTBEAT"
+    # 50 Hz attitude vs 10 Hz frames
+    assert topics["/mavlink/out/ATTITUDE"]["count"] > 4 * topics["/groundtruth/state"]["count"]
+    assert "/command" not in topics and topics["/autopilot/command"]["count"] > 50
+    assert set(info["metadata"]["config"]) == {"params", "sim", "sitl", "vehicle"}
+    assert info["result"]["landed"] and not info["result"]["aborted"]
+    assert info["plot_sources"]["command"] == "/autopilot/command"
+
+
+def test_info_of_a_truncated_log_keeps_the_readable_prefix(logs):
+    full, cut = log_info(logs["rollout"]), log_info(logs["truncated"])
+    assert cut["truncated"] and "cut inside a record" in cut["error"]
+    assert 0 < cut["topics"]["/groundtruth/state"]["count"] < full["topics"]["/command"]["count"]
+    assert cut["result"] is None and cut["duration_s"] < full["duration_s"]
+
+
+def _png(path: Path) -> np.ndarray:
+    with Image.open(path) as img:
+        assert img.format == "PNG"
+        return np.asarray(img.convert("L"))
+
+
+@pytest.mark.parametrize("kind", ["rollout", "sitl", "truncated"])
+def test_plot_draws_all_four_panels_from_the_best_sources(logs, kind, tmp_path):
+    report = plot_flight(logs[kind], tmp_path / f"{kind}.png")
+    pixels = _png(report.out)
+    assert pixels.shape == (950, 1300) and pixels.std() > 10  # a drawing, not a blank page
+    assert report.missing == [] and report.truncated == (kind == "truncated")
+    assert report.sources["position"] == "/groundtruth/state"
+    assert report.sources["attitude"] == "/groundtruth/state"
+    expected = "/autopilot/command" if kind == "sitl" else "/command"
+    assert report.sources["command"] == expected
+
+
+def test_plot_of_a_companion_log_uses_telemetry_and_says_position_is_missing(logs, tmp_path):
+    report = plot_flight(logs["companion"], tmp_path / "companion.png")
+    assert report.kind == "companion"
+    assert report.sources == {
+        "position": None,
+        "altitude": "/observation",
+        "attitude": "/observation",
+        "command": "/command",
+    }
+    assert report.missing == ["position: none of /groundtruth/state in the log"]
+    assert _png(report.out).std() > 10
+
+
+def test_plot_default_path_is_beside_the_log(logs, tmp_path):
+    copy = tmp_path / "ep_s0_00000.mcap"
+    copy.write_bytes(logs["rollout"].read_bytes())
+    assert plot_log(copy) == tmp_path / "ep_s0_00000.png" == default_plot_path(copy)
+    assert default_plot_path("a/b.mcap.part") == Path("a/b.png")
+
+
+def test_cli_log_info_json_and_plot(logs, tmp_path, capsys):
+    assert main(["log", "info", str(logs["sitl"]), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["kind"] == "sitl" and info["result"]["success"]
+    assert main(["log", "info", str(logs["truncated"])]) == 0
+    text = capsys.readouterr().out
+    assert "TRUNCATED" in text and "/groundtruth/state" in text and "result: none" in text
+    out = tmp_path / "plots" / "c.png"
+    assert main(["log", "plot", str(logs["companion"]), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert out.is_file() and "missing position" in text
+
+
+@pytest.mark.parametrize("content", [b"", b"not an mcap file\n", b"\x89MCAP0\r"])
+def test_cli_rejects_a_file_that_is_not_mcap_with_one_line_and_exit_2(tmp_path, capsys, content):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(content)
+    with pytest.raises(FlightLogError, match="not an MCAP file"):
+        log_info(bad)
+    for what in ("info", "plot"):
+        assert main(["log", what, str(bad)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not an MCAP file" in err[0] and str(bad) in err[0]
+    assert not (tmp_path / "bad.png").exists()

@@ -1,0 +1,464 @@
+"""``visland log info`` / ``visland log plot``: what is in an MCAP flight log, and a picture of it.
+
+Works on the three kinds of flight log (DESIGN.md "Flight logs"), telling them apart by topic:
+
+* **sitl** — ``visland sitl``: ``/groundtruth/state`` at every frame, ``/autopilot/command`` (the
+  command the autopilot applied, whatever the mode), ``/mavlink/in|out/<NAME>``;
+* **rollout** — the in-process path (``visland collect``/``eval``): ``/groundtruth/state``,
+  ``/observation``, ``/command`` per control step;
+* **companion** — the on-board record: telemetry as received (``/observation``-like) and
+  ``/command``, no ground truth.
+
+Each plot panel takes the best source the log has (ground truth before measurements, the pilot's
+``/command`` before the autopilot's before the raw SET_ATTITUDE_TARGET) and says which it used in
+its title; a panel with no source says what is missing instead of drawing nothing silently.
+Logs are read with :func:`companion.flightlog.read_log`, so a truncated (crashed) log shows its
+readable prefix and is reported as truncated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.flightlog import (
+    TOPIC_COMMAND,
+    TOPIC_EVENTS,
+    TOPIC_GROUNDTRUTH,
+    TOPIC_OBSERVATION,
+    TOPIC_RESULT,
+    FlightLog,
+    read_log,
+)
+
+__all__ = [
+    "PANELS",
+    "PlotReport",
+    "PlotSources",
+    "default_plot_path",
+    "format_info",
+    "log_info",
+    "plot_flight",
+    "plot_log",
+    "plot_sources",
+]
+
+TOPIC_AUTOPILOT_COMMAND = "/autopilot/command"
+TOPIC_MAVLINK_ATTITUDE = "/mavlink/out/ATTITUDE"
+TOPIC_MAVLINK_DISTANCE = "/mavlink/out/DISTANCE_SENSOR"
+TOPIC_MAVLINK_SETPOINT = "/mavlink/in/SET_ATTITUDE_TARGET"
+
+PANELS = ("position", "altitude", "attitude", "command")
+"""The plot's panels: top view, altitude vs time, attitude vs time, commands vs time."""
+
+_PAD_HALF_M = 2.0  # the pad is a 4 m square (sitl_sim.scene)
+_CROSS_HALF_M, _CROSS_HALF_W_M = 1.6, 0.3  # red cross arms 3.2 m x 0.6 m
+_UINT16_MAX = 65_535
+_MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed")
+"""Event kinds drawn as vertical lines on the time plots (the autopilot's mode/arming story)."""
+
+# topic -> what it offers, best first, per panel.
+_SOURCES: dict[str, tuple[str, ...]] = {
+    "position": (TOPIC_GROUNDTRUTH,),
+    "altitude": (TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_MAVLINK_DISTANCE),
+    "attitude": (TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_MAVLINK_ATTITUDE),
+    "command": (TOPIC_COMMAND, TOPIC_AUTOPILOT_COMMAND, TOPIC_MAVLINK_SETPOINT),
+}
+
+
+@dataclass(frozen=True)
+class PlotSources:
+    """Which topic feeds each panel (None: the log has none of the topics it could use).
+
+    Attributes:
+        sources: panel name (:data:`PANELS`) -> topic or None.
+        missing: one line per panel without a source, naming the topics it looked for.
+    """
+
+    sources: dict[str, str | None]
+    missing: list[str] = field(default_factory=list)
+
+
+def _kind(topics: set[str]) -> str:
+    if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith("/mavlink/") for t in topics):
+        return "sitl"
+    if TOPIC_GROUNDTRUTH in topics:
+        return "rollout"
+    if TOPIC_OBSERVATION in topics or TOPIC_COMMAND in topics:
+        return "companion"
+    return "unknown"
+
+
+def plot_sources(log: FlightLog) -> PlotSources:
+    """The topic each plot panel will draw from, and what is missing."""
+    sources: dict[str, str | None] = {}
+    missing: list[str] = []
+    for panel in PANELS:
+        found = next((t for t in _SOURCES[panel] if log.topic(t)), None)
+        sources[panel] = found
+        if found is None:
+            missing.append(f"{panel}: none of {', '.join(_SOURCES[panel])} in the log")
+    return PlotSources(sources, missing)
+
+
+def log_info(path: str | Path) -> dict[str, Any]:
+    """A summary of one flight log (JSON-ready).
+
+    Keys: ``path``, ``size_bytes``, ``kind`` (sitl | rollout | companion | unknown),
+    ``truncated`` and ``error`` (why reading stopped early), ``messages`` (total),
+    ``start_time_s`` / ``end_time_s`` / ``duration_s`` (the log's sim clock), ``topics``
+    (topic -> ``{count, schema}``, every channel of the readable part), ``metadata`` (record
+    name -> its keys), ``episode`` (the ``episode`` metadata record, if any), ``result`` (the
+    last ``/episode/result`` message, or None), ``plot_sources`` and ``plot_missing``.
+
+    Raises:
+        FlightLogError: the file is missing or not an MCAP file.
+    """
+    path = Path(path)
+    log = read_log(path)
+    times = [m["time_s"] for msgs in log.messages.values() for m in msgs if "time_s" in m]
+    topics = {
+        topic: {"count": len(log.topic(topic)), "schema": log.schemas.get(topic, "")}
+        for topic in sorted(set(log.schemas) | set(log.messages))
+    }
+    results = log.topic(TOPIC_RESULT)
+    sources = plot_sources(log)
+    return {
+        "path": str(path),
+        "size_bytes": path.stat().st_size,
+        "kind": _kind(set(topics)),
+        "truncated": log.truncated,
+        "error": log.error,
+        "messages": sum(v["count"] for v in topics.values()),
+        "start_time_s": min(times) if times else None,
+        "end_time_s": max(times) if times else None,
+        "duration_s": log.duration_s,
+        "topics": topics,
+        "metadata": {name: sorted(values) for name, values in log.metadata.items()},
+        "episode": log.metadata.get("episode"),
+        "result": results[-1] if results else None,
+        "plot_sources": sources.sources,
+        "plot_missing": sources.missing,
+    }
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """``log_info``'s dict as the text ``visland log info`` prints."""
+    state = f"TRUNCATED: {info['error']}" if info["truncated"] else "complete (footer read)"
+    lines = [
+        f"{info['path']}  ({info['size_bytes'] / 1024:.0f} KiB, {info['kind']} log)",
+        f"  {state}",
+    ]
+    if info["start_time_s"] is not None:
+        lines.append(
+            f"  time {info['start_time_s']:.3f} .. {info['end_time_s']:.3f} s "
+            f"(duration {info['duration_s']:.3f} s), {info['messages']} messages"
+        )
+    width = max((len(t) for t in info["topics"]), default=0)
+    lines.append("  topics:")
+    for topic, row in info["topics"].items():
+        lines.append(f"    {topic:<{width}}  {row['count']:>7}  {row['schema']}")
+    lines.append("  metadata:")
+    for name, keys in info["metadata"].items():
+        lines.append(f"    {name}: {', '.join(keys)}")
+    if not info["metadata"]:
+        lines.append("    (none)")
+    result = info["result"]
+    if result is None:
+        lines.append("  result: none (no /episode/result)")
+    else:
+        shown = ("landed", "success", "landing_error_m", "touchdown_vertical_speed_m_s", "tilt_deg")
+        parts = [f"{k} {_fmt(result[k])}" for k in shown if k in result]
+        if result.get("aborted"):
+            parts.insert(0, "ABORTED")
+        lines.append(f"  result: {', '.join(parts)}")
+    for line in info["plot_missing"]:
+        lines.append(f"  plot: no {line}")
+    return "\n".join(lines)
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return "n/a" if value is None else str(value)
+
+
+# --------------------------------------------------------------------------- series
+
+
+def _array(msgs: list[dict[str, Any]], get: Callable[[dict[str, Any]], Any], width: int):
+    """``(times (N,), values (N, width))`` with null/missing values as NaN."""
+    times = np.array([float(m["time_s"]) for m in msgs], dtype=float)
+    values = np.full((len(msgs), width), np.nan)
+    for i, m in enumerate(msgs):
+        try:
+            v = get(m)
+        except (KeyError, TypeError, IndexError):
+            continue
+        if v is None:
+            continue
+        row = np.asarray(v, dtype=float).reshape(-1)
+        if row.size == width:
+            values[i] = row
+    return times, values
+
+
+def _euler_deg(quats: np.ndarray) -> np.ndarray:
+    """(N, 4) wxyz -> (N, 3) roll, pitch, yaw in degrees (ZYX, as MAVLink's ATTITUDE)."""
+    w, x, y, z = quats.T
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.degrees(np.stack([roll, pitch, yaw], axis=1))
+
+
+def _altitude(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
+    msgs = log.topic(topic)
+    if topic == TOPIC_GROUNDTRUTH:
+        t, pos = _array(msgs, lambda m: m["pos_ned_m"], 3)
+        return t, -pos[:, 2], "altitude above ground (ground truth)"
+    if topic == TOPIC_OBSERVATION:
+        t, rng = _array(msgs, lambda m: m["range_m"], 1)
+        return t, rng[:, 0], "radar range (observation)"
+
+    def cm(m: dict[str, Any]) -> float | None:
+        return None if m["current_distance"] >= _UINT16_MAX else m["current_distance"] / 100
+
+    t, rng = _array(msgs, cm, 1)
+    return t, rng[:, 0], "radar range (DISTANCE_SENSOR)"
+
+
+def _attitude(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
+    msgs = log.topic(topic)
+    if topic == TOPIC_GROUNDTRUTH:
+        t, q = _array(msgs, lambda m: m["quat_wxyz"], 4)
+        return t, _euler_deg(q), "ground truth"
+    if topic == TOPIC_OBSERVATION:
+        t, att = _array(msgs, lambda m: m["attitude_rad"], 3)
+        return t, np.degrees(att), "observation"
+    t, att = _array(msgs, lambda m: (m["roll"], m["pitch"], m["yaw"]), 3)
+    return t, np.degrees(att), "ATTITUDE"
+
+
+def _commands(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(times, thrust_norm (N,), rates (N, 3))``."""
+    msgs = log.topic(topic)
+    if topic == TOPIC_MAVLINK_SETPOINT:
+        t, thrust = _array(msgs, lambda m: m["thrust"], 1)
+        _, rates = _array(
+            msgs, lambda m: (m["body_roll_rate"], m["body_pitch_rate"], m["body_yaw_rate"]), 3
+        )
+    else:
+        t, thrust = _array(msgs, lambda m: m["thrust_norm"], 1)
+        _, rates = _array(msgs, lambda m: m["rate_frd_rad_s"], 3)
+    return t, thrust[:, 0], rates
+
+
+def _events(log: FlightLog) -> list[tuple[float, str]]:
+    return [
+        (float(e["time_s"]), str(e.get("text", e["kind"])))
+        for e in log.topic(TOPIC_EVENTS)
+        if e.get("kind") in _MARKED_EVENTS and "time_s" in e
+    ]
+
+
+# --------------------------------------------------------------------------- plot
+
+
+def default_plot_path(path: str | Path) -> Path:
+    """``<dir>/<name without .mcap/.part>.png``."""
+    path = Path(path)
+    name = path.name
+    for suffix in (".part", ".mcap"):
+        name = name.removesuffix(suffix)
+    return path.with_name(name + ".png")
+
+
+def _missing(ax, text: str) -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, wrap=True)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def _mark_events(ax, events: list[tuple[float, str]], label: bool = False) -> None:
+    for t, text in events:
+        ax.axvline(t, color="0.6", linestyle=":", linewidth=0.8)
+        if label:
+            ax.text(
+                t,
+                0.98,
+                f" {text}",
+                transform=ax.get_xaxis_transform(),
+                rotation=90,
+                va="top",
+                fontsize=6,
+                color="0.4",
+            )
+
+
+def _title(log: FlightLog, kind: str) -> str:
+    head = f"{log.path.name} — {kind} log"
+    if log.truncated:
+        head += " (TRUNCATED: readable prefix only)"
+    results = log.topic(TOPIC_RESULT)
+    if not results:
+        return head + "\nno episode result"
+    r = results[-1]
+    if r.get("aborted"):
+        verdict = "aborted"
+    elif not r.get("landed"):
+        verdict = "timeout"
+    else:
+        verdict = "success" if r.get("success") else "landed, not a success"
+    speed = r.get("touchdown_vertical_speed_m_s")
+    return (
+        f"{head}\n{verdict}: landing error {_fmt(r.get('landing_error_m'))} m, "
+        f"vertical speed {_fmt(speed)} m/s, tilt {_fmt(r.get('tilt_deg'))} deg"
+    )
+
+
+@dataclass(frozen=True)
+class PlotReport:
+    """What :func:`plot_flight` drew.
+
+    Attributes:
+        out: the PNG written.
+        kind: sitl | rollout | companion | unknown.
+        sources: panel -> topic drawn (None: panel left empty, see ``missing``).
+        missing: one line per empty panel, naming the topics it looked for.
+        truncated: the log was cut (crash); the plot shows its readable prefix.
+        error: why reading stopped early, if it did.
+    """
+
+    out: Path
+    kind: str
+    sources: dict[str, str | None]
+    missing: list[str]
+    truncated: bool
+    error: str | None
+
+
+def plot_log(path: str | Path, out: str | Path | None = None) -> Path:
+    """Draw one flight log to a PNG and return its path (see :func:`plot_flight`)."""
+    return plot_flight(path, out).out
+
+
+def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
+    """Draw one flight log to a PNG (default :func:`default_plot_path`) and say what it drew.
+
+    Panels: top view (north/east) around the pad; altitude vs time; roll/pitch/yaw vs time;
+    thrust_norm and body-rate commands vs time. A panel without data says which topics it
+    looked for (see :func:`plot_sources`).
+
+    Raises:
+        FlightLogError: the file is missing or not an MCAP file.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, never a window (CI, SSH, a companion computer)
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    wanted = {t for topics in _SOURCES.values() for t in topics} | {TOPIC_RESULT, TOPIC_EVENTS}
+    log = read_log(path, topics=wanted)
+    kind = _kind(set(log.schemas))  # every channel, read or not
+    src = plot_sources(log)
+    events = _events(log)
+    out_path = Path(out) if out is not None else default_plot_path(path)
+
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
+    (ax_top, ax_alt), (ax_att, ax_cmd) = axes
+    try:
+        # Top view: east to the right, north up, the pad and its cross at the origin.
+        topic = src.sources["position"]
+        if topic is None:
+            _missing(ax_top, "no position\n" + _missing_line(src, "position"))
+        else:
+            _, pos = _array(log.topic(topic), lambda m: m["pos_ned_m"], 3)
+            ax_top.add_patch(
+                Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35)
+            )
+            for w, h in ((_CROSS_HALF_M, _CROSS_HALF_W_M), (_CROSS_HALF_W_M, _CROSS_HALF_M)):
+                ax_top.add_patch(Rectangle((-w, -h), 2 * w, 2 * h, color="tab:red", alpha=0.5))
+            ax_top.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
+            ax_top.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
+            ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
+            span = max(3.0, float(np.nanmax(np.abs(pos[:, :2]))) * 1.15)
+            ax_top.set_xlim(-span, span)
+            ax_top.set_ylim(-span, span)
+            ax_top.set_aspect("equal")
+            ax_top.legend(loc="upper right", fontsize=8)
+            ax_top.grid(alpha=0.3)
+        ax_top.set_title(f"top view ({topic or 'missing'})", fontsize=10)
+        ax_top.set_xlabel("east (m)")
+        ax_top.set_ylabel("north (m)")
+
+        topic = src.sources["altitude"]
+        if topic is None:
+            _missing(ax_alt, "no altitude or range\n" + _missing_line(src, "altitude"))
+        else:
+            t, alt, label = _altitude(log, topic)
+            ax_alt.plot(t, alt, color="tab:blue", label=label)
+            radar = next(
+                (s for s in (TOPIC_OBSERVATION, TOPIC_MAVLINK_DISTANCE) if log.topic(s)), None
+            )
+            if radar is not None and radar != topic:  # the measurement beside the truth
+                t2, rng, label2 = _altitude(log, radar)
+                ax_alt.plot(t2, rng, color="tab:orange", linewidth=0.8, label=label2)
+            ax_alt.legend(fontsize=8)
+            ax_alt.grid(alpha=0.3)
+            _mark_events(ax_alt, events, label=True)
+        ax_alt.set_title(f"altitude ({topic or 'missing'})", fontsize=10)
+        ax_alt.set_xlabel("time (s)")
+        ax_alt.set_ylabel("m")
+
+        topic = src.sources["attitude"]
+        if topic is None:
+            _missing(ax_att, "no attitude\n" + _missing_line(src, "attitude"))
+        else:
+            t, att, label = _attitude(log, topic)
+            for k, name in enumerate(("roll", "pitch", "yaw")):
+                ax_att.plot(t, att[:, k], label=name)
+            ax_att.legend(fontsize=8)
+            ax_att.grid(alpha=0.3)
+            _mark_events(ax_att, events)
+        ax_att.set_title(f"attitude, deg ({topic or 'missing'})", fontsize=10)
+        ax_att.set_xlabel("time (s)")
+        ax_att.set_ylabel("deg")
+
+        topic = src.sources["command"]
+        if topic is None:
+            _missing(ax_cmd, "no commands\n" + _missing_line(src, "command"))
+        else:
+            t, thrust, rates = _commands(log, topic)
+            ax_cmd.step(t, thrust, where="post", color="k", label="thrust_norm")
+            ax_cmd.set_ylabel("thrust_norm")
+            ax_cmd.set_ylim(-0.02, 1.02)
+            ax_rate = ax_cmd.twinx()
+            for k, name in enumerate(("p (roll rate)", "q (pitch rate)", "r (yaw rate)")):
+                ax_rate.step(t, rates[:, k], where="post", linewidth=0.9, label=name)
+            ax_rate.set_ylabel("body rate (rad/s, FRD)")
+            handles = ax_cmd.get_legend_handles_labels()
+            rate_handles = ax_rate.get_legend_handles_labels()
+            ax_cmd.legend(handles[0] + rate_handles[0], handles[1] + rate_handles[1], fontsize=8)
+            ax_cmd.grid(alpha=0.3)
+            _mark_events(ax_cmd, events)
+        ax_cmd.set_title(f"commands ({topic or 'missing'})", fontsize=10)
+        ax_cmd.set_xlabel("time (s)")
+
+        fig.suptitle(_title(log, kind), fontsize=11)
+        fig.tight_layout()
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out_path, dpi=100)
+    finally:
+        plt.close(fig)
+    return PlotReport(out_path, kind, src.sources, src.missing, log.truncated, log.error)
+
+
+def _missing_line(src: PlotSources, panel: str) -> str:
+    line = next(m for m in src.missing if m.startswith(panel + ":"))
+    return line.split(": ", 1)[1]
