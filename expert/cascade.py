@@ -1,52 +1,27 @@
-"""A cascaded PD lander on privileged state: the simple baseline controller.
+"""A cascaded PD lander on privileged state: the simple baseline controller, as a Policy.
 
-It is what PX4's multicopter position controller does, reduced to landing: position and velocity
-errors give a desired acceleration, which gives a thrust vector (collective + desired body z
-axis), and the attitude error gives body-rate setpoints. It reads ground truth, so it is a
-*privileged* controller — the scripted pilot of the demo and of the simulator benchmarks, and the
-reference the MPC expert must beat.
+The controller itself is the SITL autopilot's AUTO.LAND controller,
+:class:`sitl_sim.land_controller.CascadeLandController` (one implementation: the SITL's LAND mode
+and this baseline fly the same law). This module adds the :class:`expert.policy.Policy`
+interface. It reads ground truth, so it is a *privileged* controller — the scripted pilot of the
+demo and of the simulator benchmarks, and the reference the MPC expert must beat.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
-import numpy as np
-
-from companion.contract import Command
 from expert.policy import MissingGroundTruthError
-from sitl_sim.config import Planet, VehicleConfig
-from sitl_sim.dynamics import quat_to_rotation
+from sitl_sim.land_controller import CascadeGains, CascadeLandController
 
 __all__ = ["CascadeGains", "CascadeLander"]
 
 
-@dataclass(frozen=True)
-class CascadeGains:
-    kp_pos: float = 0.6  # 1/s^2
-    kd_pos: float = 1.4  # 1/s
-    kp_vel_down: float = 2.0  # 1/s
-    max_descent_m_s: float = 4.0
-    min_descent_m_s: float = 0.35
-    descent_per_altitude: float = 0.25  # descent speed = this * altitude, clamped
-    kp_att: float = 6.0  # rad/s per rad
-    kp_yaw: float = 1.0
-    max_tilt_rad: float = math.radians(30.0)
-
-
-class CascadeLander:
+class CascadeLander(CascadeLandController):
     """Ground truth in, Command out: ``command(pos, vel, quat) -> Command``.
 
     Also a (privileged, stateless) :class:`expert.policy.Policy`.
     """
 
     privileged = True
-
-    def __init__(self, vehicle: VehicleConfig, world: Planet, gains: CascadeGains | None = None):
-        self.vehicle = vehicle
-        self.world = world
-        self.gains = gains or CascadeGains()
 
     def initial_state(self) -> None:
         return None
@@ -57,32 +32,3 @@ class CascadeLander:
             raise MissingGroundTruthError("CascadeLander is privileged: act() needs groundtruth")
         gt = groundtruth
         return self.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz), state
-
-    def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command:
-        g = self.gains
-        pos = np.asarray(pos_ned_m, dtype=float)
-        vel = np.asarray(vel_ned_m_s, dtype=float)
-        altitude = max(0.0, -pos[2])
-        v_down = min(g.max_descent_m_s, max(g.min_descent_m_s, g.descent_per_altitude * altitude))
-        acc = np.array(
-            [
-                -g.kp_pos * pos[0] - g.kd_pos * vel[0],
-                -g.kp_pos * pos[1] - g.kd_pos * vel[1],
-                g.kp_vel_down * (v_down - vel[2]),
-            ]
-        )
-        # Thrust vector (NED) that produces acc against gravity, tilt-limited.
-        force = self.vehicle.mass_kg * (acc - np.array([0.0, 0.0, self.world.gravity_m_s2]))
-        horiz = math.hypot(force[0], force[1])
-        max_h = abs(force[2]) * math.tan(g.max_tilt_rad)
-        if horiz > max_h:
-            force[:2] *= max_h / horiz
-        rot = quat_to_rotation(quat_wxyz)
-        z_des = -force / np.linalg.norm(force)  # desired body down axis
-        thrust_n = float(-force @ rot[:, 2]) if force @ rot[:, 2] < 0 else 0.0
-        thrust_norm = min(1.0, max(0.0, thrust_n / self.vehicle.max_total_thrust_n))
-        # Rate setpoint from the body-frame tilt error (small-angle, as PX4's attitude P loop)
-        # and a yaw damper: only the tilt matters for landing.
-        err_body = rot.T @ np.cross(rot[:, 2], z_des)
-        rates = np.array([g.kp_att * err_body[0], g.kp_att * err_body[1], 0.0])
-        return Command(thrust_norm=thrust_norm, rate_frd_rad_s=rates)

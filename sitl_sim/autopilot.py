@@ -267,7 +267,8 @@ def setpoint_from_target(
 
 
 class LandController(Protocol):
-    """The autopilot's AUTO.LAND controller: ground truth in, Command out (e.g. CascadeLander)."""
+    """The autopilot's AUTO.LAND controller: ground truth in, Command out (the default is
+    :class:`sitl_sim.land_controller.CascadeLandController`)."""
 
     def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command: ...
 

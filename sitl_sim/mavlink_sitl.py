@@ -84,6 +84,7 @@ from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.errors import SimError
 from sitl_sim.flight_record import groundtruth_msg
+from sitl_sim.land_controller import CascadeLandController
 from sitl_sim.mavlink_endpoint import (
     Inbound,
     LinkStats,
@@ -376,7 +377,8 @@ class MavlinkSitl:
     Args:
         config: the SitlConfig.
         land_controller_factory: builds the AUTO.LAND controller from (vehicle, planet); the
-            default is the project's privileged :class:`expert.cascade.CascadeLander`.
+            default is the privileged
+            :class:`~sitl_sim.land_controller.CascadeLandController` (ground truth in).
 
     Raises:
         SitlPortInUseError: the MAVLink port is taken.
@@ -1259,12 +1261,9 @@ class MavlinkSitl:
 
 
 def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:
-    # The autopilot's AUTO.LAND flies the project's privileged cascade lander (issue 3). It is
-    # imported here, not at module level, so that sitl_sim has no import-time dependency on
-    # expert (which itself imports sitl_sim); pass land_controller_factory to replace it.
-    from expert.cascade import CascadeLander
-
-    return CascadeLander(vehicle, planet)
+    # AUTO.LAND flies the SITL's own cascade lander on ground truth (the law that
+    # expert.cascade.CascadeLander wraps as a Policy); pass land_controller_factory to replace it.
+    return CascadeLandController(vehicle, planet)
 
 
 # --------------------------------------------------------------------------- entry points
