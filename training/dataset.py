@@ -1,0 +1,265 @@
+"""Training data: frozen :class:`Episode` records from flight logs + expert labels, cached.
+
+An episode is one flight log (``visland collect`` or a DAgger rollout) joined, control step by
+control step (``frame_id``), with its expert labels: the ``/label/command`` topic of its
+``.labels.mcap`` (``visland relabel``), or — for a flight the expert itself flew — the recorded
+``/command``, which *is* the expert's label. Arrays are validated once when built and cached as
+``.npz`` beside a run (keyed by the source files' size and mtime), so later stages reload a
+400-episode buffer in seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.flightlog import (
+    TOPIC_COMMAND,
+    TOPIC_GROUNDTRUTH,
+    TOPIC_IMAGE,
+    TOPIC_OBSERVATION,
+    TOPIC_RESULT,
+    FlightLogError,
+    read_log,
+)
+
+__all__ = ["DatasetError", "Episode", "load_episode", "load_episodes"]
+
+TOPIC_LABEL = "/label/command"  # expert.relabel.TOPIC_LABEL (training may import expert; kept
+# literal so reading data never needs the solver stack)
+_CACHE_VERSION = 2
+
+
+class DatasetError(ValueError):
+    """A flight log or label file cannot become a training episode (names the file)."""
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One flight, aligned per control step (``T`` steps). Arrays are read-only.
+
+    ``images`` is ``None`` when the flight was flown without rendering (privileged rollouts).
+    ``label`` (T, 4) is the expert's command (thrust_norm, p, q, r) at each step.
+    """
+
+    name: str
+    source: str
+    frame_id: np.ndarray
+    time_s: np.ndarray
+    attitude_rad: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    accel_frd_m_s2: np.ndarray
+    range_m: np.ndarray
+    pos_ned_m: np.ndarray
+    vel_ned_m_s: np.ndarray
+    quat_wxyz: np.ndarray
+    label: np.ndarray
+    flown: np.ndarray
+    """(T, 4) the command that was actually sent (the learner's, in DAgger rollouts)."""
+    images: np.ndarray | None = None
+    result: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.frame_id.shape[0])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {
+            k: getattr(self, k)
+            for k in (
+                "frame_id",
+                "time_s",
+                "attitude_rad",
+                "rate_frd_rad_s",
+                "accel_frd_m_s2",
+                "range_m",
+                "pos_ned_m",
+                "vel_ned_m_s",
+                "quat_wxyz",
+                "label",
+                "flown",
+            )
+        }
+        if self.images is not None:
+            out["images"] = self.images
+        return out
+
+
+def _validate(ep: Episode, where: str) -> Episode:
+    n = len(ep)
+    if n == 0:
+        raise DatasetError(f"{where}: no control steps")
+    shapes = {
+        "time_s": (n,),
+        "attitude_rad": (n, 3),
+        "rate_frd_rad_s": (n, 3),
+        "accel_frd_m_s2": (n, 3),
+        "range_m": (n,),
+        "pos_ned_m": (n, 3),
+        "vel_ned_m_s": (n, 3),
+        "quat_wxyz": (n, 4),
+        "label": (n, 4),
+        "flown": (n, 4),
+    }
+    for key, shape in shapes.items():
+        arr = getattr(ep, key)
+        if arr.shape != shape:
+            raise DatasetError(f"{where}: {key} has shape {arr.shape}, expected {shape}")
+        finite = np.isfinite(arr)
+        if key == "range_m":
+            continue  # NaN = radar invalid, part of the contract
+        if not finite.all():
+            bad = int(ep.frame_id[np.argwhere(~finite)[0][0]])
+            raise DatasetError(f"{where}: {key} is not finite at frame {bad}")
+    if ep.images is not None and ep.images.shape[0] != n:
+        raise DatasetError(f"{where}: {ep.images.shape[0]} images for {n} control steps")
+    for arr in ep.arrays().values():
+        arr.setflags(write=False)
+    return ep
+
+
+def _vec(msgs: list[dict[str, Any]], key: str, n: int) -> np.ndarray:
+    return np.array([m[key] for m in msgs], dtype=float).reshape(len(msgs), n)
+
+
+def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Episode:
+    topics = [TOPIC_OBSERVATION, TOPIC_GROUNDTRUTH, TOPIC_COMMAND, TOPIC_RESULT]
+    if with_images:
+        topics.append(TOPIC_IMAGE)
+    try:
+        log = read_log(log_path, topics=topics)
+    except FlightLogError as exc:
+        raise DatasetError(str(exc)) from None
+    meta_ep = log.metadata.get("episode", {})
+    source = str(meta_ep.get("source", "unknown"))
+    obs = {m["frame_id"]: m for m in log.topic(TOPIC_OBSERVATION)}
+    truth = {m["frame_id"]: m for m in log.topic(TOPIC_GROUNDTRUTH)}
+    flown = {m["frame_id"]: m for m in log.topic(TOPIC_COMMAND)}
+    if label_path is not None:
+        try:
+            labels_log = read_log(label_path, topics=[TOPIC_LABEL])
+        except FlightLogError as exc:
+            raise DatasetError(str(exc)) from None
+        labels = {m["frame_id"]: m for m in labels_log.topic(TOPIC_LABEL)}
+        where_labels = str(label_path)
+    elif source == "expert":
+        labels, where_labels = flown, f"{log_path} (/command, flown by the expert)"
+    else:
+        raise DatasetError(
+            f"{log_path}: flown by {source!r}, not the expert, and no label file given "
+            "(run `visland relabel` on it)"
+        )
+    frames = sorted(set(obs) & set(truth) & set(labels) & set(flown))
+    if not frames:
+        raise DatasetError(f"{log_path}: no control step has observation, ground truth and label")
+    # Only the contiguous prefix: a truncated log or label file ends the sequence.
+    contiguous = [frames[0]]
+    for f in frames[1:]:
+        if f != contiguous[-1] + 1:
+            break
+        contiguous.append(f)
+    frames = contiguous
+    o = [obs[f] for f in frames]
+    t = [truth[f] for f in frames]
+    lab = [labels[f] for f in frames]
+    fl = [flown[f] for f in frames]
+    images = None
+    if with_images:
+        image_msgs = log.topic(TOPIC_IMAGE)
+        if not image_msgs:
+            raise DatasetError(f"{log_path}: no camera frames (flown without rendering?)")
+        _, frames_arr = log.images()
+        # foxglove.RawImage frame_id is "camera/<frame id>"
+        index = {int(str(m["frame_id"]).rsplit("/", 1)[-1]): i for i, m in enumerate(image_msgs)}
+        missing = [f for f in frames if f not in index]
+        if missing:
+            raise DatasetError(f"{log_path}: no camera frame for frame {missing[0]}")
+        images = frames_arr[[index[f] for f in frames]]
+    try:
+        ep = Episode(
+            name=log_path.name,
+            source=source,
+            frame_id=np.array(frames, dtype=np.int64),
+            time_s=np.array([m["time_s"] for m in t], dtype=float),
+            attitude_rad=_vec(o, "attitude_rad", 3),
+            rate_frd_rad_s=_vec(o, "rate_frd_rad_s", 3),
+            accel_frd_m_s2=_vec(o, "accel_frd_m_s2", 3),
+            range_m=np.array(
+                [math.nan if m["range_m"] is None else m["range_m"] for m in o], dtype=float
+            ),
+            pos_ned_m=_vec(t, "pos_ned_m", 3),
+            vel_ned_m_s=_vec(t, "vel_ned_m_s", 3),
+            quat_wxyz=_vec(t, "quat_wxyz", 4),
+            label=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in lab], dtype=float),
+            flown=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in fl], dtype=float),
+            images=images,
+            result=(log.topic(TOPIC_RESULT) or [{}])[-1],
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{log_path} / {where_labels}: malformed record: {exc!r}") from None
+    return _validate(ep, f"{log_path}")
+
+
+def _stamp(path: Path | None) -> list[Any]:
+    if path is None:
+        return [None]
+    st = path.stat()
+    return [str(path.resolve()), st.st_size, st.st_mtime_ns]
+
+
+def load_episode(
+    log_path: str | Path,
+    label_path: str | Path | None = None,
+    with_images: bool = False,
+    cache_dir: str | Path | None = None,
+) -> Episode:
+    """One training episode from a flight log (+ its label file). Raises :class:`DatasetError`."""
+    log_path = Path(log_path)
+    label_path = Path(label_path) if label_path is not None else None
+    if not log_path.is_file():
+        raise DatasetError(f"{log_path}: no such flight log")
+    if label_path is not None and not label_path.is_file():
+        raise DatasetError(f"{label_path}: no such label file (run `visland relabel`)")
+    cache = None
+    key = json.dumps([_CACHE_VERSION, _stamp(log_path), _stamp(label_path), with_images])
+    if cache_dir is not None:
+        cache = Path(cache_dir) / (log_path.stem + (".img" if with_images else "") + ".npz")
+        if cache.is_file():
+            try:
+                with np.load(cache, allow_pickle=False) as z:
+                    if str(z["key"]) == key:
+                        meta = json.loads(str(z["meta"]))
+                        arrays = {k: z[k] for k in z.files if k not in ("key", "meta")}
+                        return _validate(Episode(**meta, **arrays), str(cache))
+            except (OSError, ValueError, KeyError, TypeError, DatasetError):
+                pass  # a stale or damaged cache is rebuilt from the logs
+    ep = _from_logs(log_path, label_path, with_images)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_suffix(".tmp.npz")
+        meta = {"name": ep.name, "source": ep.source, "result": ep.result}
+        np.savez(tmp, key=np.array(key), meta=np.array(json.dumps(meta)), **ep.arrays())
+        tmp.replace(cache)
+    return ep
+
+
+def load_episodes(
+    pairs: list[tuple[Path, Path | None]],
+    with_images: bool = False,
+    cache_dir: str | Path | None = None,
+    skip_bad: bool = True,
+) -> tuple[list[Episode], list[str]]:
+    """Load many; with ``skip_bad`` a bad file is reported (second list) and the rest go on."""
+    episodes, errors = [], []
+    for log, label in pairs:
+        try:
+            episodes.append(load_episode(log, label, with_images, cache_dir))
+        except DatasetError as exc:
+            if not skip_bad:
+                raise
+            errors.append(str(exc))
+    return episodes, errors

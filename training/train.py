@@ -1,0 +1,319 @@
+"""Training steps: controller behaviour cloning from the replay buffer, perception regression.
+
+Both run on the CPU with a seeded generator (same seed, same data => same weights on one
+machine) and report through a ``log(name, value, step)`` callback (TensorBoard / console).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from companion.policy_net import (
+    ControlLSTM,
+    LearnedPolicy,
+    NetConfig,
+    PerceptionCNN,
+    control_features,
+)
+from sitl_sim.config import Planet, SimConfig, VehicleConfig
+from sitl_sim.dynamics import quat_to_rotation
+from training.dataset import Episode
+from training.replay import BufferedEpisode, ReplayBuffer
+
+__all__ = [
+    "COMMAND_SCALE",
+    "ControllerFit",
+    "PerceptionFit",
+    "bearing_labels",
+    "net_config_for",
+    "privileged_episode",
+    "train_controller",
+    "train_perception",
+    "vision_episode",
+]
+
+COMMAND_SCALE = np.array([0.05, 0.25, 0.25, 0.25], dtype=np.float32)
+"""Loss scale per command component (thrust_norm, p, q, r): errors are measured in these units."""
+
+Logger = Callable[[str, float, int], None]
+
+
+def _no_log(name: str, value: float, step: int) -> None:
+    return None
+
+
+def net_config_for(
+    vehicle: VehicleConfig, sim: SimConfig, kind: str, planet: Planet | None = None
+) -> NetConfig:
+    """The network config matching a vehicle and world (hover thrust, rate limits, gravity)."""
+    planet = planet or sim.planet
+    g = planet.gravity_m_s2
+    return NetConfig(
+        kind=kind,
+        hover_thrust_norm=vehicle.hover_thrust_norm(planet),
+        max_rate_rad_s=tuple(float(v) for v in vehicle.rate_controller.max_rate_rad_s),
+        gravity_m_s2=g,
+        control_dt_s=1.0 / sim.control_rate_hz,
+        fov_deg=sim.camera.fov_deg,
+        image_size_px=sim.camera.height_px,
+    )
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def privileged_episode(ep: Episode) -> BufferedEpisode:
+    """Controller inputs from ground-truth position/velocity (the privileged variant)."""
+    feats = np.stack(
+        [
+            control_features(
+                ep.pos_ned_m[t],
+                ep.vel_ned_m_s[t],
+                ep.attitude_rad[t],
+                ep.rate_frd_rad_s[t],
+                ep.accel_frd_m_s2[t],
+                1.0,
+            )
+            for t in range(len(ep))
+        ]
+    )
+    return BufferedEpisode(ep.name, feats, ep.label.astype(np.float32))
+
+
+def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
+    """Controller inputs as the vision policy computes them in flight (CNN + estimator).
+
+    The CNN runs batched over the recorded frames; the estimator and feature code are the
+    policy's own (``LearnedPolicy.vision_features``), step by step.
+    """
+    if ep.images is None:
+        raise ValueError(f"{ep.name}: vision features need the camera frames")
+    assert policy.perception is not None
+    with torch.inference_mode():
+        raw = np.concatenate(
+            [
+                policy.perception(torch.from_numpy(ep.images[i : i + 256])).numpy()
+                for i in range(0, len(ep), 256)
+            ]
+        ).astype(float)
+    state = policy.initial_state()
+    feats = []
+    for t in range(len(ep)):
+        f, state = policy.vision_features(
+            raw[t],
+            ep.attitude_rad[t],
+            ep.rate_frd_rad_s[t],
+            ep.accel_frd_m_s2[t],
+            float(ep.range_m[t]),
+            state,
+        )
+        feats.append(f)
+    return BufferedEpisode(ep.name, np.stack(feats), ep.label.astype(np.float32))
+
+
+# ----------------------------------------------------------------------------- controller
+
+
+@dataclass(frozen=True)
+class ControllerFit:
+    steps: int
+    final_loss: float
+    seconds: float
+
+
+def train_controller(
+    control: ControlLSTM,
+    buffer: ReplayBuffer,
+    steps: int,
+    batch_segments: int = 32,
+    lr: float = 1e-3,
+    seed: int = 0,
+    log: Logger = _no_log,
+    log_prefix: str = "controller",
+    step_offset: int = 0,
+    progress: Callable[[int], None] | None = None,
+) -> ControllerFit:
+    """Behaviour cloning on buffer segments (fresh LSTM state per segment, as paper 4.2).
+
+    Loss: mean squared command error in :data:`COMMAND_SCALE` units; Adam with a cosine decay
+    to 10 % of ``lr``; gradient norm clipped at 1.
+    """
+    torch.manual_seed(seed)
+    control.train()
+    opt = torch.optim.Adam(control.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(s / max(steps, 1), 1.0)))
+    )
+    scale = torch.from_numpy(COMMAND_SCALE)
+    t0 = time.perf_counter()
+    running = math.nan
+    for step in range(steps):
+        feats, labels = buffer.sample(batch_segments)
+        pred, _ = control(torch.from_numpy(feats))
+        loss = (((pred - torch.from_numpy(labels)) / scale) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(control.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise FloatingPointError(f"{log_prefix}: loss became {value} at step {step}")
+        running = value if math.isnan(running) else 0.98 * running + 0.02 * value
+        if step % 50 == 0 or step == steps - 1:
+            log(f"{log_prefix}/loss", running, step_offset + step)
+        if progress is not None:
+            progress(1)
+    control.eval()
+    return ControllerFit(steps, running, time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- perception
+
+
+def bearing_labels(pos_ned_m: np.ndarray, quat_wxyz: np.ndarray, fov_deg: float) -> np.ndarray:
+    """(N, 3): the pad centre's (tan_right, tan_forward) in the camera and visible (0/1).
+
+    Computed from ground truth: the pad centre is the NED origin, the camera looks along body
+    down with image up = body forward.
+    """
+    out = np.zeros((pos_ned_m.shape[0], 3), dtype=np.float32)
+    half = math.tan(math.radians(fov_deg) / 2)
+    for i in range(pos_ned_m.shape[0]):
+        rel_body = quat_to_rotation(quat_wxyz[i]).T @ (-pos_ned_m[i])
+        if rel_body[2] <= 1e-6:
+            continue
+        tr, tf = rel_body[1] / rel_body[2], rel_body[0] / rel_body[2]
+        out[i] = (tr, tf, float(abs(tr) < half and abs(tf) < half))
+    return out
+
+
+@dataclass(frozen=True)
+class PerceptionFit:
+    epochs: int
+    train_images: int
+    val_images: int
+    val_bearing_error_px_median: float
+    val_bearing_error_px_p95: float
+    val_position_error_m_median: float
+    val_position_error_m_p95: float
+    val_visibility_accuracy: float
+    seconds: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _split(n_episodes: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    order = np.random.default_rng(seed).permutation(n_episodes)
+    n_val = max(1, round(n_episodes * val_fraction)) if n_episodes > 1 else 0
+    return order[n_val:], order[:n_val]
+
+
+def train_perception(
+    cnn: PerceptionCNN,
+    episodes: list[Episode],
+    epochs: int,
+    batch: int = 64,
+    lr: float = 2e-3,
+    seed: int = 0,
+    frame_stride: int = 2,
+    val_fraction: float = 0.1,
+    log: Logger = _no_log,
+    progress: Callable[[int], None] | None = None,
+) -> PerceptionFit:
+    """Regress the pad bearing (+ visibility) from expert-flight frames, split 90/10 by episode.
+
+    Loss: Huber on the bearing in pixels (only where the pad centre is in view) + binary
+    cross-entropy on visibility. Augmentation: random gain/offset of the grey levels.
+    """
+    if not episodes or any(e.images is None for e in episodes):
+        raise ValueError("perception training needs episodes with camera frames")
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    focal = float(0.5 * 128 / math.tan(math.radians(45.0) / 2))
+    tr_idx, va_idx = _split(len(episodes), val_fraction, seed)
+
+    def gather(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        imgs, labs, alts = [], [], []
+        for k in idx:
+            e = episodes[int(k)]
+            sel = np.arange(0, len(e), frame_stride)
+            imgs.append(e.images[sel])
+            labs.append(bearing_labels(e.pos_ned_m[sel], e.quat_wxyz[sel], 45.0))
+            alts.append(-e.pos_ned_m[sel, 2])
+        if not imgs:
+            return (np.zeros((0, 128, 128), np.uint8), np.zeros((0, 3), np.float32), np.zeros(0))
+        return np.concatenate(imgs), np.concatenate(labs), np.concatenate(alts)
+
+    x_tr, y_tr, _ = gather(tr_idx)
+    x_va, y_va, alt_va = gather(va_idx)
+    opt = torch.optim.Adam(cnn.parameters(), lr=lr)
+    n = x_tr.shape[0]
+    steps_total = epochs * max(1, n // batch)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(s / steps_total, 1.0)))
+    )
+    bce = nn.BCEWithLogitsLoss()
+    t0 = time.perf_counter()
+    step = 0
+    for epoch in range(epochs):
+        cnn.train()
+        order = rng.permutation(n)
+        for b in range(max(1, n // batch)):
+            sel = order[b * batch : (b + 1) * batch]
+            img = torch.from_numpy(x_tr[sel]).float()
+            gain = torch.from_numpy(rng.uniform(0.8, 1.2, (len(sel), 1, 1)).astype(np.float32))
+            offset = torch.from_numpy(rng.uniform(-20, 20, (len(sel), 1, 1)).astype(np.float32))
+            img = (img * gain + offset).clamp(0, 255)
+            y = torch.from_numpy(y_tr[sel])
+            out = cnn(img)
+            vis = y[:, 2]
+            err_px = (out[:, :2] - y[:, :2]) * focal
+            huber = nn.functional.smooth_l1_loss(err_px, torch.zeros_like(err_px), reduction="none")
+            loss_b = (huber.sum(dim=1) * vis).sum() / vis.sum().clamp(min=1.0)
+            loss = loss_b + bce(out[:, 2], vis)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            if step % 50 == 0:
+                log("perception/loss", float(loss), step)
+            step += 1
+            if progress is not None:
+                progress(1)
+        log("perception/epoch", float(epoch), step)
+    cnn.eval()
+    med_px = p95_px = med_m = p95_m = acc = math.nan
+    if x_va.shape[0]:
+        with torch.inference_mode():
+            out = torch.cat(
+                [cnn(torch.from_numpy(x_va[i : i + 256])) for i in range(0, len(x_va), 256)]
+            ).numpy()
+        vis = y_va[:, 2] > 0.5
+        err = np.linalg.norm(out[:, :2] - y_va[:, :2], axis=1)
+        if vis.any():
+            med_px, p95_px = (float(np.percentile(err[vis] * focal, q)) for q in (50, 95))
+            err_m = err[vis] * alt_va[vis]
+            med_m, p95_m = (float(np.percentile(err_m, q)) for q in (50, 95))
+        acc = float(np.mean((out[:, 2] > 0) == vis))
+        log("perception/val_bearing_error_px_median", med_px, step)
+    return PerceptionFit(
+        epochs=epochs,
+        train_images=int(n),
+        val_images=int(x_va.shape[0]),
+        val_bearing_error_px_median=med_px,
+        val_bearing_error_px_p95=p95_px,
+        val_position_error_m_median=med_m,
+        val_position_error_m_p95=p95_m,
+        val_visibility_accuracy=acc,
+        seconds=time.perf_counter() - t0,
+    )
