@@ -24,7 +24,7 @@ import socket
 import struct
 import time
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -121,14 +121,21 @@ class LinkStats:
         d["errors_comm"] = self.errors_comm
         return d
 
+    @classmethod
+    def total(cls, *stats: LinkStats) -> LinkStats:
+        """The field-wise sum of several links' counters (a system's SYS_STATUS)."""
+        return cls(**{f.name: sum(getattr(s, f.name) for s in stats) for f in fields(cls)})
+
 
 @dataclass(frozen=True)
 class Inbound:
-    """One accepted message and where it came from (``signed``: carried a valid signature)."""
+    """One accepted message and where it came from (``signed``: carried a valid signature;
+    ``link``: the name of the endpoint that received it, e.g. ``offboard`` or ``gcs``)."""
 
     msg: Any
     addr: tuple[str, int]
     signed: bool
+    link: str = "offboard"
 
 
 @dataclass(frozen=True)
@@ -150,6 +157,7 @@ class MavlinkEndpoint:
         sysid / compid: our ids (1 / 1: the autopilot).
         signing_key: 32-byte MAVLink 2 secret; None = no signing (the default, as PX4).
         max_peers: how many extra peers (those that sent us valid frames) receive our traffic.
+        name: the link's name (``offboard``, ``gcs``), carried by every :class:`Inbound`.
     """
 
     def __init__(
@@ -161,7 +169,9 @@ class MavlinkEndpoint:
         compid: int = 1,
         signing_key: bytes | None = None,
         max_peers: int = 8,
+        name: str = "offboard",
     ) -> None:
+        self.name = name
         if signing_key is not None and len(signing_key) != 32:
             raise SitlError(f"signing key must be 32 bytes, got {len(signing_key)}")
         self.stats = LinkStats()
@@ -219,6 +229,12 @@ class MavlinkEndpoint:
             enc.signing.timestamp = max(enc.signing.timestamp, signing_timestamp_now())
         buf = msg.pack(enc)
         enc.seq = (enc.seq + 1) % 256
+        self.send_bytes(buf)
+        return buf
+
+    def send_bytes(self, buf: bytes) -> None:
+        """Send an already packed frame (e.g. the one :meth:`send` of another link of the same
+        system returned: packed and signed once, one sequence for both links)."""
         self.stats.tx_messages += 1
         for addr in (self.remote, *self._peers):
             try:
@@ -226,7 +242,6 @@ class MavlinkEndpoint:
             except OSError:
                 # Nobody listening (ECONNREFUSED from an earlier ICMP), buffer full: UDP is lossy.
                 self.stats.tx_errors += 1
-        return buf
 
     # ------------------------------------------------------------------ receiving
 
@@ -308,7 +323,7 @@ class MavlinkEndpoint:
                     continue  # counted by _check_signature
             st.rx_messages += 1
             self._remember_peer(addr)
-            accepted.append(Inbound(msg, addr, signed))
+            accepted.append(Inbound(msg, addr, signed, self.name))
         if parser.buf_len() > 0:
             st.rx_truncated += 1
             errors.append(

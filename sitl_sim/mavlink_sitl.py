@@ -196,6 +196,12 @@ class SitlConfig:
     mavlink_port: int = _opt(14580, "local UDP port of the offboard link (PX4 SITL: 14580)")
     remote_host: str = _opt("127.0.0.1", "where the offboard API listens")
     remote_port: int = _opt(14540, "UDP port the offboard API listens on (PX4 SITL: 14540)")
+    gcs: bool = _opt(
+        True, "ground-station link (QGroundControl, MAVProxy) beside the offboard link"
+    )
+    gcs_port: int = _opt(18570, "local UDP port of the ground-station link (PX4 SITL: 18570)")
+    gcs_remote_host: str = _opt("127.0.0.1", "where the ground station listens")
+    gcs_remote_port: int = _opt(14550, "UDP port the ground station listens on (QGC: 14550)")
     camera_host: str = _opt("127.0.0.1", "where camera frames are sent")
     camera_port: int = _opt(5600, "UDP port camera frames are sent to")
     lockstep: bool = _opt(True, "lockstep (sim waits for the companion) vs real time")
@@ -234,7 +240,7 @@ class SitlConfig:
     max_wall_s: float | None = _opt(None, "stop after this many wall seconds (safety net)", float)
 
     def __post_init__(self) -> None:
-        for name in ("mavlink_port", "remote_port", "camera_port"):
+        for name in ("mavlink_port", "remote_port", "camera_port", "gcs_port", "gcs_remote_port"):
             port = getattr(self, name)
             if not 0 <= port <= 65535:
                 raise SitlError(f"{name} = {port}; expected a UDP port in [0, 65535]")
@@ -421,6 +427,24 @@ class MavlinkSitl:
         except SitlError:
             self.sim.close()  # the pybullet client must not outlive a failed start
             raise
+        self.gcs_endpoint: MavlinkEndpoint | None = None
+        """The ground-station link (None: ``gcs`` off, or its port was taken)."""
+        if config.gcs:
+            try:
+                self.gcs_endpoint = MavlinkEndpoint(
+                    (config.host, config.gcs_port),
+                    (config.gcs_remote_host, config.gcs_remote_port),
+                    signing_key=key,
+                    name="gcs",
+                )
+            except SitlError as exc:
+                # The offboard link is the one a flight needs; a second SITL (or a PX4) holding
+                # 18570 must not stop this one. Said once, loudly; --gcs-port / --no-gcs fix it.
+                log.warning("ground-station link off: %s (use --gcs-port or --no-gcs)", exc)
+        self._endpoints = [self.endpoint] + (
+            [self.gcs_endpoint] if self.gcs_endpoint is not None else []
+        )
+        self._rx_endpoint = self.endpoint
         self._camera_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._camera_addr = (config.camera_host, config.camera_port)
         self.camera_tx_errors = 0
@@ -469,8 +493,13 @@ class MavlinkSitl:
 
     @property
     def stats(self) -> LinkStats:
-        """Link counters (read-only from other threads)."""
+        """The offboard link's counters (read-only from other threads)."""
         return self.endpoint.stats
+
+    @property
+    def gcs_stats(self) -> LinkStats | None:
+        """The ground-station link's counters (None without that link)."""
+        return self.gcs_endpoint.stats if self.gcs_endpoint is not None else None
 
     def stop(self) -> None:
         """Ask :meth:`run` to return (thread-safe); the current episode is logged as aborted."""
@@ -521,7 +550,8 @@ class MavlinkSitl:
         if self._closed:
             return
         self._closed = True
-        self.endpoint.close()
+        for endpoint in self._endpoints:
+            endpoint.close()
         self._camera_sock.close()
         self.sim.close()
 
@@ -537,32 +567,36 @@ class MavlinkSitl:
         return self._flying and self.autopilot.physics_running
 
     def _sleep(self, timeout_s: float) -> None:
-        """Wait for a datagram or the timeout."""
+        """Wait for a datagram (on any link) or the timeout."""
         if timeout_s > 0:
-            select.select([self.endpoint.fileno()], [], [], timeout_s)
+            select.select([e.fileno() for e in self._endpoints], [], [], timeout_s)
 
     def _poll(self) -> None:
-        accepted, errors = self.endpoint.receive()
-        for err in errors:
-            self._log_rx_error(err)
-        for inbound in accepted:
-            msg = inbound.msg
-            name = msg.get_type()
-            self._log(
-                TOPIC_MAVLINK_IN + name,
-                "mavlink." + name,
-                {
-                    **_jsonable_msg(msg),
-                    "src_system": msg.get_srcSystem(),
-                    "src_component": msg.get_srcComponent(),
-                    "signed": inbound.signed,
-                },
-            )
-            handler = self._handlers.get(name)
-            if handler is None:
-                self.ignored_messages[name] += 1
-                continue
-            handler(msg, inbound)
+        for endpoint in self._endpoints:
+            self._rx_endpoint = endpoint  # whose counters the handlers' rejections go to
+            accepted, errors = endpoint.receive()
+            for err in errors:
+                self._log_rx_error(err, endpoint.name)
+            for inbound in accepted:
+                msg = inbound.msg
+                name = msg.get_type()
+                self._log(
+                    TOPIC_MAVLINK_IN + name,
+                    "mavlink." + name,
+                    {
+                        **_jsonable_msg(msg),
+                        "src_system": msg.get_srcSystem(),
+                        "src_component": msg.get_srcComponent(),
+                        "signed": inbound.signed,
+                        "link": inbound.link,
+                    },
+                )
+                handler = self._handlers.get(name)
+                if handler is None:
+                    self.ignored_messages[name] += 1
+                    continue
+                handler(msg, inbound)
+        self._rx_endpoint = self.endpoint
         self._announce_events()
         self._maybe_log_stats()
 
@@ -704,6 +738,8 @@ class MavlinkSitl:
             self.results.append(result)
         record = {"episode": ep.index, "aborted": aborted, **result.to_dict()}
         record["link_stats"] = self.stats.to_dict()
+        if self.gcs_endpoint is not None:
+            record["gcs_link_stats"] = self.gcs_endpoint.stats.to_dict()
         record["lockstep_timeouts"] = self.lockstep_timeouts
         if ep.writer is not None:
             ep.writer.write(TOPIC_RESULT, "visland.EpisodeResult", self.time_s, record)
@@ -724,7 +760,11 @@ class MavlinkSitl:
     # ------------------------------------------------------------------ output
 
     def _send(self, msg: Any) -> None:
-        self.endpoint.send(msg)
+        # Packed (and signed) once; the ground station gets the same frame, as every PX4 link
+        # sees the system's one message sequence.
+        buf = self.endpoint.send(msg)
+        if self.gcs_endpoint is not None:
+            self.gcs_endpoint.send_bytes(buf)
         name = msg.get_type()
         if self._episode is not None and self._episode.writer is not None:
             self._log(TOPIC_MAVLINK_OUT + name, "mavlink." + name, _jsonable_msg(msg))
@@ -737,11 +777,17 @@ class MavlinkSitl:
     def _event(self, kind: str, text: str) -> None:
         self._log(TOPIC_EVENTS, "visland.Event", {"kind": kind, "text": text})
 
-    def _log_rx_error(self, err: RxError) -> None:
+    def _log_rx_error(self, err: RxError, link: str) -> None:
         self._log(
             TOPIC_RX_ERRORS,
             "visland.RxError",
-            {"kind": err.kind, "reason": err.reason, "length": err.length, "src": list(err.addr)},
+            {
+                "kind": err.kind,
+                "reason": err.reason,
+                "length": err.length,
+                "src": list(err.addr),
+                "link": link,
+            },
         )
 
     def _maybe_log_stats(self) -> None:
@@ -749,10 +795,11 @@ class MavlinkSitl:
         if now - self._last_stats_log_wall < 1.0:
             return
         self._last_stats_log_wall = now
-        errors = self.stats.errors_comm + self.stats.rx_unknown_msgid
+        total = self._total_stats()
+        errors = total.errors_comm + total.rx_unknown_msgid
         if errors != self._last_errors_logged:
             self._last_errors_logged = errors
-            stats = self.stats.to_dict()
+            stats = {e.name: e.stats.to_dict() for e in self._endpoints}
             log.warning("MAVLink link errors so far: %s", stats)
             self._log(TOPIC_LINK_STATS, "visland.LinkStats", stats)
 
@@ -876,8 +923,11 @@ class MavlinkSitl:
             mavlink.MAV_STATE_ACTIVE if ap.armed else mavlink.MAV_STATE_STANDBY,
         )
 
+    def _total_stats(self) -> LinkStats:
+        return LinkStats.total(*(e.stats for e in self._endpoints))
+
     def _build_sys_status(self) -> Any:
-        st = self.stats
+        st = self._total_stats()  # the system's counters: every link
         return self.endpoint.mav.sys_status_encode(
             _SENSORS,
             _SENSORS,
@@ -1024,7 +1074,7 @@ class MavlinkSitl:
             target_component is None or target_component in (0, ep.compid)
         )
         if not ok:
-            self.stats.rx_wrong_target += 1
+            self._rx_endpoint.stats.rx_wrong_target += 1
         return ok
 
     def _ack(self, command: int, result: MavResult, msg: Any) -> None:
@@ -1079,13 +1129,17 @@ class MavlinkSitl:
                 prev.thrust_norm if prev is not None else None,
             )
         except SetpointRejected as exc:
-            self.stats.rx_rejected_setpoints += 1
+            self._rx_endpoint.stats.rx_rejected_setpoints += 1
             self._event("setpoint_rejected", str(exc))
             return
         self.autopilot.on_setpoint(sp)
         wait = self._wait
-        if wait is not None and (
-            not self.config.lockstep_require_stamp or msg.time_boot_ms >= wait.frame_time_ms
+        # Lockstep is paced by the offboard link alone: a ground station's setpoint flies (as
+        # in PX4, offboard setpoints are accepted from any link) but never answers a frame.
+        if (
+            wait is not None
+            and inbound.link == self.endpoint.name
+            and (not self.config.lockstep_require_stamp or msg.time_boot_ms >= wait.frame_time_ms)
         ):
             wait.answered = True
 
@@ -1298,6 +1352,14 @@ def run_sitl(
             config.camera_port,
             "lockstep" if config.lockstep else f"real time x{config.speed}",
         )
+        if sitl.gcs_endpoint is not None:
+            log.info(
+                "ground-station link on udp %s:%d -> %s:%d",
+                config.host,
+                sitl.gcs_endpoint.address[1],
+                config.gcs_remote_host,
+                config.gcs_remote_port,
+            )
         results = sitl.run()
     finally:
         for sig, handler in previous.items():

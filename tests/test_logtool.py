@@ -72,6 +72,7 @@ def logs(tmp_path_factory) -> dict[str, Path]:
         mavlink_port=mav_port,
         remote_port=remote_port,
         camera_port=cam_port,
+        gcs=False,
         scenario=str(scenario),
         log_dir=str(root / "sitl"),
         render=False,

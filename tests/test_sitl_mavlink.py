@@ -7,6 +7,7 @@ every wait has a timeout; each test gets its own ports. Most flights start 5-6 m
 
 from __future__ import annotations
 
+import argparse
 import math
 import signal
 import socket
@@ -14,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -33,7 +35,14 @@ from sitl_sim.autopilot import (
     mode_from_custom,
     setpoint_from_target,
 )
-from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig, SitlPortInUseError, signing_key_bytes
+from sitl_sim.mavlink_sitl import (
+    MavlinkSitl,
+    SitlConfig,
+    SitlPortInUseError,
+    add_sitl_arguments,
+    signing_key_bytes,
+    sitl_config_from_args,
+)
 from tools.sitl_client import (
     HOLD_CUSTOM_MODE,
     LAND_CUSTOM_MODE,
@@ -77,7 +86,11 @@ def _free_udp_port() -> int:
 @pytest.fixture
 def ports() -> SimpleNamespace:
     return SimpleNamespace(
-        mavlink=_free_udp_port(), remote=_free_udp_port(), camera=_free_udp_port()
+        mavlink=_free_udp_port(),
+        remote=_free_udp_port(),
+        camera=_free_udp_port(),
+        gcs=_free_udp_port(),
+        gcs_remote=_free_udp_port(),
     )
 
 
@@ -128,6 +141,8 @@ def start_sitl(ports, low_scenario, tmp_path):
             mavlink_port=ports.mavlink,
             remote_port=ports.remote,
             camera_port=ports.camera,
+            gcs_port=ports.gcs,
+            gcs_remote_port=ports.gcs_remote,
             scenario=low_scenario,
             log_dir=str(tmp_path / "logs"),
             render=False,
@@ -423,6 +438,7 @@ def test_lockstep_is_deterministic_for_the_same_seed_and_commands(ports, low_sce
             mavlink_port=p.mavlink,
             remote_port=p.remote,
             camera_port=p.camera,
+            gcs=False,
             scenario=low_scenario,
             log_dir=str(log_dir),
             render=False,
@@ -558,6 +574,7 @@ def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_s
         str(ports.remote),
         "--camera-port",
         str(ports.camera),
+        "--no-gcs",
         "--scenario",
         low_scenario,
         "--log-dir",
@@ -592,9 +609,75 @@ def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_s
 def test_a_taken_port_is_a_clear_typed_error(ports, low_scenario):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", ports.mavlink))
-        cfg = SitlConfig(mavlink_port=ports.mavlink, scenario=low_scenario, log_dir=None)
+        cfg = SitlConfig(
+            mavlink_port=ports.mavlink, gcs_port=ports.gcs, scenario=low_scenario, log_dir=None
+        )
         with pytest.raises(SitlPortInUseError, match="already in use"):
             MavlinkSitl(cfg)
+
+
+def test_ground_station_link_watches_and_commands_but_never_paces_lockstep(
+    ports, start_sitl, client
+):
+    """PX4's second link: a ground station on :18570 -> :14550 sees what the companion sees and
+    may command the vehicle while the companion flies on the offboard link."""
+    runner = start_sitl(lockstep_timeout_s=0.2)
+    sitl = runner.sitl
+    with SitlClient(("127.0.0.1", ports.gcs), ports.gcs_remote, sysid=254) as gcs:
+        hb = gcs.wait_for("HEARTBEAT", 5.0)
+        assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.custom_mode == HOLD_CUSTOM_MODE
+        assert gcs.wait_for("ATTITUDE", 2.0).time_boot_ms > 0
+        gcs.send(gcs.mav.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
+        param = gcs.wait_for("PARAM_VALUE", 3.0, lambda m: m.param_id == "COM_OF_LOSS_T")
+        assert param.param_value == 1.0
+        client.wait_for("HEARTBEAT", 5.0)
+        hover = _hover_thrust(client)
+        _engage_offboard(client, hover)
+        _fly(client, 3, hover)
+        gcs.wait_for("HEARTBEAT", 3.0, lambda m: m.custom_mode == OFFBOARD_CUSTOM_MODE)
+        assert sitl.lockstep_timeouts == 0
+        # The companion goes quiet; the ground station streams setpoints stamped far ahead.
+        # They count as offboard proof of life (no failsafe) but answer no camera frame, so
+        # every frame waits out lockstep_timeout_s: pacing belongs to the offboard link.
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            gcs.setpoint(hover, (0.0, 0.0, 0.0), 2**31)
+            time.sleep(0.02)
+        assert 2 <= sitl.lockstep_timeouts <= 6
+        assert sitl.autopilot.mode is FlightMode.OFFBOARD
+        assert gcs.command_long(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
+        assert gcs.last["COMMAND_ACK"].target_system == 254  # answered to the ground station
+        client.wait_for("HEARTBEAT", 3.0, lambda m: m.custom_mode == LAND_CUSTOM_MODE)
+    results = runner.finish(30.0)
+    assert results[0].landed
+    flight = read_log(Path(sitl.config.log_dir) / "sitl_seed0_ep0000.mcap")
+    commands = flight.topic("/mavlink/in/COMMAND_LONG")
+    assert {m["link"] for m in commands} == {"offboard", "gcs"}
+    land = next(m for m in commands if m["command"] == mavlink.MAV_CMD_NAV_LAND)
+    assert land["link"] == "gcs" and land["src_system"] == 254
+    assert flight.topic("/episode/result")[0]["gcs_link_stats"]["rx_messages"] > 50
+
+
+def test_ground_station_link_can_be_turned_off_and_a_taken_port_only_warns(
+    ports, low_scenario, caplog
+):
+    parser = argparse.ArgumentParser()
+    add_sitl_arguments(parser)
+    cfg = sitl_config_from_args(
+        parser.parse_args(
+            ["--mavlink-port", str(ports.mavlink), "--scenario", low_scenario, "--no-gcs"]
+        )
+    )
+    assert cfg.gcs is False
+    with MavlinkSitl(replace(cfg, log_dir=None)) as sitl:
+        assert sitl.gcs_endpoint is None and sitl.gcs_stats is None
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", ports.gcs))
+        cfg = replace(cfg, gcs=True, gcs_port=ports.gcs, log_dir=None)
+        with caplog.at_level("WARNING", logger="visland.sitl"), MavlinkSitl(cfg) as sitl:
+            assert sitl.gcs_endpoint is None  # the flight does not need it: warn, fly on
+            assert sitl.endpoint.address == ("127.0.0.1", ports.mavlink)
+    assert "ground-station link off" in caplog.text and "--gcs-port" in caplog.text
 
 
 def test_params_commands_intervals_timesync(start_sitl, client):

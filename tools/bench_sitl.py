@@ -80,7 +80,8 @@ def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
     cmd = [
         sys.executable, "-m", "sitl_sim.mavlink_sitl",
         "--mavlink-port", str(mav_port), "--remote-port", str(remote_port),
-        "--camera-port", str(cam_port), "--seed", str(cfg.seed), "--groundtruth",
+        "--camera-port", str(cam_port), "--gcs-port", str(_free_port()),
+        "--gcs-remote-port", str(_free_port()), "--seed", str(cfg.seed), "--groundtruth",
         "--log-dir", log_dir, "--max-wall-s", str(cfg.timeout_s),
         "--render" if cfg.render else "--no-render",
     ]  # fmt: skip
