@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import socket
 import subprocess
@@ -678,6 +679,75 @@ def test_ground_station_link_can_be_turned_off_and_a_taken_port_only_warns(
             assert sitl.gcs_endpoint is None  # the flight does not need it: warn, fly on
             assert sitl.endpoint.address == ("127.0.0.1", ports.mavlink)
     assert "ground-station link off" in caplog.text and "--gcs-port" in caplog.text
+
+
+class _ProcessOutput:
+    """Collects a subprocess's stdout lines on a thread; ``wait_for`` has a timeout."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for raw in proc.stdout:
+            with self._cond:
+                self.lines.append(raw.decode(errors="replace").rstrip())
+                self._cond.notify_all()
+
+    def wait_for(self, text: str, timeout_s: float) -> None:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: any(text in line for line in self.lines), timeout_s)
+        if not ok:
+            raise AssertionError(f"no {text!r} within {timeout_s} s; output: {self.lines[-20:]}")
+
+
+def test_mavproxy_watches_and_commands_over_the_ground_station_link(start_sitl, ports, tmp_path):
+    """MAVProxy, headless, on the GCS link: it detects a PX4 vehicle, shows its mode, and a
+    DO_SET_MODE AUTO.LAND typed at its prompt lands it (ACK, mode, disarm all seen by MAVProxy).
+
+    MAVProxy's own dependencies pull opencv and vtk; its core needs only pymavlink and pyserial:
+    ``pip install --no-deps MAVProxy==1.8.75 pyserial``. (Its ``mode LAND`` command cannot set a
+    PX4 mode with pymavlink 2.4.50 — it hands mavutil the mode-map tuple — hence ``long``.)"""
+    pytest.importorskip(
+        "MAVProxy", reason="MAVProxy not installed (pip install --no-deps MAVProxy pyserial)"
+    )
+    runner = start_sitl()
+    cmd = [
+        sys.executable,
+        "-m",
+        "MAVProxy.mavproxy",
+        f"--master=udpin:127.0.0.1:{ports.gcs_remote}",
+        "--no-state",
+        "--mav20",
+        "--default-modules=mode,cmdlong",
+    ]
+    env = {**os.environ, "MAVLINK20": "1"}
+    proc = subprocess.Popen(
+        cmd,
+        cwd=tmp_path,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        out = _ProcessOutput(proc)
+        out.wait_for("Detected vehicle 1:1", 30.0)
+        out.wait_for("Mode LOITER", 10.0)  # PX4 AUTO.LOITER = our HOLD
+        assert proc.stdin is not None
+        proc.stdin.write(b"long DO_SET_MODE 1 4 6\n")  # custom mode: main 4 AUTO, sub 6 LAND
+        proc.stdin.flush()
+        out.wait_for("DO_SET_MODE: ACCEPTED", 10.0)
+        out.wait_for("AP: mode AUTO.LAND", 10.0)  # our STATUSTEXT, relayed
+        out.wait_for("DISARMED", 30.0)
+        results = runner.finish(30.0)
+    finally:
+        proc.kill()
+        proc.wait(10)
+    assert results[0].landed and runner.sitl.gcs_stats.rx_messages > 0
 
 
 def test_params_commands_intervals_timesync(start_sitl, client):
