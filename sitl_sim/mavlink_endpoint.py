@@ -202,6 +202,24 @@ class MavlinkEndpoint:
         self.sysid = sysid
         self.compid = compid
 
+    def set_signing_key(self, key: bytes | None, initial_timestamp: int = 0) -> None:
+        """Start, change (32-byte key) or stop (None) MAVLink 2 signing on this link; the
+        incoming streams' timestamps are forgotten, our own signing time never goes back."""
+        if key is not None and len(key) != 32:
+            raise SitlError(f"signing key must be 32 bytes, got {len(key)}")
+        self._key = key
+        self._streams.clear()
+        signing = self._encoder.signing
+        signing.secret_key = key
+        signing.sign_outgoing = key is not None
+        signing.link_id = 0
+        signing.timestamp = max(signing.timestamp, initial_timestamp, signing_timestamp_now())
+
+    @property
+    def signing(self) -> bool:
+        """True while this link signs and checks signatures."""
+        return self._key is not None
+
     # ------------------------------------------------------------------ properties
 
     @property

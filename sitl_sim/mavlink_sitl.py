@@ -125,6 +125,7 @@ SUBSCRIBES = (
     "TIMESYNC",
     "PING",
     "MISSION_REQUEST_LIST",
+    "SETUP_SIGNING",
 )
 """Messages this autopilot acts on (each has a ``handle_<name>`` method); others are counted."""
 
@@ -351,6 +352,8 @@ def _jsonable_msg(msg: Any) -> dict[str, Any]:
     for key, value in d.items():
         if isinstance(value, bytes | bytearray):
             d[key] = value.decode("utf-8", errors="replace")
+    if "secret_key" in d:  # SETUP_SIGNING: a secret never goes into a log
+        d["secret_key"] = "<redacted>"
     return d
 
 
@@ -1220,6 +1223,24 @@ class MavlinkSitl:
                     msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
                 )
             )
+
+    def handle_setup_signing(self, msg: Any, inbound: Inbound) -> None:
+        """MAVLink 2 signing key (PX4 v1.17 rules, mavlink_notes.md section 12): accepted on any
+        link while no key is set; once signing is on, only a *signed* SETUP_SIGNING (the
+        endpoint drops unsigned ones) changes the key, and an all-zero key turns signing off;
+        refused while armed. Applies to every link at once. The protocol has no reply: the
+        outcome is a STATUSTEXT (and an event in the flight log; the key never is)."""
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        if self.autopilot.armed:
+            self._statustext(4, "SETUP_SIGNING refused: armed")
+            return
+        key = bytes(msg.secret_key)
+        new_key = None if key == bytes(32) else key
+        for endpoint in self._endpoints:
+            endpoint.set_signing_key(new_key, int(msg.initial_timestamp))
+        # A signed reply tells the requester the key took (or, unsigned, that it is off).
+        self._statustext(6, "Signing on" if new_key is not None else "Signing off")
 
     def handle_mission_request_list(self, msg: Any, inbound: Inbound) -> None:
         if not self._for_us(msg.target_system, msg.target_component):

@@ -27,6 +27,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.flightlog import read_log
 from expert.cascade import CascadeLander
 from sitl_sim.autopilot import (
+    FORCE_DISARM_MAGIC,
     Autopilot,
     AutopilotParams,
     FlightMode,
@@ -493,6 +494,37 @@ def test_signing_rejects_unsigned_and_wrongly_signed_setpoints(ports, start_sitl
         assert good.set_offboard() == ACCEPTED
         status = good.wait_for("SYS_STATUS", 3.0)
         assert status.errors_count1 >= 7  # signing rejections are visible over the link
+
+
+def test_setup_signing_sets_changes_and_clears_the_key_only_while_disarmed(ports, start_sitl):
+    runner = start_sitl(start_armed=False)
+    signed_flag = mavlink.MAVLINK_IFLAG_SIGNED
+    key = signing_key_bytes("provisioned over the link")
+    arm = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+    with SitlClient(("127.0.0.1", ports.mavlink), ports.remote) as plain:
+        hb = plain.wait_for("HEARTBEAT", 5.0)
+        assert not hb.get_msgbuf()[2] & signed_flag and not hb.base_mode & 128
+        plain.send(plain.mav.setup_signing_encode(1, 1, list(key), 0))  # none set: accepted
+        plain.wait_for("STATUSTEXT", 3.0, lambda m: m.text == "Signing on")
+        assert plain.wait_for("HEARTBEAT", 3.0).get_msgbuf()[2] & signed_flag
+        with pytest.raises(ClientTimeout):  # unsigned from now on: dropped, no ACK
+            plain.command_long(arm, 1, timeout_s=0.5)
+    with SitlClient(("127.0.0.1", ports.mavlink), ports.remote, signing_key=key) as good:
+        assert good.command_long(arm, 1) == ACCEPTED  # armed (still frozen in HOLD)
+        good.send(good.mav.setup_signing_encode(1, 1, [0] * 32, 0))
+        good.wait_for("STATUSTEXT", 3.0, lambda m: m.text == "SETUP_SIGNING refused: armed")
+        assert runner.sitl.endpoint.signing
+        assert good.command_long(arm, 0, FORCE_DISARM_MAGIC) == ACCEPTED
+        good.send(good.mav.setup_signing_encode(1, 1, [0] * 32, 0))  # all zeros: off
+        good.wait_for("STATUSTEXT", 3.0, lambda m: m.text == "Signing off")
+    with SitlClient(("127.0.0.1", ports.mavlink), ports.remote) as plain:
+        assert not plain.wait_for("HEARTBEAT", 3.0).get_msgbuf()[2] & signed_flag
+        assert plain.command_long(arm, 1) == ACCEPTED
+    assert not runner.sitl.gcs_endpoint.signing  # every link follows
+    runner.stop()
+    flight = read_log(Path(runner.sitl.config.log_dir) / "sitl_seed0_ep0000.mcap")
+    setups = flight.topic("/mavlink/in/SETUP_SIGNING")
+    assert len(setups) == 3 and all(m["secret_key"] == "<redacted>" for m in setups)
 
 
 def _fuzz_datagrams(rng: np.random.Generator, mav) -> list[bytes]:
