@@ -1,0 +1,474 @@
+"""The companion process: ``python -m companion`` / ``visland companion``.
+
+One thread, one loop: ``select`` on the MAVLink port and the camera, feed the telemetry store,
+answer each camera frame with one command (or, in shadow mode, only log it), run the timers of
+the state machine (:mod:`companion.offboard`). One MCAP log per flight
+(:mod:`companion.record`). SIGINT/SIGTERM hand control back (LAND or HOLD, ``on_exit``) and close
+the log; the process then prints a JSON report on stdout.
+
+Configuration: :class:`CompanionConfig` — defaults, then a TOML file (``--config``, table
+``[companion]``, e.g. ``configs/companion.toml``), then command-line flags.
+``--replay LOG`` runs a recorded log through the policy instead (shadow, no link) and reports
+how far the recomputed commands are from the recorded ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import math
+import select
+import signal
+import sys
+import threading
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["CompanionConfig", "CompanionError", "add_arguments", "config_from_args", "main", "run"]
+
+log = logging.getLogger("visland.companion")
+
+
+class CompanionError(ValueError):
+    """A configuration or start-up error (names the file/field and the expected value)."""
+
+
+def _opt(default: Any, help: str, arg_type: type | None = None, choices=None) -> Any:
+    return field(default=default, metadata={"help": help, "arg_type": arg_type, "choices": choices})
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """Everything ``visland companion`` takes; each field is a ``--flag`` and a TOML key."""
+
+    connect: str = _opt(
+        "udpin:127.0.0.1:14540",
+        "MAVLink connection: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyX or "
+        "serial:/dev/ttyX:BAUD",
+    )
+    baud: int = _opt(921_600, "serial baud rate")
+    autopilot: str = _opt("px4", "autopilot profile", choices=("px4", "ardupilot"))
+    camera: str = _opt(
+        "udp:127.0.0.1:5600", "camera: udp:HOST:PORT (SITL), opencv:DEVICE|FILE|PIPELINE, mcap:LOG"
+    )
+    camera_fx_px: float | None = _opt(None, "real camera: focal length fx in pixels", float)
+    camera_hfov_deg: float | None = _opt(None, "real camera: horizontal FOV (no intrinsics)", float)
+    camera_rotate_deg: int = _opt(0, "real camera: rotation (CCW) so image top = body forward")
+    policy: str = _opt("", "policy checkpoint (visland companion also takes expert | cascade)")
+    torch_threads: int = _opt(1, "torch intra-op threads for the policy")
+    shadow: bool = _opt(False, "compute and log every command; send no setpoint, no mode change")
+    arm: bool = _opt(False, "arm when disarmed (SITL demo only; on hardware the pilot arms)")
+    flights: int = _opt(1, "flights to fly before exiting (0: until stopped)")
+    signing_key: str | None = _opt(
+        None, "MAVLink 2 signing key: 64 hex digits or a passphrase", str
+    )
+    sysid: int = _opt(0, "our MAVLink system id (0: the autopilot's)")
+    max_age_ms: float = _opt(300.0, "failsafe when camera or telemetry is older than this")
+    near_ground_m: float = _opt(10.0, "below this, no valid range = failsafe")
+    thrust_min: float = _opt(0.0, "thrust clamp, low")
+    thrust_max: float = _opt(1.0, "thrust clamp, high")
+    max_rate_rp_rad_s: float = _opt(3.5, "roll/pitch rate clamp")
+    max_rate_yaw_rad_s: float = _opt(1.5, "yaw rate clamp")
+    prestream_s: float = _opt(1.0, "neutral setpoints streamed before requesting OFFBOARD")
+    engage_min_range_m: float = _opt(1.0, "engage only above this radar range")
+    touchdown_range_m: float = _opt(0.15, "radar range at or below which the vehicle is down")
+    on_touchdown: str = _opt("disarm", "after touchdown", choices=("disarm", "hand_back"))
+    on_exit: str = _opt("land", "mode requested on SIGINT/SIGTERM", choices=("land", "hold"))
+    hover_thrust: float = _opt(0.5, "neutral thrust if the autopilot does not report it")
+    link_timeout_s: float = _opt(3.0, "no autopilot HEARTBEAT this long = link lost")
+    log_dir: str | None = _opt("runs/companion/flights", "folder for one MCAP log per flight", str)
+    max_wall_s: float | None = _opt(None, "exit after this many seconds (safety net)", float)
+
+    def __post_init__(self) -> None:
+        if self.flights < 0:
+            raise CompanionError(f"flights = {self.flights}; expected >= 0")
+        if not (math.isfinite(self.max_age_ms) and self.max_age_ms > 0):
+            raise CompanionError(f"max_age_ms = {self.max_age_ms}; expected > 0")
+        if self.camera_rotate_deg % 90:
+            raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        if d["signing_key"] is not None:
+            d["signing_key"] = "<set>"
+        return d
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """The ``[companion]`` table of a TOML file, checked against the config's fields."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CompanionError(f"{path}: no such config file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CompanionError(f"{path}: not valid TOML: {exc}") from None
+    table = data.get("companion")
+    if not isinstance(table, dict):
+        raise CompanionError(f"{path}: expected a [companion] table")
+    names = {f.name: f for f in dataclasses.fields(CompanionConfig)}
+    for key, value in table.items():
+        f = names.get(key)
+        if f is None:
+            raise CompanionError(f"{path}: [companion] {key}: unknown key; known: {sorted(names)}")
+        expected = f.metadata.get("arg_type") or type(f.default)
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            table[key] = float(value)
+        elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise CompanionError(
+                f"{path}: [companion] {key} = {value!r}; expected {expected.__name__}"
+            )
+        choices = f.metadata.get("choices")
+        if choices and value not in choices:
+            raise CompanionError(
+                f"{path}: [companion] {key} = {value!r}; expected one of {choices}"
+            )
+    return table
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config``, ``--replay`` and one ``--flag`` per :class:`CompanionConfig` field."""
+    parser.add_argument("--config", type=Path, default=None, help="TOML file ([companion] table)")
+    parser.add_argument(
+        "--replay", type=Path, default=None, help="replay a companion log in shadow mode"
+    )
+    parser.add_argument("--json", action="store_true", help="(accepted; the report is JSON)")
+    for f in dataclasses.fields(CompanionConfig):
+        flag = "--" + f.name.replace("_", "-")
+        help_text = f"{f.metadata['help']} (default: {f.default})"
+        if isinstance(f.default, bool):
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=None, help=help_text
+            )
+        else:
+            arg_type = f.metadata.get("arg_type") or type(f.default)
+            parser.add_argument(
+                flag, type=arg_type, default=None, help=help_text, choices=f.metadata["choices"]
+            )
+
+
+def config_from_args(args: argparse.Namespace) -> CompanionConfig:
+    values: dict[str, Any] = {}
+    if args.config is not None:
+        values.update(load_toml(args.config))
+    for f in dataclasses.fields(CompanionConfig):
+        v = getattr(args, f.name, None)
+        if v is not None:
+            values[f.name] = v
+    if values.get("log_dir") == "":
+        values["log_dir"] = None
+    return CompanionConfig(**values)
+
+
+# --------------------------------------------------------------------------- the process
+
+
+def _open_camera(cfg: CompanionConfig):
+    from companion.camera import open_camera
+
+    opts: dict[str, Any] = {}
+    if cfg.camera.startswith("opencv:"):
+        opts = {
+            "fx_px": cfg.camera_fx_px,
+            "hfov_deg": cfg.camera_hfov_deg,
+            "rotate_deg": cfg.camera_rotate_deg,
+        }
+    return open_camera(cfg.camera, **opts)
+
+
+class Companion:
+    """The process: build from a config and a policy, then :meth:`run`; :meth:`stop` from a
+    signal handler or another thread."""
+
+    def __init__(self, cfg: CompanionConfig, policy: Any, policy_name: str) -> None:
+        from companion.link import PROFILES, MavlinkLink, signing_key_bytes
+        from companion.offboard import OffboardConfig
+        from companion.runtime import PolicyRuntime
+        from companion.safety import SafetyConfig, SafetyMonitor
+        from companion.telemetry import TelemetryStore
+
+        self.cfg = cfg
+        self.runtime = PolicyRuntime(policy, policy_name)
+        if self.runtime.privileged:
+            log.warning(
+                "policy %s is privileged: it needs ODOMETRY ground truth (SITL only)", policy_name
+            )
+        self.safety = SafetyMonitor(
+            SafetyConfig(
+                max_age_s=cfg.max_age_ms / 1000.0,
+                near_ground_m=cfg.near_ground_m,
+                thrust_min=cfg.thrust_min,
+                thrust_max=cfg.thrust_max,
+                max_rate_rad_s=(
+                    cfg.max_rate_rp_rad_s,
+                    cfg.max_rate_rp_rad_s,
+                    cfg.max_rate_yaw_rad_s,
+                ),
+            )
+        )
+        self.flight_cfg = OffboardConfig(
+            shadow=cfg.shadow,
+            arm=cfg.arm,
+            prestream_s=cfg.prestream_s,
+            engage_min_range_m=cfg.engage_min_range_m,
+            touchdown_range_m=cfg.touchdown_range_m,
+            on_touchdown=cfg.on_touchdown,
+            hover_thrust=cfg.hover_thrust,
+        )
+        self.store = TelemetryStore()
+        self.camera = _open_camera(cfg)
+        try:
+            self.link = MavlinkLink(
+                cfg.connect,
+                baud=cfg.baud,
+                profile=PROFILES[cfg.autopilot],
+                sysid=cfg.sysid or None,
+                signing_key=signing_key_bytes(cfg.signing_key) if cfg.signing_key else None,
+                link_timeout_s=cfg.link_timeout_s,
+            )
+        except Exception:
+            self.camera.close()
+            raise
+        self._stop = threading.Event()
+        self._stop_reason = ""
+        self.flight = None
+        self.outcomes: list[dict[str, Any]] = []
+        self.link_events: list[str] = []
+        self._clock: Callable[[], float] = time.monotonic
+        self._requested_streams = False
+
+    # ------------------------------------------------------------------ plumbing
+
+    def stop(self, reason: str = "stopped") -> None:
+        self._stop_reason = reason
+        self._stop.set()
+
+    def _on_message(self, msg: Any, rx_s: float) -> None:
+        self.store.update(msg, rx_s)
+        flight = self.flight
+        if flight is not None:
+            flight.log.message(msg, rx_s)
+            flight.on_message(msg, rx_s)
+
+    def _pump(self, timeout_s: float) -> None:
+        fd = self.link.fileno()
+        if fd is not None and timeout_s > 0:
+            select.select([fd], [], [], timeout_s)
+        self.link.poll(self._on_message)
+        self._link_events()
+
+    def _request_streams(self) -> None:
+        from companion.link import mavlink
+
+        link = self.link
+        for msg_id, hz in (
+            (mavlink.MAVLINK_MSG_ID_ATTITUDE, 50.0),
+            (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 50.0),
+            (mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, 10.0),
+            (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0),
+        ):
+            link.set_message_interval(msg_id, hz)
+        if self.runtime.privileged:
+            link.set_message_interval(mavlink.MAVLINK_MSG_ID_ODOMETRY, 50.0)
+
+    def _link_events(self) -> None:
+        for ev in self.link.pop_events():
+            self.link_events.append(f"{ev.kind}: {ev.text}")
+            print(f"visland companion: link {ev.kind}: {ev.text}", file=sys.stderr, flush=True)
+            if ev.kind in ("discovered", "reconnected"):
+                self._request_streams()
+            if ev.kind == "restarted":
+                self.store.reset_clock()
+            if self.flight is not None:
+                self.flight.on_link_event(ev.kind, ev.text)
+
+    def _new_flight(self, index: int):
+        from companion.offboard import FlightController
+        from companion.record import CompanionLog
+
+        stamp = time.strftime("%Y%m%d_%H%M%S")
+        if self.cfg.log_dir:
+            path = Path(self.cfg.log_dir) / f"companion_{stamp}_f{index:03d}.mcap"
+            n = 1
+            while path.exists():
+                path = Path(self.cfg.log_dir) / f"companion_{stamp}_f{index:03d}_{n}.mcap"
+                n += 1
+        else:
+            import tempfile
+
+            path = Path(tempfile.mkdtemp(prefix="visland_companion_")) / f"f{index:03d}.mcap"
+        meta = {
+            "config": {"companion": self.cfg.to_dict()},
+            "flight": {"index": index, "shadow": self.cfg.shadow},
+            "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
+        }
+        flog = CompanionLog(path, meta, self._clock)
+        return FlightController(
+            self.flight_cfg,
+            self.link,
+            self.store,
+            self.camera.clock,
+            self.runtime,
+            self.safety,
+            flog,
+            self._pump,
+            self._clock,
+            index,
+        )
+
+    def _close_flight(self) -> None:
+        flight = self.flight
+        if flight is None:
+            return
+        self.flight = None
+        out = flight.outcome.to_dict()
+        out["link"] = dataclasses.asdict(self.link.counters)
+        out["clamped"] = self.safety.clamped
+        flight.log.close(summary=out)
+        self.outcomes.append(out)
+        print(
+            f"visland companion: flight {flight.outcome.index} {flight.outcome.result}: "
+            f"{flight.outcome.reason} ({flight.outcome.policy_commands} policy commands) "
+            f"-> {flight.outcome.log_path}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    # ------------------------------------------------------------------ loop
+
+    def run(self) -> dict[str, Any]:
+        cfg = self.cfg
+        t0 = self._clock()
+        index = 0
+        try:
+            self.flight = self._new_flight(index)
+            while not self._stop.is_set():
+                if cfg.max_wall_s is not None and self._clock() - t0 > cfg.max_wall_s:
+                    self.stop(f"max_wall_s = {cfg.max_wall_s} reached")
+                    break
+                fds = [fd for fd in (self.link.fileno(), self.camera.fileno()) if fd is not None]
+                timeout = 0.01 if self.camera.fileno() is None else 0.02
+                try:
+                    select.select(fds, [], [], timeout)
+                except InterruptedError:
+                    pass
+                self.link.poll(self._on_message)
+                self._link_events()
+                frames = self.camera.poll()
+                flight = self.flight
+                if frames and flight is not None:
+                    for frame in frames[:-1]:  # answer the newest; older ones are logged only
+                        flight.log.frame(frame)
+                    flight.on_frame(frames[-1])
+                if flight is not None:
+                    flight.on_tick()
+                    if flight.done:
+                        self._close_flight()
+                        index += 1
+                        if cfg.flights and index >= cfg.flights:
+                            break
+                        self.flight = self._new_flight(index)
+        finally:
+            if self.flight is not None:
+                self.flight.hand_back(cfg.on_exit, self._stop_reason or "exit")
+                self._drain(0.3)
+                self._close_flight()
+            self.camera.close()
+            self.link.close()
+        return {
+            "flights": self.outcomes,
+            "link_events": self.link_events,
+            "link": dataclasses.asdict(self.link.counters),
+            "stopped": self._stop_reason or None,
+            "wall_s": self._clock() - t0,
+        }
+
+    def _drain(self, seconds: float) -> None:
+        """Keep the link alive briefly so the hand-back command is sent and acknowledged."""
+        deadline = self._clock() + seconds
+        while self._clock() < deadline and self.link.conn is not None:
+            self._pump(0.02)
+
+
+def run(cfg: CompanionConfig, policy: Any, policy_name: str) -> dict[str, Any]:
+    """Run the companion until its flights are flown or SIGINT/SIGTERM; returns the report."""
+    companion = Companion(cfg, policy, policy_name)
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(
+                sig, lambda s, _f: companion.stop(f"signal {signal.Signals(s).name}")
+            )
+    try:
+        return companion.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def replay(path: Path, policy: Any, policy_name: str) -> dict[str, Any]:
+    """Shadow replay of a recorded companion log (see :func:`companion.record.replay_log`)."""
+    from companion.record import replay_log
+    from companion.runtime import PolicyRuntime
+
+    return replay_log(path, PolicyRuntime(policy, policy_name)).to_dict()
+
+
+def main(
+    argv: list[str] | None = None,
+    resolve_policy: Callable[[str, CompanionConfig], Any] | None = None,
+    prog: str = "python -m companion",
+) -> int:
+    """Entry point. ``resolve_policy(name, cfg)`` turns ``--policy`` into a policy object;
+    the default loads a checkpoint (``tools/`` adds ``expert`` and ``cascade``)."""
+    from companion.camera import CameraError
+    from companion.link import LinkError
+
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr
+    )
+    try:
+        cfg = config_from_args(args)
+        if not cfg.policy:
+            raise CompanionError("--policy is required (a checkpoint path)")
+        if resolve_policy is None:
+            from companion.runtime import load_policy_file
+
+            policy = load_policy_file(cfg.policy, cfg.torch_threads)
+        else:
+            policy = resolve_policy(cfg.policy, cfg)
+        if args.replay is not None:
+            report = replay(args.replay, policy, cfg.policy)
+        else:
+            report = run(cfg, policy, cfg.policy)
+    except (ValueError, OSError, LinkError, CameraError) as exc:  # one clear line, no traceback
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=2, default=_json_default))
+    if args.replay is not None:
+        return 0 if not report["errors"] else 1
+    failed = [f for f in report["flights"] if f["result"] == "engage_failed"]
+    return 1 if failed else 0
+
+
+def _json_default(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,646 @@
+"""The offboard state machine of one flight, and the observation assembly.
+
+::
+
+    WAITING ──(link, armed, fresh telemetry + camera, range > engage_min)──▶ PRESTREAM
+    PRESTREAM ──(neutral setpoints at 20 Hz for ≥ prestream_s)──▶ ENGAGING (DO_SET_MODE OFFBOARD)
+    ENGAGING ──(ACK accepted, HEARTBEAT shows OFFBOARD)──▶ FLYING (policy state reset)
+    FLYING ──(one command per camera frame … touchdown: range + IMU)──▶ TOUCHDOWN
+    TOUCHDOWN ──(zero thrust; disarm or hand back; HEARTBEAT disarmed)──▶ DONE
+    any flying state ──(safety monitor: stale input, non-finite output, blind near ground)──▶
+        FAILSAFE (LAND requested, no more setpoints) ──(disarmed / mode changed)──▶ DONE
+
+In *shadow* mode WAITING goes straight to FLYING and nothing is ever sent: every command the
+policy computes is logged as it would have been sent. It arms only when told to (``arm``, a
+SITL demo); on hardware the pilot arms.
+
+**Which frames are flight frames.** Setpoints answering a frame carry the frame's own time
+stamp (``time_boot_ms``); a SITL frame (autopilot clock) stamped at or before the moment the
+OFFBOARD ACK arrived was rendered before the switch and gets the neutral setpoint, so the
+policy's first step is the first frame of the flight — as in the in-process rollout.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.camera import ReceivedFrame
+from companion.contract import Command, Observation
+from companion.link import MavlinkLink, mavlink
+from companion.record import CompanionLog
+from companion.runtime import PolicyRuntime
+from companion.safety import SafetyMonitor, TouchdownDetector
+from companion.telemetry import TelemetryStore
+
+__all__ = [
+    "FlightController",
+    "FlightOutcome",
+    "FlightState",
+    "OffboardConfig",
+    "assemble_observation",
+]
+
+log = logging.getLogger("visland.companion")
+
+_ZERO3 = np.zeros(3)
+_MAV_RESULT_ACCEPTED = 0
+_MAV_RESULT_IN_PROGRESS = 5
+
+
+class FlightState(enum.Enum):
+    WAITING = "waiting"
+    PRESTREAM = "prestream"
+    ENGAGING = "engaging"
+    FLYING = "flying"
+    TOUCHDOWN = "touchdown"
+    FAILSAFE = "failsafe"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class OffboardConfig:
+    """The state machine's settings (the companion config's flight part).
+
+    Attributes:
+        shadow: compute and log, never send a setpoint or a mode change.
+        arm: arm the vehicle when it is disarmed (SITL demos only; on hardware the pilot arms).
+        prestream_s: neutral setpoints streamed before OFFBOARD is requested (PX4 needs > 2 Hz
+            before the switch; 1 s at 20 Hz).
+        prestream_rate_hz: rate of those setpoints.
+        engage_timeout_s: OFFBOARD not confirmed in the HEARTBEAT this long after the request
+            = failsafe.
+        engage_min_range_m: engage only above this range (never take over on the ground).
+        touchdown_range_m: range at or below which (with a quiet gyro) the vehicle is down.
+        on_touchdown: ``disarm`` or ``hand_back`` (switch to the hold mode) after touchdown.
+        hover_thrust: neutral thrust when the autopilot does not report its hover thrust.
+        sync_timeout_s: wait at most this long for the telemetry stamped at a SITL frame's time.
+        param_timeout_s: wait this long for the hover-thrust parameter before the fallback.
+    """
+
+    shadow: bool = False
+    arm: bool = False
+    prestream_s: float = 1.0
+    prestream_rate_hz: float = 20.0
+    engage_timeout_s: float = 3.0
+    engage_min_range_m: float = 1.0
+    touchdown_range_m: float = 0.15
+    on_touchdown: str = "disarm"
+    hover_thrust: float = 0.5
+    sync_timeout_s: float = 0.02
+    param_timeout_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.on_touchdown not in ("disarm", "hand_back"):
+            raise ValueError(f"on_touchdown = {self.on_touchdown!r}; expected disarm or hand_back")
+        if not self.prestream_s >= 1.0:
+            raise ValueError(f"prestream_s = {self.prestream_s}; expected >= 1.0 (PX4 rule)")
+        if not 2.0 < self.prestream_rate_hz <= 100.0:
+            raise ValueError(f"prestream_rate_hz = {self.prestream_rate_hz}; expected (2, 100]")
+        if not 0.0 <= self.hover_thrust <= 1.0:
+            raise ValueError(f"hover_thrust = {self.hover_thrust}; expected in [0, 1]")
+
+
+@dataclass
+class FlightOutcome:
+    """How one flight of the companion ended."""
+
+    index: int
+    result: str = "incomplete"
+    """``landed``, ``failsafe``, ``handed_back``, ``engage_failed``, ``aborted``, ``shadow``."""
+    reason: str = ""
+    policy_commands: int = 0
+    neutral_setpoints: int = 0
+    failsafe_reason: str | None = None
+    log_path: str | None = None
+    events: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def assemble_observation(frame: ReceivedFrame, store: TelemetryStore) -> Observation:
+    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU.
+
+    Raises:
+        ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
+    """
+    att, imu, rng = store.attitude, store.imu, store.range
+    if att is None or imu is None or rng is None:
+        raise ValueError("observation: attitude, IMU and range samples are all needed")
+    return Observation(
+        image=frame.image,
+        image_time_s=frame.time_s,
+        attitude_rad=att.attitude_rad,
+        rate_frd_rad_s=att.rate_frd_rad_s,
+        attitude_time_s=att.time_s,
+        range_m=rng.range_m,
+        range_time_s=rng.time_s,
+        accel_frd_m_s2=imu.accel_frd_m_s2,
+        imu_time_s=imu.time_s,
+        frame_id=frame.frame_id,
+    )
+
+
+def _frame_ms(frame: ReceivedFrame) -> int:
+    return round(frame.time_s * 1e6) // 1000
+
+
+class FlightController:
+    """One flight: fed messages, frames and ticks by the process loop (:mod:`companion.app`).
+
+    Args:
+        cfg: the state machine's settings.
+        link: the MAVLink link (sends setpoints/commands; in shadow mode only listens).
+        store: the telemetry store the loop feeds.
+        camera_clock: ``autopilot`` (SITL frames) or ``companion`` (a local camera).
+        runtime: the policy runtime.
+        safety: the safety monitor.
+        log: this flight's companion log.
+        pump: ``pump(timeout_s)`` receives MAVLink for up to ``timeout_s`` (frame sync).
+        clock: the companion's monotonic clock.
+        index: flight number.
+    """
+
+    def __init__(
+        self,
+        cfg: OffboardConfig,
+        link: MavlinkLink,
+        store: TelemetryStore,
+        camera_clock: str,
+        runtime: PolicyRuntime,
+        safety: SafetyMonitor,
+        log: CompanionLog,
+        pump: Callable[[float], None],
+        clock: Callable[[], float],
+        index: int = 0,
+    ) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.store = store
+        self.camera_clock = camera_clock
+        self.runtime = runtime
+        self.safety = safety
+        self.log = log
+        self._pump = pump
+        self._clock = clock
+        self.outcome = FlightOutcome(index=index, log_path=str(log.path))
+        self.state = FlightState.WAITING
+        self._entered_s = clock()
+        self._wait_reason = ""
+        self._last_frame_rx: float | None = None
+        self._last_prestream_s = -math.inf
+        self._last_arm_s = -math.inf
+        self._last_mode_req_s = -math.inf
+        self._mode_acked = False
+        self._mode_change_ap_s = math.inf
+        self._engage_attempts = 0
+        self._land_confirmed = False
+        self._touchdown = TouchdownDetector(cfg.touchdown_range_m)
+        self._flight_start_rx = math.inf
+        self._created_s = clock()
+        self._hover: float | None = None
+        self._params_requested_s = -math.inf
+
+    # ------------------------------------------------------------------ helpers
+
+    @property
+    def done(self) -> bool:
+        return self.state is FlightState.DONE
+
+    def _event(self, kind: str, text: str) -> None:
+        now = self._clock()
+        self.log.event(now, kind, text, state=self.state.value)
+        self.outcome.events.append(f"{kind}: {text}")
+        log.info("flight %d %s: %s", self.outcome.index, kind, text)
+
+    def _enter(self, state: FlightState, text: str) -> None:
+        self._event("state", f"{self.state.value} -> {state.value}: {text}")
+        self.state = state
+        self._entered_s = self._clock()
+
+    def _finish(self, result: str, reason: str) -> None:
+        if self.done:
+            return
+        self.outcome.result = result
+        self.outcome.reason = reason
+        self._enter(FlightState.DONE, f"{result}: {reason}")
+
+    def _armed(self) -> bool:
+        hb = self.store.heartbeat
+        return hb is not None and hb.armed
+
+    def _mode(self) -> int | None:
+        hb = self.store.heartbeat
+        return None if hb is None else hb.custom_mode
+
+    def _hover_thrust(self, now: float) -> float | None:
+        if self._hover is None:
+            value = self.link.param(self.link.profile.hover_param)
+            if value is not None and math.isfinite(value) and 0.0 < value < 1.0:
+                self._hover = float(value)
+            elif now - self._created_s > self.cfg.param_timeout_s:
+                self._hover = self.cfg.hover_thrust
+                self._event(
+                    "param",
+                    f"{self.link.profile.hover_param} not reported; neutral thrust "
+                    f"{self.cfg.hover_thrust} from the config",
+                )
+        return self._hover
+
+    def _ap_stamp_ms(self, frame: ReceivedFrame | None, now: float) -> int:
+        """time_boot_ms for a setpoint: the answered SITL frame's stamp, else the autopilot's
+        clock as last seen (advanced by the time since, for a companion-clock camera)."""
+        if frame is not None and self.camera_clock == "autopilot":
+            return _frame_ms(frame)
+        att = self.store.attitude
+        if att is None:
+            return 0
+        ahead = 0.0 if self.camera_clock == "autopilot" else max(0.0, now - att.rx_s)
+        return int((self.store.latest_time_s + ahead) * 1000)
+
+    def _send(self, thrust: float, rates: np.ndarray, stamp_ms: int) -> bool:
+        if self.cfg.shadow:
+            return False
+        return self.link.send_setpoint(thrust, rates, stamp_ms)
+
+    # ------------------------------------------------------------------ gates
+
+    def _gate(self, now: float) -> str | None:
+        """Why a flight cannot start yet (None: it can)."""
+        link, store, profile = self.link, self.store, self.link.profile
+        if link.target_system is None:
+            return "no autopilot discovered yet"
+        if not link.connected:
+            return "autopilot link lost"
+        if now - self._params_requested_s > 2.0:
+            self._params_requested_s = now
+            link.request_param(profile.hover_param)
+            if profile.thrust_param:
+                link.request_param(profile.thrust_param)
+        hb = store.heartbeat
+        if hb is None:
+            return "no HEARTBEAT"
+        if not self.cfg.shadow:
+            if profile.is_offboard(hb.custom_mode) or profile.is_land(hb.custom_mode):
+                return f"autopilot in {profile.mode_name(hb.custom_mode)}"
+            if not hb.armed:
+                if self.cfg.arm and now - self._last_arm_s > 2.0 and now - self._created_s > 1.0:
+                    self._last_arm_s = now
+                    link.arm(True)
+                    self._event("arm", "arming (--arm)")
+                return "disarmed (the pilot arms; --arm for SITL demos)"
+        elif not hb.armed:
+            return "disarmed"
+        names = ("attitude", "imu", "range") + (("odometry",) if self.runtime.privileged else ())
+        age, worst = store.max_age_s(names, now)
+        if age > self.safety.config.max_age_s:
+            return f"waiting for fresh {worst}"
+        if self._last_frame_rx is None or now - self._last_frame_rx > self.safety.config.max_age_s:
+            return "waiting for camera frames"
+        rng = store.range
+        if rng is None or not rng.valid or rng.range_m < self.cfg.engage_min_range_m:
+            return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
+        if profile.thrust_param:
+            value = link.param_int(profile.thrust_param)
+            if value is None:
+                return f"waiting for {profile.thrust_param}"
+            if value & profile.thrust_param_bits != profile.thrust_param_bits:
+                return (
+                    f"{profile.thrust_param} = {value}: set bit {profile.thrust_param_bits} so "
+                    "SET_ATTITUDE_TARGET thrust is collective thrust, not a climb rate"
+                )
+        if not self.cfg.shadow and self._hover_thrust(now) is None:
+            return f"waiting for {profile.hover_param}"
+        return None
+
+    # ------------------------------------------------------------------ inputs
+
+    def on_message(self, msg: Any, rx_s: float) -> None:
+        """After the store has taken ``msg``: ACKs and mode/arming changes."""
+        name = msg.get_type()
+        if name == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_DO_SET_MODE:
+            self._on_mode_ack(int(msg.result))
+        elif name == "HEARTBEAT" and msg.get_srcComponent() == self.link.target_component:
+            self._on_heartbeat()
+
+    def _on_mode_ack(self, result: int) -> None:
+        if self.state is FlightState.ENGAGING and not self._mode_acked:
+            if result == _MAV_RESULT_ACCEPTED:
+                self._mode_acked = True
+                self._mode_change_ap_s = self.store.latest_time_s
+                self._event("offboard_ack", "OFFBOARD accepted")
+            elif result != _MAV_RESULT_IN_PROGRESS:
+                self._engage_attempts += 1
+                self._event("offboard_refused", f"DO_SET_MODE result {result}")
+                if self._engage_attempts >= 3:
+                    self._finish("engage_failed", f"OFFBOARD refused {self._engage_attempts} times")
+                else:
+                    self._enter(FlightState.PRESTREAM, "retry after a refusal")
+        elif self.state is FlightState.FAILSAFE and result == _MAV_RESULT_ACCEPTED:
+            self._land_confirmed = True
+
+    def _on_heartbeat(self) -> None:
+        mode = self._mode()
+        if mode is None:
+            return
+        profile = self.link.profile
+        armed = self._armed()
+        state = self.state
+        if state is FlightState.ENGAGING and profile.is_offboard(mode):
+            if not self._mode_acked:
+                self._mode_acked = True
+                self._mode_change_ap_s = self.store.latest_time_s
+            self._start_flight("OFFBOARD confirmed in the HEARTBEAT")
+        elif state is FlightState.FLYING and not self.cfg.shadow:
+            if not armed:
+                self._finish("handed_back", "disarmed in flight by the autopilot or the pilot")
+            elif not profile.is_offboard(mode):
+                self._finish(
+                    "handed_back", f"mode changed to {profile.mode_name(mode)} (not by us)"
+                )
+        elif state is FlightState.FLYING and self.cfg.shadow and not armed:
+            self._finish("shadow", "disarmed")
+        elif state is FlightState.TOUCHDOWN:
+            if not armed:
+                self._finish("landed", "disarmed on the ground")
+            elif self.cfg.on_touchdown == "hand_back" and not profile.is_offboard(mode):
+                self._finish("landed", f"handed back in {profile.mode_name(mode)}")
+        elif state is FlightState.FAILSAFE:
+            if profile.is_land(mode):
+                self._land_confirmed = True
+            if not armed:
+                self._finish("failsafe", f"{self.outcome.failsafe_reason}; landed and disarmed")
+            elif self._land_confirmed and not profile.is_land(mode):
+                self._finish(
+                    "failsafe",
+                    f"{self.outcome.failsafe_reason}; then {profile.mode_name(mode)} (pilot?)",
+                )
+            elif (
+                not profile.is_land(mode)
+                and not profile.is_offboard(mode)
+                and (self._clock() - self._entered_s > 3.0)
+            ):
+                self._finish(
+                    "failsafe",
+                    f"{self.outcome.failsafe_reason}; autopilot in {profile.mode_name(mode)}",
+                )
+
+    def _start_flight(self, text: str) -> None:
+        self.runtime.reset()
+        self._flight_start_rx = self._clock()
+        self._enter(FlightState.FLYING, text)
+        self.log.event(self._clock(), "flight_start", text, shadow=self.cfg.shadow)
+
+    def on_link_event(self, kind: str, text: str) -> None:
+        self._event("link_" + kind, text)
+        if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
+            self._finish("aborted", "the autopilot restarted during the flight")
+
+    # ------------------------------------------------------------------ frames
+
+    def on_frame(self, frame: ReceivedFrame) -> None:
+        """Answer one camera frame (the latency path: log writes are queued until after the
+        send)."""
+        self._last_frame_rx = frame.rx_s
+        state = self.state
+        answering = state in (FlightState.ENGAGING, FlightState.FLYING, FlightState.TOUCHDOWN)
+        if not answering:
+            self.log.frame(frame)
+            return
+        self.log.deferring = True
+        try:
+            self.log.frame(frame)  # queued: written after the answer, before its command record
+            if state is FlightState.FLYING and self._is_flight_frame(frame):
+                self._policy_step(frame)
+            elif state is FlightState.TOUCHDOWN:
+                self._answer(frame, 0.0, "touchdown")
+            elif self._mode_acked:  # ENGAGING after the ACK, or a frame from before the switch
+                self._answer(frame, self._hover or self.cfg.hover_thrust, "neutral")
+        finally:
+            self.log.flush_pending()
+
+    def _is_flight_frame(self, frame: ReceivedFrame) -> bool:
+        if self.cfg.shadow:
+            return True
+        if self.camera_clock == "autopilot":
+            return frame.time_s > self._mode_change_ap_s + 1e-9
+        return frame.rx_s >= self._flight_start_rx
+
+    def _answer(self, frame: ReceivedFrame, thrust: float, kind: str) -> None:
+        now = self._clock()
+        stamp = self._ap_stamp_ms(frame, now)
+        sent = self._send(thrust, _ZERO3, stamp)
+        self.outcome.neutral_setpoints += int(sent)
+        self.log.command(
+            now,
+            {
+                "frame_id": frame.frame_id,
+                "policy": False,
+                "kind": kind,
+                "thrust_norm": thrust,
+                "rate_frd_rad_s": [0.0, 0.0, 0.0],
+                "sent": sent,
+                "time_boot_ms": stamp,
+                "latency_ms": (self._clock() - frame.rx_s) * 1e3,
+            },
+        )
+
+    def _sync(self, frame: ReceivedFrame) -> None:
+        """SITL frames: wait (briefly) for the telemetry stamped at the frame's time, which the
+        SITL sends just before the frame."""
+        if self.camera_clock != "autopilot":
+            return
+        t = frame.time_s - 1e-6
+        deadline = self._clock() + self.cfg.sync_timeout_s
+        store = self.store
+        need_odo = self.runtime.privileged
+        while True:
+            att, imu, rng, odo = store.attitude, store.imu, store.range, store.odometry
+            if (
+                att is not None
+                and att.time_s >= t
+                and imu is not None
+                and imu.time_s >= t
+                and rng is not None
+                and rng.time_s >= t
+                and (not need_odo or (odo is not None and odo.time_s >= t))
+            ):
+                return
+            left = deadline - self._clock()
+            if left <= 0:
+                return
+            self._pump(left)
+
+    def _policy_step(self, frame: ReceivedFrame) -> None:
+        self._sync(frame)
+        now = self._clock()
+        reason = self.safety.check(now, self.store, frame.rx_s, self.runtime.privileged)
+        if reason is not None:
+            self._failsafe(reason)
+            return
+        obs = assemble_observation(frame, self.store)
+        gt = self.store.odometry if self.runtime.privileged else None
+        result = self.runtime.step(obs, gt)
+        if result.command is None:
+            self._failsafe(f"policy_error: {result.error}")
+            return
+        raw = result.command
+        cmd, clamped = self.safety.clamp(raw)
+        stamp = self._ap_stamp_ms(frame, now)
+        sent = self._send(cmd.thrust_norm, cmd.rate_frd_rad_s, stamp)
+        t_sent = self._clock()
+        self.outcome.policy_commands += 1
+        self.log.observation(
+            now,
+            {
+                "frame_id": frame.frame_id,
+                "image_time_s": obs.image_time_s,
+                "attitude_rad": obs.attitude_rad,
+                "rate_frd_rad_s": obs.rate_frd_rad_s,
+                "attitude_time_s": obs.attitude_time_s,
+                "range_m": obs.range_m,
+                "range_time_s": obs.range_time_s,
+                "accel_frd_m_s2": obs.accel_frd_m_s2,
+                "imu_time_s": obs.imu_time_s,
+                "groundtruth_time_s": None if gt is None else gt.time_s,
+            },
+        )
+        self.log.command(
+            t_sent,
+            {
+                "frame_id": frame.frame_id,
+                "policy": True,
+                "kind": "shadow" if self.cfg.shadow else "policy",
+                "thrust_norm": cmd.thrust_norm,
+                "rate_frd_rad_s": cmd.rate_frd_rad_s,
+                "raw_thrust_norm": raw.thrust_norm,
+                "raw_rate_frd_rad_s": raw.rate_frd_rad_s,
+                "clamped": clamped,
+                "sent": sent,
+                "time_boot_ms": stamp,
+                "latency_ms": (t_sent - frame.rx_s) * 1e3,
+                "compute_ms": result.compute_s * 1e3,
+            },
+        )
+        if self._touchdown.update(self.store, self._flight_start_rx):
+            self._on_touchdown()
+
+    def _on_touchdown(self) -> None:
+        if self.cfg.shadow:
+            self._finish("shadow", "touchdown")
+            return
+        self._enter(FlightState.TOUCHDOWN, "touchdown (range + IMU): zero thrust")
+        if self.cfg.on_touchdown == "disarm":
+            self.link.arm(False)
+        else:
+            self.link.request_mode(self.link.profile.hold, armed=True)
+
+    def _failsafe(self, reason: str) -> None:
+        self.outcome.failsafe_reason = reason
+        if self.cfg.shadow:
+            self._event("failsafe_shadow", f"would request LAND: {reason}")
+            self._finish("shadow", f"failsafe (shadow): {reason}")
+            return
+        self._enter(FlightState.FAILSAFE, f"{reason}: LAND requested, setpoints stopped")
+        self._request_land()
+
+    def _request_land(self) -> None:
+        self._last_mode_req_s = self._clock()
+        self.link.request_mode(self.link.profile.land, armed=self._armed())
+
+    # ------------------------------------------------------------------ time
+
+    def on_tick(self) -> None:
+        """Timers: gates, pre-stream, staleness, retries. Call often (every loop pass)."""
+        now = self._clock()
+        state = self.state
+        if state is FlightState.WAITING:
+            reason = self._gate(now)
+            if reason is None:
+                if self.cfg.shadow:
+                    self._start_flight("shadow: telemetry and camera fresh")
+                else:
+                    self._enter(FlightState.PRESTREAM, "ready: pre-streaming neutral setpoints")
+            elif reason != self._wait_reason:
+                self._wait_reason = reason
+                self._event("waiting", reason)
+        elif state is FlightState.PRESTREAM:
+            reason = self._gate(now)
+            if reason is not None:
+                self._enter(FlightState.WAITING, f"not ready any more: {reason}")
+                return
+            self._prestream(now)
+            if now - self._entered_s >= self.cfg.prestream_s:
+                self._mode_acked = False
+                self._mode_change_ap_s = math.inf
+                self._enter(FlightState.ENGAGING, "requesting OFFBOARD")
+                self.link.request_mode(self.link.profile.offboard, armed=self._armed())
+        elif state is FlightState.ENGAGING:
+            if not self._mode_acked:
+                self._prestream(now)
+            if now - self._entered_s > self.cfg.engage_timeout_s:
+                if self._mode_acked:
+                    self._failsafe("offboard_unconfirmed: ACK but no OFFBOARD in the HEARTBEAT")
+                else:
+                    self._engage_attempts += 1
+                    if self._engage_attempts >= 3:
+                        self._finish("engage_failed", "no answer to DO_SET_MODE OFFBOARD")
+                    else:
+                        self._enter(FlightState.PRESTREAM, "no ACK for OFFBOARD: retry")
+        elif state is FlightState.FLYING:
+            reason = self.safety.check(
+                now, self.store, self._last_frame_rx, self.runtime.privileged
+            )
+            if reason is not None:
+                self._failsafe(reason)
+        elif state is FlightState.TOUCHDOWN:
+            if now - self._entered_s > 5.0:
+                self._finish("landed", "touchdown; no disarm seen within 5 s")
+        elif state is FlightState.FAILSAFE:
+            if not self._land_confirmed and now - self._last_mode_req_s > 1.5:
+                self._request_land()
+
+    def _prestream(self, now: float) -> None:
+        if now - self._last_prestream_s < 1.0 / self.cfg.prestream_rate_hz:
+            return
+        self._last_prestream_s = now
+        hover = self._hover_thrust(now)
+        self._send(
+            hover if hover is not None else self.cfg.hover_thrust,
+            _ZERO3,
+            self._ap_stamp_ms(None, now),
+        )
+
+    # ------------------------------------------------------------------ exit
+
+    def hand_back(self, mode: str, reason: str) -> None:
+        """Stop flying now (SIGINT/SIGTERM, end of run): request ``land`` or ``hold`` if we
+        were in control, stop sending setpoints."""
+        if self.done:
+            return
+        in_control = (
+            self.state
+            in (
+                FlightState.ENGAGING,
+                FlightState.FLYING,
+                FlightState.TOUCHDOWN,
+            )
+            and not self.cfg.shadow
+        )
+        if in_control:
+            profile = self.link.profile
+            target = profile.land if mode == "land" else profile.hold
+            self.link.request_mode(target, armed=self._armed())
+            self._event("hand_back", f"{reason}: {mode.upper()} requested, setpoints stopped")
+        self._finish("aborted", reason)
+
+
+def command_dict(cmd: Command) -> dict[str, Any]:
+    return {"thrust_norm": cmd.thrust_norm, "rate_frd_rad_s": cmd.rate_frd_rad_s.tolist()}

@@ -1,0 +1,272 @@
+"""The companion flight log (MCAP, one file per flight) and its replay.
+
+Topics (JSON, log time = the file's wall-clock epoch + companion monotonic seconds since the
+file was opened; every record also has ``time_s`` on that clock):
+
+* ``/mavlink/in/<NAME>`` — every message from the autopilot as received (pymavlink fields,
+  plus ``rx_s``);
+* ``/camera/image`` — every frame as received (``foxglove.RawImage`` mono8, plus
+  ``capture_time_s`` on the camera's clock, ``rx_s`` and ``frame_number``);
+* ``/companion/observation`` — the observation the policy saw (image excluded: see the frame);
+* ``/companion/command`` — every command computed: the policy's raw output, what was (or in
+  shadow mode would have been) sent after the clamps, ``sent``, and the latency from frame
+  receipt to the setpoint leaving the socket (``latency_ms``) and the policy's share of it;
+* ``/events`` — state-machine transitions, link events, failsafes;
+* ``/companion/summary`` — the flight's counters, last.
+
+Writes are queued while a frame is being answered and written after the setpoint is sent
+(:meth:`CompanionLog.flush_pending`), so logging never adds to the latency; the queue keeps
+receipt order, which is what makes a log replayable (:func:`replay_log`).
+"""
+
+from __future__ import annotations
+
+import base64
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.camera import ReceivedFrame
+from companion.flightlog import TOPIC_EVENTS, TOPIC_IMAGE, FlightLogWriter, read_log
+from companion.telemetry import TelemetryStore
+
+__all__ = [
+    "TOPIC_COMMAND",
+    "TOPIC_OBSERVATION",
+    "TOPIC_SUMMARY",
+    "CompanionLog",
+    "ReplayReport",
+    "latency_stats",
+    "replay_log",
+]
+
+TOPIC_MAVLINK_IN = "/mavlink/in/"
+TOPIC_OBSERVATION = "/companion/observation"
+TOPIC_COMMAND = "/companion/command"
+TOPIC_SUMMARY = "/companion/summary"
+
+
+def _jsonable_msg(msg: Any) -> dict[str, Any]:
+    d = msg.to_dict()
+    for key, value in d.items():
+        if isinstance(value, bytes | bytearray):
+            d[key] = value.decode("utf-8", errors="replace")
+    return d
+
+
+class CompanionLog:
+    """One flight's companion log.
+
+    Args:
+        path: the MCAP file.
+        metadata: MCAP metadata records (``config``, ``flight``, ``policy``...).
+        clock: the companion's monotonic clock.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        metadata: dict[str, dict[str, Any]],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.writer = FlightLogWriter(path, metadata)
+        self.path = self.writer.path
+        self._clock = clock
+        self.t0 = clock()
+        self._pending: list[tuple[str, str, float, dict[str, Any]]] = []
+        self.deferring = False
+
+    def rel(self, monotonic_s: float) -> float:
+        return monotonic_s - self.t0
+
+    def _put(self, topic: str, schema: str, t: float, body: dict[str, Any]) -> None:
+        item = (topic, schema, max(0.0, self.rel(t)), body)
+        if self.deferring:
+            self._pending.append(item)
+        else:
+            self.writer.write(*item[:3], item[3])
+
+    def flush_pending(self) -> None:
+        """Write what was queued while answering a frame (receipt order kept)."""
+        self.deferring = False
+        pending, self._pending = self._pending, []
+        for topic, schema, t, body in pending:
+            self.writer.write(topic, schema, t, body)
+
+    def message(self, msg: Any, rx_s: float) -> None:
+        name = msg.get_type()
+        self._put(
+            TOPIC_MAVLINK_IN + name, "mavlink." + name, rx_s, {**_jsonable_msg(msg), "rx_s": rx_s}
+        )
+
+    def frame(self, frame: ReceivedFrame) -> None:
+        img = np.ascontiguousarray(frame.image, dtype=np.uint8)
+        t_ns = self.writer.log_time_ns(max(0.0, self.rel(frame.rx_s)))
+        self._put(
+            TOPIC_IMAGE,
+            "foxglove.RawImage",
+            frame.rx_s,
+            {
+                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+                "frame_id": f"camera/{frame.frame_id}",
+                "width": int(img.shape[1]),
+                "height": int(img.shape[0]),
+                "encoding": "mono8",
+                "step": int(img.shape[1]),
+                "data": base64.b64encode(img.tobytes()).decode("ascii"),
+                "frame_number": frame.frame_id,
+                "capture_time_s": frame.time_s,
+                "rx_s": frame.rx_s,
+            },
+        )
+
+    def observation(self, t: float, body: dict[str, Any]) -> None:
+        self._put(TOPIC_OBSERVATION, "visland.CompanionObservation", t, body)
+
+    def command(self, t: float, body: dict[str, Any]) -> None:
+        self._put(TOPIC_COMMAND, "visland.CompanionCommand", t, body)
+
+    def event(self, t: float, kind: str, text: str, **extra: Any) -> None:
+        self._put(TOPIC_EVENTS, "visland.Event", t, {"kind": kind, "text": text, **extra})
+
+    def close(self, summary: dict[str, Any] | None = None) -> None:
+        self.flush_pending()
+        if summary is not None:
+            self.writer.write(
+                TOPIC_SUMMARY, "visland.CompanionSummary", self.rel(self._clock()), summary
+            )
+        self.writer.close()
+
+
+# --------------------------------------------------------------------------- reading back
+
+
+def latency_stats(paths: list[str | Path]) -> dict[str, Any]:
+    """Frame receipt -> setpoint sent latency (ms) over the *sent* policy commands of logs."""
+    lat: list[float] = []
+    compute: list[float] = []
+    for path in paths:
+        log = read_log(path, topics=[TOPIC_COMMAND])
+        for m in log.topic(TOPIC_COMMAND):
+            if m.get("policy") and m.get("sent") and m.get("latency_ms") is not None:
+                lat.append(float(m["latency_ms"]))
+                compute.append(float(m.get("compute_ms") or 0.0))
+    if not lat:
+        return {"commands": 0}
+    arr = np.asarray(lat)
+    return {
+        "commands": len(lat),
+        "median_ms": float(np.median(arr)),
+        "p90_ms": float(np.percentile(arr, 90)),
+        "p99_ms": float(np.percentile(arr, 99)),
+        "max_ms": float(arr.max()),
+        "mean_ms": float(arr.mean()),
+        "policy_median_ms": float(np.median(compute)),
+        "policy_p99_ms": float(np.percentile(compute, 99)),
+    }
+
+
+class _Recorded:
+    """A logged MAVLink message read back: attribute access and ``get_type()``."""
+
+    def __init__(self, name: str, fields: dict[str, Any]) -> None:
+        self._name = name
+        self.__dict__.update(fields)
+
+    def get_type(self) -> str:
+        return self._name
+
+
+@dataclass
+class ReplayReport:
+    """How a shadow replay of a companion log compared with what was recorded."""
+
+    log: str
+    commands: int = 0
+    max_abs_diff: float = 0.0
+    errors: list[str] = field(default_factory=list)
+    worst_frame: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "log": self.log,
+            "commands": self.commands,
+            "max_abs_diff": self.max_abs_diff,
+            "worst_frame": self.worst_frame,
+            "errors": self.errors,
+        }
+
+
+def _raw_records(path: Path):
+    """(topic, message) in file order — the receipt order."""
+    import json
+
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    channels: dict[int, str] = {}
+    with path.open("rb") as fh:
+        try:
+            for record in StreamReader(fh, skip_magic=False).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = channels.get(record.channel_id)
+                    if topic is not None:
+                        yield topic, json.loads(record.data)
+        except (McapError, ValueError, EOFError):
+            return  # a truncated log replays up to its cut
+
+
+def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
+    """Replay a companion log in shadow mode: feed the recorded telemetry and frames, in the
+    order they were received, through the same observation assembly and ``runtime``
+    (a :class:`~companion.runtime.PolicyRuntime`), and compare each policy command with the one
+    recorded (raw policy output, before the clamps).
+    """
+    from companion.offboard import assemble_observation
+
+    path = Path(path)
+    report = ReplayReport(log=str(path))
+    store = TelemetryStore()
+    frames: dict[int, ReceivedFrame] = {}
+    for topic, msg in _raw_records(path):
+        if topic.startswith(TOPIC_MAVLINK_IN):
+            fields = {k: v for k, v in msg.items() if k not in ("time_s", "mavpackettype")}
+            for key in ("x", "y", "z"):  # JSON null = NaN (never in fields we read, but safe)
+                if key in fields and fields[key] is None:
+                    fields[key] = float("nan")
+            store.update(_Recorded(topic[len(TOPIC_MAVLINK_IN) :], fields), float(msg["rx_s"]))
+        elif topic == TOPIC_IMAGE:
+            img = np.frombuffer(base64.b64decode(msg["data"]), dtype=np.uint8).reshape(
+                msg["height"], msg["width"]
+            )
+            fid = int(msg["frame_number"])
+            frames = {fid: ReceivedFrame(fid, float(msg["capture_time_s"]), img, msg["rx_s"])}
+        elif topic == TOPIC_EVENTS and msg.get("kind") == "flight_start":
+            runtime.reset()
+        elif topic == TOPIC_COMMAND and msg.get("policy"):
+            fid = int(msg["frame_id"])
+            frame = frames.get(fid)
+            if frame is None:
+                report.errors.append(f"frame {fid}: not in the log before its command")
+                continue
+            obs = assemble_observation(frame, store)
+            gt = store.odometry if runtime.privileged else None
+            result = runtime.step(obs, gt)
+            if result.command is None:
+                report.errors.append(f"frame {fid}: {result.error}")
+                continue
+            ours = np.concatenate(([result.command.thrust_norm], result.command.rate_frd_rad_s))
+            theirs = np.asarray([msg["raw_thrust_norm"], *msg["raw_rate_frd_rad_s"]], float)
+            diff = float(np.max(np.abs(ours - theirs)))
+            report.commands += 1
+            if report.worst_frame is None or diff > report.max_abs_diff:
+                report.max_abs_diff = diff
+                report.worst_frame = fid
+    return report

@@ -1,0 +1,104 @@
+"""The policy runtime: one policy, its recurrent state held explicitly, one command per frame.
+
+Any object with the :class:`PolicyLike` shape flies: the learned CNN+LSTM
+(:func:`companion.policy_net.load_policy`, torch on the CPU), or — wired in by ``tools/`` — the
+MPC expert and the cascade lander for SITL runs. ``reset()`` starts a flight afresh
+(``initial_state()``); ``step()`` never raises: a policy exception or a non-finite command comes
+back as ``StepResult.error``, which the safety monitor turns into a failsafe.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+from companion.contract import Command, Observation
+
+__all__ = ["PolicyLike", "PolicyRuntime", "StepResult", "load_policy_file"]
+
+
+@runtime_checkable
+class PolicyLike(Protocol):
+    """``initial_state()`` and ``act(observation, groundtruth, state) -> (Command, state)``.
+
+    ``groundtruth`` is duck-typed — any object with numpy ``pos_ned_m``, ``vel_ned_m_s``,
+    ``quat_wxyz``, ``rate_frd_rad_s`` and ``time_s`` — or None; only ``privileged`` policies
+    read it (the companion builds it from ODOMETRY, which only the SITL publishes).
+    """
+
+    privileged: bool
+
+    def initial_state(self) -> Any: ...
+
+    def act(
+        self, observation: Observation, groundtruth: Any, state: Any
+    ) -> tuple[Command, Any]: ...
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One policy step: the command (None on error), the error text, compute time (s)."""
+
+    command: Command | None
+    error: str | None
+    compute_s: float
+
+
+class PolicyRuntime:
+    """Holds a policy and its state for one flight at a time.
+
+    Args:
+        policy: the policy.
+        name: what to call it in logs (a path, ``expert``...).
+    """
+
+    def __init__(self, policy: PolicyLike, name: str) -> None:
+        for attr in ("initial_state", "act"):
+            if not callable(getattr(policy, attr, None)):
+                raise TypeError(f"policy {name!r}: has no {attr}() (not a PolicyLike)")
+        self.policy = policy
+        self.name = name
+        self.privileged = bool(getattr(policy, "privileged", False))
+        self.steps = 0
+        self._state: Any = None
+        self._ready = False
+
+    def reset(self) -> None:
+        """A new flight: the policy's initial state (LSTM zeros, MPC warm start cleared)."""
+        self._state = self.policy.initial_state()
+        self.steps = 0
+        self._ready = True
+
+    def step(self, observation: Observation, groundtruth: Any) -> StepResult:
+        if not self._ready:
+            self.reset()
+        t0 = time.perf_counter()
+        try:
+            command, state = self.policy.act(observation, groundtruth, self._state)
+            if not isinstance(command, Command):
+                raise TypeError(f"act() returned {type(command).__name__}, not a Command")
+        except Exception as exc:  # any policy failure becomes a named failsafe, never a crash
+            return StepResult(None, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0)
+        self._state = state
+        self.steps += 1
+        return StepResult(command, None, time.perf_counter() - t0)
+
+
+def load_policy_file(path: str | Path, torch_threads: int = 1) -> PolicyLike:
+    """A learned-policy checkpoint for the CPU (torch, explicit LSTM state).
+
+    ``torch_threads`` limits torch's intra-op threads: on a small board one thread gives the
+    steadiest latency and leaves a core to the link and the camera.
+
+    Raises:
+        companion.policy_net.CheckpointError: not a readable checkpoint (names the file).
+    """
+    import torch
+
+    from companion.policy_net import load_policy
+
+    if torch_threads > 0:
+        torch.set_num_threads(torch_threads)
+    return load_policy(path)

@@ -1,0 +1,256 @@
+"""The telemetry store: the latest ATTITUDE, HIGHRES_IMU, DISTANCE_SENSOR, HEARTBEAT (mode,
+armed), EXTENDED_SYS_STATE and — for privileged policies in simulation only — ODOMETRY, each with
+the autopilot's time stamp and the companion's receive time, so every reader can ask how stale it
+is.
+
+One ``handle_<message>`` method per message (``SUBSCRIBES`` lists them); anything else is
+ignored. Malformed values (non-finite attitude, a range outside the sensor's limits) never raise:
+the sample is marked invalid or dropped and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "SUBSCRIBES",
+    "AttitudeSample",
+    "HeartbeatSample",
+    "ImuSample",
+    "LandedSample",
+    "OdometrySample",
+    "RangeSample",
+    "TelemetryStore",
+    "odometry_from_msg",
+]
+
+SUBSCRIBES = (
+    "HEARTBEAT",
+    "ATTITUDE",
+    "HIGHRES_IMU",
+    "DISTANCE_SENSOR",
+    "EXTENDED_SYS_STATE",
+    "ODOMETRY",
+)
+
+_MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing
+_MAV_MODE_FLAG_SAFETY_ARMED = 128
+_MAV_FRAME_LOCAL_NED = 1
+_MAV_FRAME_BODY_FRD = 12
+_MAV_FRAME_BODY_NED = 8  # legacy name some autopilots use for the body frame
+
+
+@dataclass(frozen=True)
+class AttitudeSample:
+    """ATTITUDE: roll/pitch/yaw (rad) and FRD body rates (rad/s)."""
+
+    attitude_rad: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    time_s: float
+    rx_s: float
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """HIGHRES_IMU: specific force (m/s², FRD; about (0, 0, -g) at rest) and gyro (rad/s)."""
+
+    accel_frd_m_s2: np.ndarray
+    gyro_frd_rad_s: np.ndarray
+    time_s: float
+    rx_s: float
+
+
+@dataclass(frozen=True)
+class RangeSample:
+    """DISTANCE_SENSOR (downward): range (m), NaN when the sensor reports no valid return."""
+
+    range_m: float
+    time_s: float
+    rx_s: float
+
+    @property
+    def valid(self) -> bool:
+        return math.isfinite(self.range_m)
+
+
+@dataclass(frozen=True)
+class HeartbeatSample:
+    """The autopilot's HEARTBEAT: custom mode, armed flag, system status."""
+
+    custom_mode: int
+    base_mode: int
+    system_status: int
+    autopilot: int
+    rx_s: float
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & _MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+@dataclass(frozen=True)
+class LandedSample:
+    """EXTENDED_SYS_STATE's landed state (MAV_LANDED_STATE: 1 on ground, 2 in air, ...)."""
+
+    landed_state: int
+    rx_s: float
+
+
+@dataclass(frozen=True)
+class OdometrySample:
+    """ODOMETRY as ground truth (the SITL publishes it only with ``--groundtruth``).
+
+    Duck-typed like ``sitl_sim.simulator.GroundTruth`` for privileged policies: NED position,
+    NED velocity, attitude quaternion (body FRD -> NED), FRD body rates, time.
+    """
+
+    pos_ned_m: np.ndarray
+    vel_ned_m_s: np.ndarray
+    quat_wxyz: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    time_s: float
+    rx_s: float = 0.0
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def odometry_from_msg(msg: Any, rx_s: float = 0.0) -> OdometrySample | None:
+    """ODOMETRY (pose in LOCAL_NED; velocity in BODY_FRD or LOCAL_NED) -> NED sample, or None
+    for frames this companion does not understand or non-finite values."""
+    if msg.frame_id != _MAV_FRAME_LOCAL_NED:
+        return None
+    q = np.array(msg.q, dtype=float)
+    pos = np.array([msg.x, msg.y, msg.z], dtype=float)
+    vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+    rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
+    if not all(np.all(np.isfinite(a)) for a in (q, pos, vel, rates)):
+        return None
+    norm = float(np.linalg.norm(q))
+    if not 0.9 < norm < 1.1:
+        return None
+    q = q / norm
+    if msg.child_frame_id in (_MAV_FRAME_BODY_FRD, _MAV_FRAME_BODY_NED):
+        vel = _rotation(q) @ vel
+    elif msg.child_frame_id != _MAV_FRAME_LOCAL_NED:
+        return None
+    return OdometrySample(pos, vel, q, rates, msg.time_usec * 1e-6, rx_s)
+
+
+@dataclass
+class TelemetryStore:
+    """Latest sample of each subscribed message. ``update(msg, rx_s)`` feeds it."""
+
+    attitude: AttitudeSample | None = None
+    imu: ImuSample | None = None
+    range: RangeSample | None = None
+    last_valid_range: RangeSample | None = None
+    heartbeat: HeartbeatSample | None = None
+    landed: LandedSample | None = None
+    odometry: OdometrySample | None = None
+    latest_time_s: float = -math.inf
+    """The newest autopilot time stamp seen (s since autopilot boot)."""
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._handlers = {name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES}
+
+    def update(self, msg: Any, rx_s: float) -> bool:
+        """Feed one message; True when it was one of :data:`SUBSCRIBES` and valid."""
+        handler = self._handlers.get(msg.get_type())
+        if handler is None:
+            return False
+        return bool(handler(msg, rx_s))
+
+    def _reject(self, name: str) -> bool:
+        self.rejected[name] = self.rejected.get(name, 0) + 1
+        return False
+
+    def _stamp(self, time_s: float) -> None:
+        if time_s > self.latest_time_s:
+            self.latest_time_s = time_s
+
+    def reset_clock(self) -> None:
+        """The autopilot restarted: its clock starts again, forget the old newest stamp."""
+        self.latest_time_s = -math.inf
+
+    # ------------------------------------------------------------------ handlers
+
+    def handle_heartbeat(self, msg: Any, rx_s: float) -> bool:
+        self.heartbeat = HeartbeatSample(
+            int(msg.custom_mode), int(msg.base_mode), int(msg.system_status), msg.autopilot, rx_s
+        )
+        return True
+
+    def handle_attitude(self, msg: Any, rx_s: float) -> bool:
+        att = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
+        rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
+        if not (np.all(np.isfinite(att)) and np.all(np.isfinite(rates))):
+            return self._reject("ATTITUDE")
+        t = msg.time_boot_ms * 1e-3
+        self.attitude = AttitudeSample(att, rates, t, rx_s)
+        self._stamp(t)
+        return True
+
+    def handle_highres_imu(self, msg: Any, rx_s: float) -> bool:
+        acc = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
+        gyro = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float)
+        if msg.fields_updated & 0b111 != 0b111 or not np.all(np.isfinite(acc)):
+            return self._reject("HIGHRES_IMU")
+        t = msg.time_usec * 1e-6
+        self.imu = ImuSample(acc, gyro, t, rx_s)
+        self._stamp(t)
+        return True
+
+    def handle_distance_sensor(self, msg: Any, rx_s: float) -> bool:
+        if msg.orientation != _MAV_SENSOR_ROTATION_PITCH_270:
+            return self._reject("DISTANCE_SENSOR")  # not the downward altimeter
+        invalid = (
+            msg.current_distance < msg.min_distance
+            or msg.current_distance > msg.max_distance
+            or getattr(msg, "signal_quality", 0) == 1
+        )
+        t = msg.time_boot_ms * 1e-3
+        sample = RangeSample(math.nan if invalid else msg.current_distance * 0.01, t, rx_s)
+        self.range = sample
+        if sample.valid:
+            self.last_valid_range = sample
+        self._stamp(t)
+        return True
+
+    def handle_extended_sys_state(self, msg: Any, rx_s: float) -> bool:
+        self.landed = LandedSample(int(msg.landed_state), rx_s)
+        return True
+
+    def handle_odometry(self, msg: Any, rx_s: float) -> bool:
+        sample = odometry_from_msg(msg, rx_s)
+        if sample is None:
+            return self._reject("ODOMETRY")
+        self.odometry = sample
+        self._stamp(sample.time_s)
+        return True
+
+    # ------------------------------------------------------------------ queries
+
+    def age_s(self, name: str, now_s: float) -> float:
+        """Seconds since ``name`` (attitude, imu, range, heartbeat, odometry) was received;
+        infinity when never."""
+        sample = getattr(self, name)
+        return math.inf if sample is None else now_s - sample.rx_s
+
+    def max_age_s(self, names: tuple[str, ...], now_s: float) -> tuple[float, str]:
+        """The stalest of ``names`` and its age."""
+        worst = max(names, key=lambda n: self.age_s(n, now_s))
+        return self.age_s(worst, now_s), worst

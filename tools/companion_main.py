@@ -1,0 +1,54 @@
+"""``visland companion``: the companion process with the project's privileged pilots wired in.
+
+``companion/`` may not import the simulator or the expert; this shell (tools may import
+everything) turns ``--policy expert`` (the MPC, paper 3.2) and ``--policy cascade`` (the PD
+baseline) into policy objects built from the same vehicle/sim configs as the SITL, and hands
+them to :func:`companion.app.main`. Any other ``--policy`` is a learned checkpoint
+(``untrained`` / ``untrained-privileged``: a randomly initialised network of the shipped size,
+for latency benchmarks). Both privileged pilots read the companion's ODOMETRY record
+(duck-typed like ``sitl_sim.simulator.GroundTruth``), so the SITL must run with
+``--groundtruth``.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+__all__ = ["main", "resolve_policy"]
+
+
+def resolve_policy(name: str, cfg: Any = None) -> Any:
+    """``expert`` | ``cascade`` | ``untrained`` | ``untrained-privileged`` | checkpoint path."""
+    if name in ("expert", "cascade"):
+        from sitl_sim.config import load_sim, load_vehicle
+
+        vehicle, sim = load_vehicle(), load_sim()
+        if name == "expert":
+            from expert.mpc import MpcExpert
+
+            return MpcExpert(vehicle, sim)
+        from expert.cascade import CascadeLander
+
+        return CascadeLander(vehicle, sim.planet)
+    threads = getattr(cfg, "torch_threads", 1) if cfg is not None else 1
+    if name in ("untrained", "untrained-privileged"):
+        import torch
+
+        from companion.policy_net import untrained_policy
+
+        torch.set_num_threads(max(1, threads))
+        return untrained_policy(seed=0, privileged=name.endswith("privileged"))
+    from companion.runtime import load_policy_file
+
+    return load_policy_file(name, threads)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from companion.app import main as app_main
+
+    return app_main(argv, resolve_policy=resolve_policy, prog="visland companion")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
