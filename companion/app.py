@@ -30,7 +30,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CompanionConfig", "CompanionError", "add_arguments", "config_from_args", "main", "run"]
+__all__ = [
+    "CompanionConfig",
+    "CompanionError",
+    "add_arguments",
+    "config_from_args",
+    "main",
+    "run",
+    "run_from_args",
+]
 
 log = logging.getLogger("visland.companion")
 
@@ -221,6 +229,9 @@ class Companion:
             on_touchdown=cfg.on_touchdown,
             hover_thrust=cfg.hover_thrust,
         )
+        error = self.runtime.warm_up()
+        if error is not None:
+            raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
         self.store = TelemetryStore()
         self.camera = _open_camera(cfg)
         try:
@@ -420,22 +431,17 @@ def replay(path: Path, policy: Any, policy_name: str) -> dict[str, Any]:
     return replay_log(path, PolicyRuntime(policy, policy_name)).to_dict()
 
 
-def main(
-    argv: list[str] | None = None,
+def run_from_args(
+    args: argparse.Namespace,
     resolve_policy: Callable[[str, CompanionConfig], Any] | None = None,
     prog: str = "python -m companion",
 ) -> int:
-    """Entry point. ``resolve_policy(name, cfg)`` turns ``--policy`` into a policy object;
-    the default loads a checkpoint (``tools/`` adds ``expert`` and ``cascade``)."""
+    """Run (or ``--replay``) from parsed :func:`add_arguments` flags; prints the JSON report.
+    ``resolve_policy(name, cfg)`` turns ``--policy`` into a policy object; the default loads a
+    checkpoint (``tools/`` adds ``expert`` and ``cascade``)."""
     from companion.camera import CameraError
     from companion.link import LinkError
 
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr
-    )
     try:
         cfg = config_from_args(args)
         if not cfg.policy:
@@ -450,7 +456,7 @@ def main(
             report = replay(args.replay, policy, cfg.policy)
         else:
             report = run(cfg, policy, cfg.policy)
-    except (ValueError, OSError, LinkError, CameraError) as exc:  # one clear line, no traceback
+    except (ValueError, OSError, LinkError, CameraError) as exc:  # one clear line
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(report, indent=2, default=_json_default))
@@ -458,6 +464,21 @@ def main(
         return 0 if not report["errors"] else 1
     failed = [f for f in report["flights"] if f["result"] == "engage_failed"]
     return 1 if failed else 0
+
+
+def main(
+    argv: list[str] | None = None,
+    resolve_policy: Callable[[str, CompanionConfig], Any] | None = None,
+    prog: str = "python -m companion",
+) -> int:
+    """``python -m companion`` (checkpoints only) and ``tools.companion_main``."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr
+    )
+    return run_from_args(args, resolve_policy, prog)
 
 
 def _json_default(obj: Any) -> Any:

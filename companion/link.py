@@ -298,6 +298,7 @@ class MavlinkLink:
         self._params: dict[str, float] = {}
         self._broken_since: float | None = None
         self.conn: Any = None
+        self.last_send_call_s = 0.0
         self._open()
 
     # ------------------------------------------------------------------ connection
@@ -485,27 +486,42 @@ class MavlinkLink:
             return False
         return True
 
-    def send_setpoint(self, thrust: float, rate_frd_rad_s, time_boot_ms: int) -> bool:
-        """SET_ATTITUDE_TARGET, type_mask 128 (attitude ignored): thrust + FRD body rates."""
-        if self.conn is None or self.target_system is None:
-            return False
+    def send_setpoint(self, thrust: float, rate_frd_rad_s, time_boot_ms: int) -> float | None:
+        """SET_ATTITUDE_TARGET, type_mask 128 (attitude ignored): thrust + FRD body rates.
+
+        Returns the monotonic time the packed datagram was handed to the OS (None: not sent).
+        ``last_send_call_s`` is how long the send call took: on a loopback link a busy machine
+        may run the receiver inside it, which is not the companion's latency.
+        """
+        conn = self.conn
+        if conn is None or self.target_system is None:
+            return None
         r = rate_frd_rad_s
-        ok = self._send(
-            self.conn.mav.set_attitude_target_encode(
-                int(time_boot_ms) & 0xFFFFFFFF,
-                self.target_system,
-                self.target_component,
-                mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE,
-                [1.0, 0.0, 0.0, 0.0],
-                float(r[0]),
-                float(r[1]),
-                float(r[2]),
-                float(thrust),
-            )
+        msg = conn.mav.set_attitude_target_encode(
+            int(time_boot_ms) & 0xFFFFFFFF,
+            self.target_system,
+            self.target_component,
+            mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE,
+            [1.0, 0.0, 0.0, 0.0],
+            float(r[0]),
+            float(r[1]),
+            float(r[2]),
+            float(thrust),
         )
-        if ok:
-            self.counters.tx_setpoints += 1
-        return ok
+        mav = conn.mav
+        buf = msg.pack(mav)  # as MAVLink.send, with the hand-off time taken before the write
+        handed = self._clock()
+        try:
+            conn.write(buf)
+        except OSError as exc:
+            self._port_error(exc)
+            return None
+        self.last_send_call_s = self._clock() - handed
+        mav.seq = (mav.seq + 1) % 256
+        mav.total_packets_sent += 1
+        mav.total_bytes_sent += len(buf)
+        self.counters.tx_setpoints += 1
+        return handed
 
     def _send_command(self, command: int, params: tuple[float, ...], confirmation: int = 0) -> None:
         if self.conn is None or self.target_system is None:

@@ -265,9 +265,10 @@ class FlightController:
         ahead = 0.0 if self.camera_clock == "autopilot" else max(0.0, now - att.rx_s)
         return int((self.store.latest_time_s + ahead) * 1000)
 
-    def _send(self, thrust: float, rates: np.ndarray, stamp_ms: int) -> bool:
+    def _send(self, thrust: float, rates: np.ndarray, stamp_ms: int) -> float | None:
+        """Send (unless shadow); the hand-off time, or None when nothing was sent."""
         if self.cfg.shadow:
-            return False
+            return None
         return self.link.send_setpoint(thrust, rates, stamp_ms)
 
     # ------------------------------------------------------------------ gates
@@ -436,8 +437,8 @@ class FlightController:
     def _answer(self, frame: ReceivedFrame, thrust: float, kind: str) -> None:
         now = self._clock()
         stamp = self._ap_stamp_ms(frame, now)
-        sent = self._send(thrust, _ZERO3, stamp)
-        self.outcome.neutral_setpoints += int(sent)
+        handed = self._send(thrust, _ZERO3, stamp)
+        self.outcome.neutral_setpoints += handed is not None
         self.log.command(
             now,
             {
@@ -446,9 +447,9 @@ class FlightController:
                 "kind": kind,
                 "thrust_norm": thrust,
                 "rate_frd_rad_s": [0.0, 0.0, 0.0],
-                "sent": sent,
+                "sent": handed is not None,
                 "time_boot_ms": stamp,
-                "latency_ms": (self._clock() - frame.rx_s) * 1e3,
+                "latency_ms": ((handed or self._clock()) - frame.rx_s) * 1e3,
             },
         )
 
@@ -479,6 +480,7 @@ class FlightController:
             self._pump(left)
 
     def _policy_step(self, frame: ReceivedFrame) -> None:
+        t_in = self._clock()
         self._sync(frame)
         now = self._clock()
         reason = self.safety.check(now, self.store, frame.rx_s, self.runtime.privileged)
@@ -494,8 +496,9 @@ class FlightController:
         raw = result.command
         cmd, clamped = self.safety.clamp(raw)
         stamp = self._ap_stamp_ms(frame, now)
-        sent = self._send(cmd.thrust_norm, cmd.rate_frd_rad_s, stamp)
-        t_sent = self._clock()
+        handed = self._send(cmd.thrust_norm, cmd.rate_frd_rad_s, stamp)
+        # shadow: when it would have been handed to the OS
+        t_sent = handed if handed is not None else self._clock()
         self.outcome.policy_commands += 1
         self.log.observation(
             now,
@@ -523,10 +526,13 @@ class FlightController:
                 "raw_thrust_norm": raw.thrust_norm,
                 "raw_rate_frd_rad_s": raw.rate_frd_rad_s,
                 "clamped": clamped,
-                "sent": sent,
+                "sent": handed is not None,
                 "time_boot_ms": stamp,
                 "latency_ms": (t_sent - frame.rx_s) * 1e3,
+                "send_call_ms": self.link.last_send_call_s * 1e3 if handed else None,
                 "compute_ms": result.compute_s * 1e3,
+                "queue_ms": (t_in - frame.rx_s) * 1e3,
+                "sync_ms": (now - t_in) * 1e3,
             },
         )
         if self._touchdown.update(self.store, self._flight_start_rx):

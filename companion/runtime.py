@@ -65,6 +65,40 @@ class PolicyRuntime:
         self._state: Any = None
         self._ready = False
 
+    def warm_up(self, steps: int = 5) -> str | None:
+        """Run the policy a few times on a synthetic level hover at 20 m (torch allocates and
+        picks its kernels on the first calls: 5-10x slower), then forget it. Returns the error
+        a policy that cannot even do that raises (None when fine)."""
+        import numpy as np
+
+        from companion.telemetry import OdometrySample
+
+        obs = Observation(
+            image=np.full((128, 128), 96, dtype=np.uint8),
+            image_time_s=0.0,
+            attitude_rad=np.zeros(3),
+            rate_frd_rad_s=np.zeros(3),
+            attitude_time_s=0.0,
+            range_m=20.0,
+            range_time_s=0.0,
+            accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
+            imu_time_s=0.0,
+        )
+        gt = OdometrySample(
+            np.array([0.0, 0.0, -20.0]),
+            np.zeros(3),
+            np.array([1.0, 0.0, 0.0, 0.0]),
+            np.zeros(3),
+            0.0,
+        )
+        self.reset()
+        error = None
+        for _ in range(steps):
+            result = self.step(obs, gt if self.privileged else None)
+            error = error or result.error
+        self._ready = False
+        return error
+
     def reset(self) -> None:
         """A new flight: the policy's initial state (LSTM zeros, MPC warm start cleared)."""
         self._state = self.policy.initial_state()

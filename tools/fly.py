@@ -1,0 +1,245 @@
+"""``visland fly``: the SITL and the companion as two processes over UDP, N episodes, eval JSON.
+
+The SITL (``python -m sitl_sim.mavlink_sitl``) flies episodes ``0..N-1`` of ``seed``; the
+companion (``python -m tools.companion_main``) flies each through MAVLink — pre-stream,
+OFFBOARD, one command per camera frame, touchdown, disarm. Results are the SITL's own
+(``/episode/result`` of its per-episode flight logs: ground truth at first contact, the same
+``sitl_sim.metrics`` as in-process ``eval``), so ``fly`` and ``eval`` agree on definitions; the
+JSON is ``eval``'s with ``transport = "mavlink"`` plus the companion's latency figures.
+
+Both processes are always stopped (SIGTERM, then SIGKILL, by PID) — on success, on failure
+and on Ctrl-C. Ports are picked free per run, so runs can go side by side.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from companion.flightlog import TOPIC_RESULT, read_log
+from companion.record import latency_stats
+from sitl_sim.config import load_sim
+from sitl_sim.metrics import EpisodeResult, summarize
+
+__all__ = ["FlyConfig", "FlyError", "fly", "free_udp_port", "policy_is_privileged"]
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+class FlyError(RuntimeError):
+    """A process of the run failed (names which, with the tail of its output)."""
+
+
+@dataclass(frozen=True)
+class FlyConfig:
+    """Options of ``visland fly``."""
+
+    policy: str = "expert"
+    """``expert`` | ``cascade`` | a checkpoint path (``untrained`` for benchmarks)."""
+    episodes: int = 20
+    seed: int = 1_000_000
+    scenario: str | None = None
+    realtime: bool = False
+    """Real time (the SITL follows the wall clock) instead of lockstep."""
+    render: bool | None = None
+    """Render the camera (None: only for vision policies; privileged ones do not look)."""
+    out: str | None = None
+    """Run folder for the SITL and companion logs (None: a temporary folder)."""
+    timeout_s: float | None = None
+    """Wall-clock limit of the whole run (None: from the episode count)."""
+    companion_args: tuple[str, ...] = ()
+    sitl_args: tuple[str, ...] = ()
+    progress: bool = True
+    env: dict[str, str] = field(default_factory=dict)
+
+
+_handed_out: set[int] = set()
+
+
+def free_udp_port() -> int:
+    """A UDP port free on 127.0.0.1 now (never the same twice in this process)."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _handed_out:
+            _handed_out.add(port)
+            return port
+
+
+def policy_is_privileged(policy: str) -> bool:
+    if policy in ("expert", "cascade", "untrained-privileged"):
+        return True
+    if policy == "untrained":
+        return False
+    from companion.policy_net import load_policy
+
+    return load_policy(policy).privileged
+
+
+def _stop(proc: subprocess.Popen | None, grace_s: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``grace_s``: by PID, only our own child."""
+    if proc is None or proc.poll() is not None:
+        return
+    try:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5.0)
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return ""
+
+
+def _results(sitl_dir: Path, seed: int, episodes: int) -> list[tuple[int, EpisodeResult, str]]:
+    fields = EpisodeResult.__dataclass_fields__
+    out = []
+    for i in range(episodes):
+        path = sitl_dir / f"sitl_seed{seed}_ep{i:04d}.mcap"
+        if not path.exists():
+            continue
+        rec = read_log(path, topics=[TOPIC_RESULT]).topic(TOPIC_RESULT)
+        if not rec or rec[-1].get("aborted"):
+            continue
+        values = {k: rec[-1][k] for k in fields}
+        values = {k: (math.nan if v is None else v) for k, v in values.items()}
+        out.append((i, EpisodeResult(**values), str(path)))
+    return out
+
+
+def fly(cfg: FlyConfig) -> dict[str, Any]:
+    """Run the episodes; returns the eval-style report (``transport = "mavlink"``).
+
+    Raises:
+        FlyError: a process failed or the run timed out (both processes stopped first).
+    """
+    if cfg.episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    privileged = policy_is_privileged(cfg.policy)
+    render = (not privileged) if cfg.render is None else cfg.render
+    out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="visland_fly_"))
+    sitl_dir, comp_dir = out / "sitl", out / "companion"
+    out.mkdir(parents=True, exist_ok=True)
+    mav, remote, cam = free_udp_port(), free_udp_port(), free_udp_port()
+    episode_s = load_sim().episode_timeout_s
+    timeout_s = cfg.timeout_s or 60.0 + cfg.episodes * (episode_s * (1.2 if cfg.realtime else 0.6))
+    sitl_cmd = [
+        sys.executable,
+        "-m",
+        "sitl_sim.mavlink_sitl",
+        "--mavlink-port",
+        str(mav),
+        "--remote-port",
+        str(remote),
+        "--camera-port",
+        str(cam),
+        "--no-gcs",
+        "--episodes",
+        str(cfg.episodes),
+        "--seed",
+        str(cfg.seed),
+        "--log-dir",
+        str(sitl_dir),
+        "--max-wall-s",
+        str(timeout_s),
+        "--groundtruth" if privileged else "--no-groundtruth",
+        "--render" if render else "--no-render",
+        "--no-lockstep" if cfg.realtime else "--lockstep",
+        *(["--scenario", cfg.scenario] if cfg.scenario else []),
+        *cfg.sitl_args,
+    ]
+    comp_cmd = [
+        sys.executable,
+        "-m",
+        "tools.companion_main",
+        "--policy",
+        cfg.policy,
+        "--connect",
+        f"udpin:127.0.0.1:{remote}",
+        "--camera",
+        f"udp:127.0.0.1:{cam}",
+        "--flights",
+        "0",  # until stopped: the SITL decides when the run is over
+        "--log-dir",
+        str(comp_dir),
+        "--max-wall-s",
+        str(timeout_s),
+        *cfg.companion_args,
+    ]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **cfg.env}
+    sitl_log, comp_log, comp_out = out / "sitl.log", out / "companion.log", out / "companion.json"
+    sitl = comp = None
+    t0 = time.monotonic()
+    try:
+        with sitl_log.open("w") as s_err, comp_log.open("w") as c_err, comp_out.open("w") as c_out:
+            # The companion first: its port is bound before the SITL's first HEARTBEAT.
+            comp = subprocess.Popen(comp_cmd, cwd=REPO, stdout=c_out, stderr=c_err, env=env)
+            sitl = subprocess.Popen(
+                sitl_cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=s_err, env=env
+            )
+            done_shown = -1
+            while sitl.poll() is None:
+                if time.monotonic() - t0 > timeout_s + 30:
+                    raise FlyError(f"run not finished after {timeout_s + 30:.0f} s")
+                if comp.poll() is not None:
+                    raise FlyError(
+                        f"companion exited with {comp.returncode} while the SITL was still "
+                        f"flying:\n{_tail(comp_log)}"
+                    )
+                if cfg.progress:
+                    n = sitl_log.read_text(errors="replace").count(" ended: ")
+                    if n != done_shown:
+                        done_shown = n
+                        print(f"fly: {n}/{cfg.episodes} episodes", file=sys.stderr, flush=True)
+                time.sleep(0.5)
+            if sitl.returncode != 0:
+                raise FlyError(f"SITL exited with {sitl.returncode}:\n{_tail(sitl_log)}")
+    finally:
+        _stop(comp)  # SIGTERM: it hands back (nothing to hand back now), closes its log
+        _stop(sitl)
+    wall = time.monotonic() - t0
+    rows = _results(sitl_dir, cfg.seed, cfg.episodes)
+    if len(rows) != cfg.episodes:
+        raise FlyError(
+            f"{len(rows)} of {cfg.episodes} episodes finished; SITL log:\n{_tail(sitl_log)}\n"
+            f"companion log:\n{_tail(comp_log)}"
+        )
+    try:
+        companion_report = json.loads(comp_out.read_text() or "{}")
+    except ValueError:
+        companion_report = {}
+    comp_logs = sorted(comp_dir.glob("*.mcap"))
+    flights = companion_report.get("flights", [])
+    return {
+        "policy": cfg.policy,
+        "transport": "mavlink",
+        "seed": cfg.seed,
+        "scenario": cfg.scenario or "configs/scenario.toml",
+        "realtime": cfg.realtime,
+        **summarize([r for _, r, _ in rows]),
+        "latency_ms": latency_stats(comp_logs),
+        "companion_flights": {
+            k: sum(1 for f in flights if f.get("result") == k)
+            for k in sorted({f.get("result") for f in flights})
+        },
+        "wall_s": wall,
+        "out": str(out),
+        "per_episode": [
+            {"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path} for i, r, path in rows
+        ],
+    }
