@@ -62,9 +62,54 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
     return run_sitl(sitl_config_from_args(args))
 
 
+def _cmd_companion(args: argparse.Namespace) -> int:
+    import logging
+
+    from companion.app import run_from_args
+    from tools.companion_main import resolve_policy
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    return run_from_args(args, resolve_policy, "visland companion")
+
+
+def _cmd_fly(args: argparse.Namespace) -> int:
+    from tools.fly import FlyConfig, FlyError, fly
+    from training.evaluate import format_table
+
+    try:
+        report = fly(
+            FlyConfig(
+                policy=args.policy,
+                episodes=args.episodes,
+                seed=args.seed,
+                scenario=str(args.scenario) if args.scenario else None,
+                realtime=getattr(args, "realtime", False),
+                out=str(args.out) if getattr(args, "out", None) else None,
+                progress=not args.json,
+            )
+        )
+    except FlyError as exc:
+        print(f"visland {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        _print_json(report)
+    else:
+        format_table(report, sys.stdout)
+        lat = report["latency_ms"]
+        if lat.get("commands"):
+            print(
+                f"  frame receipt -> setpoint sent: median {lat['median_ms']:.2f} ms, "
+                f"p99 {lat['p99_ms']:.2f} ms over {lat['commands']} commands; logs in "
+                f"{report['out']}"
+            )
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from training.evaluate import EvalConfig, evaluate, format_table
 
+    if args.transport == "mavlink":  # SITL + companion processes over UDP: visland fly
+        return _cmd_fly(args)
     report = evaluate(
         EvalConfig(
             policy=args.policy,
@@ -243,7 +288,35 @@ def _parser() -> argparse.ArgumentParser:
         "--no-camera", action="store_true", help="skip rendering (privileged policies only)"
     )
     e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.add_argument(
+        "--transport",
+        choices=["inprocess", "mavlink"],
+        default="inprocess",
+        help="inprocess: the simulator in this process; mavlink: SITL + companion processes "
+        "over UDP (as visland fly)",
+    )
     e.set_defaults(func=_cmd_eval)
+
+    from companion.app import add_arguments as add_companion_arguments
+
+    cp = sub.add_parser(
+        "companion",
+        help="the companion process: flies a policy through a PX4/ArduPilot autopilot",
+    )
+    add_companion_arguments(cp)
+    cp.set_defaults(func=_cmd_companion)
+
+    fl = sub.add_parser(
+        "fly", help="SITL + companion as separate processes over UDP: N episodes, eval JSON"
+    )
+    fl.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
+    fl.add_argument("--episodes", type=int, default=20)
+    fl.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
+    fl.add_argument("--scenario", type=Path, default=None)
+    fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
+    fl.add_argument("--out", type=Path, default=None, help="run folder for both processes' logs")
+    fl.add_argument("--json", action="store_true", help="print one JSON object")
+    fl.set_defaults(func=_cmd_fly)
 
     c = sub.add_parser("collect", help="fly the expert and write one MCAP log per episode")
     c.add_argument("--episodes", type=int, default=300)
