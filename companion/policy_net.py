@@ -109,7 +109,7 @@ class NetConfig:
     image_size_px: int = IMAGE_SIZE_PX
     # PadEstimator noise model (1-sigma)
     accel_noise_m_s2: float = 0.3
-    bearing_noise_rad: float = 0.004
+    bearing_noise_rad: float = 0.01
     bearing_noise_floor_m: float = 0.03
     alt_noise_m: float = 0.05
     visibility_threshold: float = 0.5
@@ -448,7 +448,7 @@ class LearnedPolicy:
         """The CNN's raw output for one image: (tan_right, tan_forward, visibility logit)."""
         assert self.perception is not None
         with torch.inference_mode():
-            out = self.perception(torch.from_numpy(np.ascontiguousarray(image))[None])
+            out = self.perception(torch.from_numpy(np.array(image, dtype=np.uint8))[None])
         return out[0].numpy().astype(float)
 
     def features(

@@ -223,6 +223,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             for k, v in res.items():
                 print(f"{k:>28}: {v:.4g}" if isinstance(v, float) else f"{k:>28}: {v}")
         return 0
+    if args.what == "policy":
+        from training.bench_policy import bench_policy
+
+        res = bench_policy(args.checkpoint, steps=300, seed=args.seed)
+        if args.json:
+            _print_json(res)
+        else:
+            s, b = res["shipped"], res["paper_style"]
+            print(
+                f"policy step (one thread, batch 1, {res['kind']}): "
+                f"median {s['median_ms']:.3f} ms, p99 {s['p99_ms']:.3f} ms, "
+                f"{s['parameters']} parameters\n"
+                f"paper-style CNN-MLP + LSTM-MLP, same run: median {b['median_ms']:.3f} ms "
+                f"({b['parameters']} parameters) -> {res['speedup_vs_paper_style']:.1f}x faster\n"
+                f"paper's reported policy step: {res['paper_reported_ms']} ms"
+            )
+        return 0
     if args.what == "sim":
         from tools.bench import SimBenchConfig, bench_sim
 
@@ -261,9 +278,11 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")
     b.add_argument(
         "what",
-        choices=["sim", "mpc"],
-        help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's",
+        choices=["sim", "mpc", "policy"],
+        help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's; "
+        "policy: per-step inference of a checkpoint (default: shipped size) vs a paper-style net",
     )
+    b.add_argument("--checkpoint", default=None, help="bench policy: checkpoint to time")
     b.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per repeat")
     b.add_argument("--repeats", type=int, default=3, help="repeats (median reported)")
     b.add_argument("--seed", type=int, default=0)
@@ -346,6 +365,10 @@ def _parser() -> argparse.ArgumentParser:
     lp.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
     lp.add_argument("--out", type=Path, default=None, help="PNG path (default: FILE's stem.png)")
     lp.set_defaults(func=_cmd_log)
+
+    from tools.cli_train import register_training
+
+    register_training(sub)
     return p
 
 

@@ -64,8 +64,17 @@ class ReplayBuffer:
         self._episodes.append(episode)
         return evicted
 
-    def sample(self, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(features (n, S, F), labels (n, S, 4))`` float32."""
+    def sample(
+        self, n_segments: int, burn_in_steps: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(features (n, B+S, F), labels (n, B+S, 4), loss mask (n, B+S))`` float32.
+
+        Each row holds one 25-step segment (mask 1) preceded by up to ``burn_in_steps`` of the
+        same episode (mask 0) that only warm the LSTM state — R2D2's burn-in, so the network
+        learns from the recurrent states it really has late in a flight, not only from a zero
+        state. Rows whose segment starts near the episode start have a shorter burn-in and are
+        padded at the end (mask 0; a causal LSTM never sees the padding before the segment).
+        """
         eligible = [e for e in self._episodes if e.features.shape[0] >= self.segment_steps]
         if not eligible:
             raise ValueError(
@@ -73,12 +82,16 @@ class ReplayBuffer:
                 f"({len(self._episodes)} episodes held)"
             )
         picks = self._rng.integers(0, len(eligible), size=n_segments)
-        s = self.segment_steps
-        feats = np.empty((n_segments, s, eligible[0].features.shape[1]), dtype=np.float32)
-        labels = np.empty((n_segments, s, 4), dtype=np.float32)
+        s, b = self.segment_steps, max(0, burn_in_steps)
+        feats = np.zeros((n_segments, b + s, eligible[0].features.shape[1]), dtype=np.float32)
+        labels = np.zeros((n_segments, b + s, 4), dtype=np.float32)
+        mask = np.zeros((n_segments, b + s), dtype=np.float32)
         for row, k in enumerate(picks):
             ep = eligible[int(k)]
             start = int(self._rng.integers(0, ep.features.shape[0] - s + 1))
-            feats[row] = ep.features[start : start + s]
-            labels[row] = ep.labels[start : start + s]
-        return feats, labels
+            w0 = max(0, start - b)
+            n = start + s - w0
+            feats[row, :n] = ep.features[w0 : start + s]
+            labels[row, :n] = ep.labels[w0 : start + s]
+            mask[row, start - w0 : n] = 1.0
+        return feats, labels, mask

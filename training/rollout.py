@@ -67,11 +67,12 @@ def make_policy(name: str, env: LandingEnv):
         raise FileNotFoundError(
             f"policy {name!r}: not 'expert', 'cascade' or an existing checkpoint file"
         )
-    # Learned-policy checkpoints come with the training pipeline; say so rather than guess.
-    raise ValueError(
-        f"policy {name!r}: loading learned-policy checkpoints is not available yet "
-        "(training pipeline); use --policy expert or --policy cascade"
-    )
+    import torch
+
+    from companion.policy_net import load_policy
+
+    torch.set_num_threads(1)  # one policy per worker process; workers run in parallel
+    return load_policy(name)
 
 
 @dataclass(frozen=True)

@@ -40,8 +40,10 @@ __all__ = [
     "vision_episode",
 ]
 
-COMMAND_SCALE = np.array([0.05, 0.25, 0.25, 0.25], dtype=np.float32)
-"""Loss scale per command component (thrust_norm, p, q, r): errors are measured in these units."""
+COMMAND_SCALE = np.array([0.01, 0.25, 0.25, 0.25], dtype=np.float32)
+"""Loss scale per command component (thrust_norm, p, q, r): errors are measured in these units.
+A thrust error of 0.01 is 0.25 m/s^2 of vertical acceleration — enough to turn the expert's
+0.17 m/s touchdown into a hover or a hard landing, hence the small scale."""
 
 Logger = Callable[[str, float, int], None]
 
@@ -100,7 +102,7 @@ def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
     with torch.inference_mode():
         raw = np.concatenate(
             [
-                policy.perception(torch.from_numpy(ep.images[i : i + 256])).numpy()
+                policy.perception(torch.from_numpy(np.array(ep.images[i : i + 256]))).numpy()
                 for i in range(0, len(ep), 256)
             ]
         ).astype(float)
@@ -136,12 +138,14 @@ def train_controller(
     batch_segments: int = 32,
     lr: float = 1e-3,
     seed: int = 0,
+    burn_in_steps: int = 0,
     log: Logger = _no_log,
     log_prefix: str = "controller",
     step_offset: int = 0,
     progress: Callable[[int], None] | None = None,
 ) -> ControllerFit:
-    """Behaviour cloning on buffer segments (fresh LSTM state per segment, as paper 4.2).
+    """Behaviour cloning on buffer segments (paper 4.2), each after ``burn_in_steps`` of
+    state warm-up from the same episode (no loss there; see ``ReplayBuffer.sample``).
 
     Loss: mean squared command error in :data:`COMMAND_SCALE` units; Adam with a cosine decay
     to 10 % of ``lr``; gradient norm clipped at 1.
@@ -156,9 +160,11 @@ def train_controller(
     t0 = time.perf_counter()
     running = math.nan
     for step in range(steps):
-        feats, labels = buffer.sample(batch_segments)
+        feats, labels, mask = buffer.sample(batch_segments, burn_in_steps)
         pred, _ = control(torch.from_numpy(feats))
-        loss = (((pred - torch.from_numpy(labels)) / scale) ** 2).mean()
+        err = (((pred - torch.from_numpy(labels)) / scale) ** 2).mean(dim=-1)
+        m = torch.from_numpy(mask)
+        loss = (err * m).sum() / m.sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(control.parameters(), 1.0)
@@ -196,6 +202,30 @@ def bearing_labels(pos_ned_m: np.ndarray, quat_wxyz: np.ndarray, fov_deg: float)
     return out
 
 
+def _shift(
+    img: torch.Tensor,
+    y: torch.Tensor,
+    rng: np.random.Generator,
+    max_shift: int,
+    focal: float,
+    half_fov: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Translate each image by a random whole-pixel (dx right, dy down); edges replicated."""
+    n, h, w = img.shape
+    padded = nn.functional.pad(img[:, None], (max_shift,) * 4, mode="replicate")[:, 0]
+    shifts = rng.integers(-max_shift, max_shift + 1, size=(n, 2))
+    out = torch.empty_like(img)
+    for i, (dx, dy) in enumerate(shifts):
+        top, left = max_shift - int(dy), max_shift - int(dx)
+        out[i] = padded[i, top : top + h, left : left + w]
+    y = y.clone()
+    y[:, 0] += torch.from_numpy(shifts[:, 0] / focal).float()
+    y[:, 1] -= torch.from_numpy(shifts[:, 1] / focal).float()
+    inside = (y[:, 0].abs() < half_fov) & (y[:, 1].abs() < half_fov)
+    y[:, 2] = y[:, 2] * inside.float()
+    return out, y
+
+
 @dataclass(frozen=True)
 class PerceptionFit:
     epochs: int
@@ -227,19 +257,24 @@ def train_perception(
     seed: int = 0,
     frame_stride: int = 2,
     val_fraction: float = 0.1,
+    max_shift_px: int = 40,
     log: Logger = _no_log,
     progress: Callable[[int], None] | None = None,
 ) -> PerceptionFit:
     """Regress the pad bearing (+ visibility) from expert-flight frames, split 90/10 by episode.
 
     Loss: Huber on the bearing in pixels (only where the pad centre is in view) + binary
-    cross-entropy on visibility. Augmentation: random gain/offset of the grey levels.
+    cross-entropy on visibility. Augmentation: random gain/offset of the grey levels and random
+    image translations of up to ``max_shift_px`` (the bearing label moves by exactly
+    ``shift / focal``): the expert keeps the pad near the image centre, and without shifts the
+    CNN learns to answer "centre" whatever it sees.
     """
     if not episodes or any(e.images is None for e in episodes):
         raise ValueError("perception training needs episodes with camera frames")
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     focal = float(0.5 * 128 / math.tan(math.radians(45.0) / 2))
+    half_fov = math.tan(math.radians(45.0) / 2)
     tr_idx, va_idx = _split(len(episodes), val_fraction, seed)
 
     def gather(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -274,7 +309,9 @@ def train_perception(
             gain = torch.from_numpy(rng.uniform(0.8, 1.2, (len(sel), 1, 1)).astype(np.float32))
             offset = torch.from_numpy(rng.uniform(-20, 20, (len(sel), 1, 1)).astype(np.float32))
             img = (img * gain + offset).clamp(0, 255)
-            y = torch.from_numpy(y_tr[sel])
+            y = torch.from_numpy(y_tr[sel].copy())
+            if max_shift_px > 0:
+                img, y = _shift(img, y, rng, max_shift_px, focal, half_fov)
             out = cnn(img)
             vis = y[:, 2]
             err_px = (out[:, :2] - y[:, :2]) * focal
@@ -286,7 +323,7 @@ def train_perception(
             opt.step()
             sched.step()
             if step % 50 == 0:
-                log("perception/loss", float(loss), step)
+                log("perception/loss", float(loss.detach()), step)
             step += 1
             if progress is not None:
                 progress(1)

@@ -1,0 +1,326 @@
+"""Training pipeline: replay buffer, dataset from real logs, checkpoints, learning, geometry."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from companion.contract import Observation
+from companion.policy_net import (
+    CheckpointError,
+    ControlLSTM,
+    NetConfig,
+    PerceptionCNN,
+    load_networks,
+    load_policy,
+    position_from_bearing,
+    save_checkpoint,
+    untrained_policy,
+)
+from training.dataset import DatasetError, load_episode
+from training.replay import BufferedEpisode, ReplayBuffer
+from training.train import (
+    _shift,
+    bearing_labels,
+    privileged_episode,
+    train_controller,
+    vision_episode,
+)
+
+
+def _episode(name: str, n: int, offset: float = 0.0) -> BufferedEpisode:
+    steps = np.arange(n, dtype=np.float32)[:, None]
+    feats = np.repeat(steps + offset, 18, axis=1)
+    labels = np.repeat(steps + offset, 4, axis=1)
+    return BufferedEpisode(name, feats, labels)
+
+
+# ----------------------------------------------------------------------------- replay buffer
+
+
+def test_replay_buffer_fifo_and_contiguous_segments():
+    buf = ReplayBuffer(capacity=3, segment_steps=25, seed=1)
+    evicted = [buf.add(_episode(f"e{i}", 40 + i, offset=1000.0 * i)) for i in range(5)]
+    assert len(buf) == 3
+    assert [e.name for e in buf.episodes] == ["e2", "e3", "e4"]  # oldest went first
+    assert evicted[:3] == [None, None, None] and evicted[3].name == "e0"
+    feats, labels, mask = buf.sample(64)
+    assert feats.shape == (64, 25, 18) and labels.shape == (64, 25, 4)
+    assert np.all(mask == 1)
+    # each row is 25 consecutive steps of one held episode
+    diffs = np.diff(feats[:, :, 0], axis=1)
+    assert np.all(diffs == 1.0)
+    assert set(np.unique(feats[:, 0, 0] // 1000)) <= {2.0, 3.0, 4.0}
+
+
+def test_replay_buffer_skips_short_episodes_and_is_seeded():
+    a, b = ReplayBuffer(seed=7), ReplayBuffer(seed=7)
+    for buf in (a, b):
+        buf.add(_episode("short", 10))
+        buf.add(_episode("long", 60, offset=500.0))
+    fa, _, _ = a.sample(32)
+    fb, _, _ = b.sample(32)
+    assert np.array_equal(fa, fb)
+    assert np.all(fa[:, 0, 0] >= 500.0)  # the 10-step episode is never eligible
+    empty = ReplayBuffer()
+    empty.add(_episode("tiny", 5))
+    with pytest.raises(ValueError, match="no episode has 25 steps"):
+        empty.sample(4)
+
+
+def test_replay_buffer_burn_in_masks_the_warm_up():
+    buf = ReplayBuffer(segment_steps=25, seed=3)
+    buf.add(_episode("e", 200))
+    feats, _labels, mask = buf.sample(200, burn_in_steps=50)
+    assert feats.shape == (200, 75, 18)
+    assert np.all(mask.sum(axis=1) == 25)
+    for row in range(200):
+        on = np.nonzero(mask[row])[0]
+        assert np.all(np.diff(on) == 1)  # the segment is contiguous
+        start = int(feats[row, on[0], 0])
+        # burn-in is the same episode's preceding steps, as many as exist (<= 50)
+        assert on[0] == min(start, 50)
+        assert np.all(np.diff(feats[row, : on[-1] + 1, 0]) == 1.0)
+
+
+def test_buffered_episode_rejects_misaligned_or_nan():
+    with pytest.raises(ValueError, match="do not align"):
+        BufferedEpisode("x", np.zeros((10, 18), np.float32), np.zeros((9, 4), np.float32))
+    bad = np.zeros((10, 18), np.float32)
+    bad[3, 2] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        BufferedEpisode("x", bad, np.zeros((10, 4), np.float32))
+
+
+# ----------------------------------------------------------------------------- real data
+
+
+@pytest.fixture(scope="module")
+def expert_logs(tmp_path_factory) -> list[Path]:
+    """Two real expert flights with camera, flown in process (about 3 s)."""
+    from training.rollout import RolloutSpec, log_name, run_episodes
+
+    out = tmp_path_factory.mktemp("flights")
+    run_episodes(RolloutSpec(policy="expert", seed=5, log_dir=str(out)), [0, 1], workers=1)
+    return [out / log_name(5, i) for i in (0, 1)]
+
+
+def test_episode_from_log_is_aligned_validated_and_cached(expert_logs, tmp_path):
+    ep = load_episode(expert_logs[0], None, with_images=True, cache_dir=tmp_path)
+    n = len(ep)
+    assert n > 100 and ep.images.shape == (n, 128, 128)
+    assert np.array_equal(ep.frame_id, np.arange(n))
+    assert np.array_equal(ep.label, ep.flown)  # the expert flew it: its command is the label
+    assert not ep.label.flags.writeable
+    cached = load_episode(expert_logs[0], None, with_images=True, cache_dir=tmp_path)
+    assert np.array_equal(cached.images, ep.images) and np.array_equal(cached.label, ep.label)
+    assert any(tmp_path.glob("*.npz"))
+
+
+def test_bad_logs_give_clear_errors(expert_logs, tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    with pytest.raises(DatasetError, match=r"junk\.mcap"):
+        load_episode(junk)
+    with pytest.raises(DatasetError, match="no such flight log"):
+        load_episode(tmp_path / "missing.mcap")
+    with pytest.raises(DatasetError, match="no such label file"):
+        load_episode(expert_logs[0], tmp_path / "missing.labels.mcap")
+
+
+def test_bearing_labels_match_the_rendered_pad(expert_logs):
+    """The CNN's target geometry agrees with pybullet's image: the pad's centroid.
+
+    In mono8 the pad's green is brighter than any ground pixel; the cross's holes in it are
+    symmetric, so the bright pixels' centroid is the pad centre while the pad is in full view.
+    """
+    from companion.flightlog import read_log
+
+    ep = load_episode(expert_logs[0], None, with_images=True)
+    labels = bearing_labels(ep.pos_ned_m, ep.quat_wxyz, 45.0)
+    focal = 64 / math.tan(math.radians(22.5))
+    log = read_log(expert_logs[0])
+    assert log.topic("/camera/image")
+    for t in (0, len(ep) // 3):
+        img = ep.images[t].astype(float)
+        rows, cols = np.nonzero(img > 130)
+        assert rows.size > 20
+        assert labels[t, 2] == 1.0
+        assert abs(cols.mean() - (64 + focal * labels[t, 0])) < 2.5
+        assert abs(rows.mean() - (64 - focal * labels[t, 1])) < 2.5
+
+
+def test_shift_augmentation_moves_the_label_with_the_image():
+    rng = np.random.default_rng(0)
+    img = torch.zeros(8, 128, 128)
+    img[:, 60:68, 60:68] = 255.0  # a blob at the centre
+    y = torch.zeros(8, 3)
+    y[:, 2] = 1
+    focal = 64 / math.tan(math.radians(22.5))
+    out, y2 = _shift(img, y, rng, 30, focal, math.tan(math.radians(22.5)))
+    for i in range(8):
+        rows, cols = np.nonzero(out[i].numpy() > 128)
+        assert abs(cols.mean() - 63.5 - focal * float(y2[i, 0])) < 0.6
+        assert abs(rows.mean() - 63.5 + focal * float(y2[i, 1])) < 0.6
+
+
+def test_position_from_bearing_inverts_the_projection():
+    from companion.policy_net import rotation_zyx
+
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        att = rng.uniform(-0.4, 0.4, 3)
+        att[2] = rng.uniform(-math.pi, math.pi)
+        pos = np.array([*rng.uniform(-8, 8, 2), -rng.uniform(2, 90)])
+        rot = rotation_zyx(*att)
+        rel = rot.T @ (-pos)
+        rng_m = -pos[2] / rot[2, 2]
+        est = position_from_bearing(rel[1] / rel[2], rel[0] / rel[2], att, rng_m)
+        assert np.allclose(est, pos, atol=1e-9)
+    assert position_from_bearing(0.0, 0.0, np.zeros(3), math.nan) is None
+
+
+# ----------------------------------------------------------------------------- learning
+
+
+def _fit(episodes: list[BufferedEpisode], steps: int, seed: int) -> ControlLSTM:
+    torch.manual_seed(seed)
+    control = ControlLSTM(NetConfig(kind="privileged"))
+    buf = ReplayBuffer(seed=seed)
+    for e in episodes:
+        buf.add(e)
+    train_controller(control, buf, steps, batch_segments=16, seed=seed, burn_in_steps=10)
+    return control
+
+
+def _loss(control: ControlLSTM, ep: BufferedEpisode) -> float:
+    from training.train import COMMAND_SCALE
+
+    with torch.no_grad():
+        pred, _ = control(torch.from_numpy(ep.features)[None])
+    return float((((pred[0].numpy() - ep.labels) / COMMAND_SCALE) ** 2).mean())
+
+
+def test_training_helps_and_is_deterministic(expert_logs):
+    """Statistical check on a tiny budget: BC on one flight lowers the error on the other."""
+    eps = [privileged_episode(load_episode(p)) for p in expert_logs]
+    before = []
+    after = []
+    for seed in (0, 1, 2):
+        torch.manual_seed(seed)
+        untrained = ControlLSTM(NetConfig(kind="privileged"))
+        before.append(_loss(untrained, eps[1]))
+        after.append(_loss(_fit([eps[0]], 150, seed), eps[1]))
+    assert max(after) < 0.5 * min(before), (before, after)
+    a, b = _fit([eps[0]], 30, 9), _fit([eps[0]], 30, 9)
+    for (ka, va), (_, vb) in zip(a.state_dict().items(), b.state_dict().items(), strict=True):
+        assert torch.equal(va, vb), ka
+
+
+def test_vision_features_match_the_policy_in_flight(expert_logs):
+    """Training's batched features equal what LearnedPolicy.act computes step by step."""
+    policy = untrained_policy(seed=3)
+    ep = load_episode(expert_logs[0], None, with_images=True)
+    batched = vision_episode(policy, ep).features
+    state = policy.initial_state()
+    for t in range(30):
+        obs = Observation(
+            image=np.ascontiguousarray(ep.images[t]),
+            image_time_s=float(ep.time_s[t]),
+            attitude_rad=ep.attitude_rad[t],
+            rate_frd_rad_s=ep.rate_frd_rad_s[t],
+            attitude_time_s=float(ep.time_s[t]),
+            range_m=float(ep.range_m[t]),
+            range_time_s=float(ep.time_s[t]),
+            accel_frd_m_s2=ep.accel_frd_m_s2[t],
+            imu_time_s=float(ep.time_s[t]),
+            frame_id=int(ep.frame_id[t]),
+        )
+        feats, state = policy.features(obs, None, state)
+        assert np.allclose(feats, batched[t], atol=1e-5), t
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def test_checkpoint_round_trip_and_errors(tmp_path):
+    cfg = NetConfig(kind="vision")
+    torch.manual_seed(0)
+    control, cnn = ControlLSTM(cfg), PerceptionCNN(cfg)
+    path = save_checkpoint(tmp_path / "p.pt", cfg, control, cnn, {"data": ["a.mcap"]})
+    policy = load_policy(path)
+    assert policy.metadata == {"data": ["a.mcap"]} and not policy.privileged
+    x = torch.randn(2, 7, 18)
+    with torch.no_grad():
+        assert torch.equal(control(x)[0], policy.control(x)[0])
+        img = torch.randint(0, 255, (2, 128, 128), dtype=torch.uint8)
+        assert torch.equal(cnn(img), policy.perception(img))
+
+    raw = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(CheckpointError, match=r"cut\.pt"):
+        load_policy(tmp_path / "cut.pt")
+    (tmp_path / "text.pt").write_text("hello")
+    with pytest.raises(CheckpointError, match="not a readable"):
+        load_policy(tmp_path / "text.pt")
+    torch.save({"format": "something-else"}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a visland policy"):
+        load_policy(tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_policy(tmp_path / "missing.pt")
+    # weights of another size
+    small = NetConfig(kind="privileged", lstm_hidden=16)
+    save_checkpoint(tmp_path / "small.pt", small, ControlLSTM(small), None, {})
+    blob = torch.load(tmp_path / "small.pt", weights_only=True)
+    blob["net_config"]["lstm_hidden"] = 64
+    torch.save(blob, tmp_path / "mismatch.pt")
+    with pytest.raises(CheckpointError, match="do not fit"):
+        load_networks(tmp_path / "mismatch.pt")
+    # NaN weights
+    nan_ctl = ControlLSTM(small)
+    with torch.no_grad():
+        next(nan_ctl.parameters())[0, 0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", small, nan_ctl, None, {})
+    with pytest.raises(CheckpointError, match="non-finite"):
+        load_policy(tmp_path / "nan.pt")
+
+
+def test_policy_outputs_respect_command_ranges_and_refuse_bad_input():
+    policy = untrained_policy(seed=1)
+    obs = Observation(
+        image=np.full((128, 128), 90, np.uint8),
+        image_time_s=0.0,
+        attitude_rad=np.zeros(3),
+        rate_frd_rad_s=np.zeros(3),
+        attitude_time_s=0.0,
+        range_m=40.0,
+        range_time_s=0.0,
+        accel_frd_m_s2=np.array([0.0, 0.0, -9.8]),
+        imu_time_s=0.0,
+    )
+    state = policy.initial_state()
+    for _ in range(5):
+        cmd, state = policy.act(obs, None, state)
+        assert 0.0 <= cmd.thrust_norm <= 1.0
+        assert np.all(np.abs(cmd.rate_frd_rad_s) <= np.array([3.5, 3.5, 1.5]) + 1e-6)
+    priv = untrained_policy(seed=1, privileged=True)
+    with pytest.raises(ValueError, match="needs ground truth"):
+        priv.act(obs, None, priv.initial_state())
+    gt = SimpleNamespace(
+        pos_ned_m=np.array([1.0, 2.0, -30.0]), vel_ned_m_s=np.array([np.nan, 0, 0])
+    )
+    with pytest.raises(ValueError, match="not finite"):
+        priv.act(obs, gt, priv.initial_state())
+
+
+def test_train_stage_without_its_prerequisite_is_a_clear_cli_error(tmp_path, capsys):
+    from tools.cli import main
+
+    assert main(["train", "bc", "--run", str(tmp_path / "run"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "stage 'collect'" in err and "has not finished" in err

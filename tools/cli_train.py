@@ -1,0 +1,79 @@
+"""`visland train STAGE` and `visland pipeline`: thin shells over training.pipeline."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["register_training"]
+
+
+def _cmd_pipeline(args: argparse.Namespace) -> int:
+    from training.pipeline import STAGES, run_pipeline
+
+    stages = tuple(args.stages.split(",")) if args.stages else STAGES
+    records = run_pipeline(
+        args.out, args.profile, args.scenario, stages=stages, progress=not args.no_progress
+    )
+    metrics = Path(args.out) / "metrics.json"
+    if args.json:
+        print(json.dumps(records, indent=2, default=str))
+    else:
+        for stage, rec in records.items():
+            ckpt = rec.get("checkpoint") or rec.get("metrics") or ""
+            print(f"{stage:>11}: done  {ckpt}")
+        if metrics.exists() and "eval" in records:
+            rows = json.loads(metrics.read_text())["rows"]
+            print(f"\n{'row':>8} {'mean m':>8} {'max m':>8} {'td m/s':>8} {'success':>8}")
+            for name, r in rows.items():
+                print(
+                    f"{name:>8} {r['landing_error_m']['mean']:>8.3f} "
+                    f"{r['landing_error_m']['max']:>8.3f} "
+                    f"{r['touchdown_speed_m_s']['mean']:>8.3f} "
+                    f"{100 * r['success_rate']:>7.1f}%"
+                )
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from training.pipeline import run_pipeline
+
+    run_pipeline(
+        args.run, args.profile, args.scenario, stages=(args.stage,), progress=not args.no_progress
+    )
+    rec = json.loads((Path(args.run) / "stages" / f"{args.stage}.json").read_text())
+    print(json.dumps(rec, indent=2) if args.json else f"{args.stage}: {rec.get('checkpoint', rec)}")
+    return 0
+
+
+def register_training(sub: argparse._SubParsersAction) -> None:
+    from training.pipeline import PROFILES, STAGES
+
+    pp = sub.add_parser(
+        "pipeline",
+        help="collect -> BC -> DAgger -> perception -> vision DAgger -> eval (resumable)",
+    )
+    pp.add_argument("--profile", choices=sorted(PROFILES), default="quick")
+    pp.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
+    pp.add_argument(
+        "--scenario", default=None, help="scenario TOML (default configs/scenario.toml)"
+    )
+    pp.add_argument("--stages", default=None, help=f"comma list (default all: {','.join(STAGES)})")
+    pp.add_argument("--no-progress", action="store_true")
+    pp.add_argument("--json", action="store_true")
+    pp.set_defaults(func=_cmd_pipeline)
+
+    tr = sub.add_parser("train", help="run one training stage of a run folder (see pipeline)")
+    tr.add_argument("stage", choices=STAGES)
+    tr.add_argument("--run", type=Path, required=True, help="run folder")
+    tr.add_argument("--profile", choices=sorted(PROFILES), default="quick")
+    tr.add_argument("--scenario", default=None)
+    tr.add_argument("--no-progress", action="store_true")
+    tr.add_argument("--json", action="store_true")
+    tr.set_defaults(func=_cmd_train)
+
+
+if __name__ == "__main__":
+    sys.exit(0)

@@ -1,0 +1,131 @@
+"""Per-step inference time of the shipped policy vs a paper-style network, same process.
+
+The paper (section 6) reports 0.0132 s per control step for its CNN+LSTM and 0.125 s for its
+MPC, but gives no layer sizes. The baseline here is our reconstruction of that kind of network —
+a conventional CNN (32-64-128 channels, flatten, 256-unit MLP) regressing the 2-D position, then
+a 128-unit LSTM and MLP head — timed on the same machine in the same run, so the ratio is fair
+even on a shared, noisy CPU. Both run one thread, batch 1, as on a companion computer.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from companion.contract import Observation
+from companion.policy_net import LearnedPolicy, load_policy, untrained_policy
+
+__all__ = ["PaperStyleNet", "bench_policy"]
+
+
+class PaperStyleNet(nn.Module):
+    """CNN-MLP position regressor + LSTM-MLP controller of the paper's Fig. 2 kind."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cnn = nn.Sequential(
+            nn.Conv2d(1, 32, 5, stride=2, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(32, 64, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(64, 128, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(128, 128, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Flatten(),
+            nn.Linear(128 * 8 * 8, 256),
+            nn.ReLU(),
+            nn.Linear(256, 2),
+        )
+        self.lstm = nn.LSTM(2 + 9, 128, batch_first=True)
+        self.head = nn.Sequential(nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 4))
+
+    def forward(self, image, aux, state):
+        pos = self.cnn(image)
+        h, state = self.lstm(torch.cat([pos, aux], dim=1)[:, None], state)
+        return self.head(h[:, 0]), state
+
+
+def _observation(rng: np.random.Generator, frame: int) -> Observation:
+    return Observation(
+        image=rng.integers(0, 256, (128, 128), dtype=np.uint8),
+        image_time_s=frame * 0.1,
+        attitude_rad=rng.normal(0, 0.05, 3),
+        rate_frd_rad_s=rng.normal(0, 0.05, 3),
+        attitude_time_s=frame * 0.1,
+        range_m=float(rng.uniform(5, 90)),
+        range_time_s=frame * 0.1,
+        accel_frd_m_s2=np.array([0.0, 0.0, -9.8]) + rng.normal(0, 0.05, 3),
+        imu_time_s=frame * 0.1,
+        frame_id=frame,
+    )
+
+
+def _stats(samples: list[float]) -> dict[str, float]:
+    arr = np.array(samples) * 1e3
+    return {
+        "median_ms": float(np.median(arr)),
+        "mean_ms": float(arr.mean()),
+        "std_ms": float(statistics.pstdev(arr)),
+        "p99_ms": float(np.percentile(arr, 99)),
+    }
+
+
+def bench_policy(checkpoint: str | None = None, steps: int = 300, seed: int = 0) -> dict[str, Any]:
+    """Time ``act()`` of the policy (shipped size if no checkpoint) and the paper-style net."""
+    torch.set_num_threads(1)
+    policy: LearnedPolicy = load_policy(checkpoint) if checkpoint else untrained_policy(seed)
+    rng = np.random.default_rng(seed)
+    obs = [_observation(rng, i) for i in range(steps)]
+    gt = None
+    if policy.privileged:
+        from types import SimpleNamespace
+
+        gt = SimpleNamespace(pos_ned_m=np.array([1.0, -1.0, -50.0]), vel_ned_m_s=np.zeros(3))
+    torch.manual_seed(seed)
+    paper = PaperStyleNet().eval()
+    ours, theirs = [], []
+    state = policy.initial_state()
+    pstate = None
+    for _ in range(20):  # warm-up (allocator, oneDNN kernels)
+        _, state = policy.act(obs[0], gt, state)
+        with torch.inference_mode():
+            _, pstate = paper(torch.zeros(1, 1, 128, 128), torch.zeros(1, 9), pstate)
+    state, pstate = policy.initial_state(), None
+    for o in obs:  # interleaved, so load changes hit both alike
+        t0 = time.perf_counter()
+        _, state = policy.act(o, gt, state)
+        t1 = time.perf_counter()
+        with torch.inference_mode():
+            img = torch.from_numpy(o.image).float().div(255.0)[None, None]
+            aux = torch.from_numpy(
+                np.concatenate([o.attitude_rad, o.rate_frd_rad_s, o.accel_frd_m_s2]).astype(
+                    np.float32
+                )
+            )[None]
+            _, pstate = paper(img, aux, pstate)
+        t2 = time.perf_counter()
+        ours.append(t1 - t0)
+        theirs.append(t2 - t1)
+    n_ours = sum(p.numel() for p in policy.control.parameters()) + (
+        sum(p.numel() for p in policy.perception.parameters()) if policy.perception else 0
+    )
+    res = {
+        "checkpoint": checkpoint or "untrained (shipped size)",
+        "kind": policy.config.kind,
+        "steps": steps,
+        "threads": 1,
+        "shipped": {**_stats(ours), "parameters": int(n_ours)},
+        "paper_style": {
+            **_stats(theirs),
+            "parameters": int(sum(p.numel() for p in paper.parameters())),
+        },
+        "paper_reported_ms": 13.2,
+    }
+    res["speedup_vs_paper_style"] = res["paper_style"]["median_ms"] / res["shipped"]["median_ms"]
+    return res

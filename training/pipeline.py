@@ -1,0 +1,604 @@
+"""The training schedule of paper 4.3 on a CPU, as resumable stages of one run folder.
+
+    collect     expert flights with camera (in process)                 flights/expert/
+    bc          stage 1: privileged LSTM, behaviour cloning             checkpoints/bc.pt
+    dagger      stage 1: DAgger rounds (learner flies, relabel, aggregate, retrain)
+                                                                        checkpoints/dagger.pt
+    perception  stage 2: CNN bearing regression on expert frames (90/10) checkpoints/perception.pt
+    vision      stage 3: CNN + estimator replace ground truth; LSTM fine-tuned with DAgger rounds
+                where the vision policy flies                           checkpoints/vision.pt
+    eval        300 episodes (profile) of expert, BC, DAgger, vision on seeds disjoint from
+                training, inference timings                             metrics.json
+
+Each finished stage writes ``stages/<stage>.json``; a rerun skips finished stages (and finished
+DAgger rounds), so an interrupted pipeline resumes where it stopped. Every DAgger round leaves
+its learner flight logs (``flights/<round>/``) and their offline expert labels
+(``labels/<round>/``, written by ``expert.relabel`` exactly as ``visland relabel`` does).
+Scalars go to TensorBoard (``tb/``) and ``scalars.jsonl``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from companion.policy_net import (
+    ControlLSTM,
+    LearnedPolicy,
+    NetConfig,
+    PerceptionCNN,
+    load_networks,
+    save_checkpoint,
+)
+from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.scenario import load_scenario
+from training.dataset import Episode, load_episodes
+from training.replay import ReplayBuffer
+from training.rollout import RolloutSpec, git_commit, log_name, run_episodes
+from training.train import (
+    net_config_for,
+    privileged_episode,
+    train_controller,
+    train_perception,
+    vision_episode,
+)
+
+__all__ = [
+    "PROFILES",
+    "STAGES",
+    "PipelineError",
+    "Profile",
+    "Run",
+    "inference_timing",
+    "run_pipeline",
+]
+
+STAGES = ("collect", "bc", "dagger", "perception", "vision", "eval")
+
+
+class PipelineError(ValueError):
+    """A stage cannot run (missing prerequisite, unusable data); names the stage and file."""
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Budgets of one pipeline run (see PROFILES)."""
+
+    name: str
+    collect_episodes: int
+    bc_steps: int
+    dagger_rounds: int
+    dagger_rollouts: int
+    dagger_steps: int
+    perception_epochs: int
+    perception_frame_stride: int
+    vision_bc_steps: int
+    vision_rounds: int
+    vision_rollouts: int
+    vision_steps: int
+    eval_episodes: int
+    collect_seed: int = 0
+    dagger_seed: int = 100
+    vision_seed: int = 200
+    eval_seed: int = 1_000_000
+    batch_segments: int = 32
+    lr: float = 1e-3
+    finetune_lr: float = 5e-4
+    buffer_capacity: int = 400
+    segment_steps: int = 25
+    burn_in_steps: int = 100
+    workers: int = 2
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+PROFILES: dict[str, Profile] = {
+    # A smoke run of every stage: <= 10 min on 2 cores. Its numbers are not the paper's.
+    "quick": Profile(
+        name="quick",
+        collect_episodes=40,
+        bc_steps=1500,
+        dagger_rounds=1,
+        dagger_rollouts=20,
+        dagger_steps=800,
+        perception_epochs=15,
+        perception_frame_stride=2,
+        vision_bc_steps=500,
+        vision_rounds=1,
+        vision_rollouts=16,
+        vision_steps=500,
+        eval_episodes=20,
+    ),
+    # Paper 4.3 adapted to 2 CPU cores: 300 expert flights, BC, 3 privileged DAgger rounds of
+    # 100 learner rollouts, CNN on the expert frames, 2 vision DAgger rounds; 300 eval episodes.
+    "paper": Profile(
+        name="paper",
+        collect_episodes=300,
+        bc_steps=8000,
+        dagger_rounds=3,
+        dagger_rollouts=100,
+        dagger_steps=4000,
+        perception_epochs=6,
+        perception_frame_stride=2,
+        vision_bc_steps=3000,
+        vision_rounds=2,
+        vision_rollouts=100,
+        vision_steps=3000,
+        eval_episodes=300,
+    ),
+}
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _clean(v: Any) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_clean(x) for x in v]
+    return v
+
+
+class Run:
+    """One run folder: stage records, checkpoints, flights, labels, scalars, metrics."""
+
+    def __init__(
+        self,
+        out: str | Path,
+        profile: Profile,
+        scenario: str | None = None,
+        progress: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> None:
+        self.root = Path(out)
+        self.profile = profile
+        self.scenario_path = scenario
+        self.progress = progress
+        self.say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        self.vehicle = load_vehicle()
+        self.sim = load_sim()
+        self.scenario = load_scenario(scenario) if scenario else load_scenario()
+        planet = self.scenario.planet if getattr(self.scenario, "planet", None) else None
+        self.planet = planet or self.sim.planet
+        self.commit = git_commit()
+        for sub in ("stages", "checkpoints", "flights", "labels", "cache"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self._check_profile()
+        self._tb = None
+        self._scalars = (self.root / "scalars.jsonl").open("a")
+
+    # ------------------------------------------------------------------ bookkeeping
+
+    def _check_profile(self) -> None:
+        path = self.root / "profile.json"
+        mine = {"profile": self.profile.to_dict(), "scenario": self.scenario_path}
+        if path.exists():
+            theirs = json.loads(path.read_text())
+            if theirs != mine:
+                raise PipelineError(
+                    f"{path}: this run was started with another profile/scenario "
+                    f"({theirs.get('profile', {}).get('name')!r}); use a new --out folder"
+                )
+        else:
+            path.write_text(json.dumps(mine, indent=2))
+
+    def log(self, name: str, value: float, step: int) -> None:
+        if self._tb is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self._tb = SummaryWriter(str(self.root / "tb"))
+            except ImportError:  # tensorboard is a dependency; never fail a run over it
+                self._tb = False
+        if self._tb:
+            self._tb.add_scalar(name, value, step)
+        self._scalars.write(json.dumps({"name": name, "value": value, "step": step}) + "\n")
+
+    def close(self) -> None:
+        if self._tb:
+            self._tb.close()
+        self._scalars.close()
+
+    def done(self, stage: str) -> dict[str, Any] | None:
+        path = self.root / "stages" / f"{stage}.json"
+        if not path.exists():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except ValueError:
+            return None  # a half-written record: redo the stage
+
+    def finish(self, stage: str, record: dict[str, Any]) -> dict[str, Any]:
+        record = {"stage": stage, "git_commit": self.commit, **record}
+        path = self.root / "stages" / f"{stage}.json"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(_clean(record), indent=2, default=_json_default))
+        tmp.replace(path)
+        return record
+
+    def need(self, stage: str) -> dict[str, Any]:
+        rec = self.done(stage)
+        if rec is None:
+            raise PipelineError(
+                f"stage {stage!r} of {self.root} has not finished; run it first "
+                f"(visland train {stage} --run {self.root})"
+            )
+        return rec
+
+    def bar(self, total: int, desc: str) -> tqdm:
+        return tqdm(total=total, desc=desc, file=sys.stderr, disable=not self.progress)
+
+    def net_config(self, kind: str) -> NetConfig:
+        return net_config_for(self.vehicle, self.sim, kind, self.planet)
+
+    def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "stage": stage,
+            "profile": self.profile.name,
+            "run": str(self.root),
+            "git_commit": self.commit,
+            "scenario": self.scenario_path or "configs/scenario.toml",
+            "data": data,
+            "created_unix": time.time(),
+        }
+
+    # ------------------------------------------------------------------ flights
+
+    def fly(self, checkpoint: str, seed: int, count: int, folder: str, camera: bool) -> list[Path]:
+        """Learner (or expert) rollouts with logs in flights/<folder>/; resumable."""
+        from training.rollout import completed_episode
+
+        flights = self.root / "flights" / folder
+        flights.mkdir(parents=True, exist_ok=True)
+        todo = [i for i in range(count) if not completed_episode(flights / log_name(seed, i))]
+        spec = RolloutSpec(
+            policy=checkpoint,
+            seed=seed,
+            scenario=self.scenario_path,
+            render_camera=camera,
+            log_dir=str(flights),
+        )
+        if todo:
+            with self.bar(len(todo), f"fly {folder}") as bar:
+                run_episodes(spec, todo, self.profile.workers, on_done=lambda _: bar.update())
+        return [flights / log_name(seed, i) for i in range(count)]
+
+    def relabel(self, logs: list[Path], folder: str) -> list[tuple[Path, Path]]:
+        """Offline expert labels for learner logs (``expert.relabel``, as `visland relabel`)."""
+        from expert.relabel import label_path, relabel
+
+        out = self.root / "labels" / folder
+        todo = [p for p in logs if not label_path(p, out).exists()]
+        if todo:
+            t0 = time.perf_counter()
+            reports = relabel(todo, out, workers=self.profile.workers)
+            bad = [r for r in reports if r.error]
+            for r in bad:
+                self.say(f"relabel: {r.error}")
+            self.say(f"relabelled {len(todo)} logs in {time.perf_counter() - t0:.0f} s")
+        return [(p, label_path(p, out)) for p in logs if label_path(p, out).exists()]
+
+    def episodes(self, pairs: list[tuple[Path, Path | None]], images: bool) -> list[Episode]:
+        eps, errors = load_episodes(pairs, with_images=images, cache_dir=self.root / "cache")
+        for e in errors:
+            self.say(f"skipped: {e}")
+        if not eps:
+            raise PipelineError(f"{self.root}: no usable episodes ({len(errors)} unreadable)")
+        return eps
+
+    def expert_pairs(self) -> list[tuple[Path, Path | None]]:
+        rec = self.need("collect")
+        return [(Path(p), None) for p in rec["logs"]]
+
+    # ------------------------------------------------------------------ stages
+
+    def stage_collect(self) -> dict[str, Any]:
+        p = self.profile
+        t0 = time.perf_counter()
+        logs = self.fly("expert", p.collect_seed, p.collect_episodes, "expert", camera=True)
+        return self.finish(
+            "collect",
+            {
+                "logs": [str(x) for x in logs],
+                "seed": p.collect_seed,
+                "seconds": time.perf_counter() - t0,
+            },
+        )
+
+    def _privileged_buffer(self, rounds_done: int) -> tuple[ReplayBuffer, list[str]]:
+        """The stage-1 buffer: expert flights then each finished DAgger round, FIFO."""
+        p = self.profile
+        buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed)
+        names = []
+        for ep in self.episodes(self.expert_pairs(), images=False):
+            buf.add(privileged_episode(ep))
+            names.append(ep.name)
+        for k in range(rounds_done):
+            rec = self.need(f"dagger_r{k}")
+            pairs = [(Path(a), Path(b)) for a, b in rec["pairs"]]
+            for ep in self.episodes(pairs, images=False):
+                buf.add(privileged_episode(ep))
+                names.append(ep.name)
+        return buf, names
+
+    def _train(
+        self,
+        control: ControlLSTM,
+        buf: ReplayBuffer,
+        steps: int,
+        lr: float,
+        tag: str,
+        seed: int,
+    ) -> dict[str, Any]:
+        p = self.profile
+        with self.bar(steps, f"train {tag}") as bar:
+            fit = train_controller(
+                control,
+                buf,
+                steps,
+                batch_segments=p.batch_segments,
+                lr=lr,
+                seed=seed,
+                burn_in_steps=p.burn_in_steps,
+                log=self.log,
+                log_prefix=f"controller/{tag}",
+                progress=bar.update,
+            )
+        self.say(f"{tag}: {steps} steps, loss {fit.final_loss:.4f}, {fit.seconds:.0f} s")
+        return {
+            "steps": steps,
+            "final_loss": fit.final_loss,
+            "seconds": fit.seconds,
+            "buffer_episodes": len(buf),
+            "buffer_steps": buf.total_steps,
+        }
+
+    def stage_bc(self) -> dict[str, Any]:
+        p = self.profile
+        torch.manual_seed(p.seed)
+        cfg = self.net_config("privileged")
+        control = ControlLSTM(cfg)
+        buf, names = self._privileged_buffer(0)
+        fit = self._train(control, buf, p.bc_steps, p.lr, "bc", p.seed)
+        path = save_checkpoint(
+            self.root / "checkpoints" / "bc.pt",
+            cfg,
+            control,
+            None,
+            self.metadata("bc", {"episodes": names, "fit": fit}),
+        )
+        return self.finish("bc", {"checkpoint": str(path), **fit})
+
+    def stage_dagger(self) -> dict[str, Any]:
+        p = self.profile
+        ckpt = Path(self.need("bc")["checkpoint"])
+        rounds = []
+        for k in range(p.dagger_rounds):
+            name = f"dagger_r{k}"
+            rec = self.done(name)
+            if rec is None:
+                logs = self.fly(str(ckpt), p.dagger_seed + k, p.dagger_rollouts, name, camera=False)
+                pairs = self.relabel(logs, name)
+                cfg, control, _, _ = load_networks(ckpt)
+                # expert flights, earlier rounds, then this round (FIFO at capacity)
+                buf, names = self._privileged_buffer(k)
+                for ep in self.episodes(pairs, images=False):
+                    buf.add(privileged_episode(ep))
+                    names.append(ep.name)
+                fit = self._train(control, buf, p.dagger_steps, p.finetune_lr, name, p.seed + 1 + k)
+                out = save_checkpoint(
+                    self.root / "checkpoints" / f"{name}.pt",
+                    cfg,
+                    control,
+                    None,
+                    self.metadata(name, {"episodes": names, "fit": fit, "from": str(ckpt)}),
+                )
+                rec = self.finish(
+                    name,
+                    {"checkpoint": str(out), "pairs": [[str(a), str(b)] for a, b in pairs], **fit},
+                )
+            ckpt = Path(rec["checkpoint"])
+            rounds.append(rec)
+        final = self.root / "checkpoints" / "dagger.pt"
+        cfg, control, _, meta = load_networks(ckpt)
+        save_checkpoint(final, cfg, control, None, meta)
+        return self.finish("dagger", {"checkpoint": str(final), "rounds": len(rounds)})
+
+    def stage_perception(self) -> dict[str, Any]:
+        p = self.profile
+        torch.manual_seed(p.seed)
+        cfg = self.net_config("vision")
+        cnn = PerceptionCNN(cfg)
+        eps = self.episodes(self.expert_pairs(), images=True)
+        n_train = sum(len(range(0, len(e), p.perception_frame_stride)) for e in eps)
+        steps = p.perception_epochs * max(1, int(n_train * 0.9) // 64)
+        with self.bar(steps, "train perception") as bar:
+            fit = train_perception(
+                cnn,
+                eps,
+                p.perception_epochs,
+                seed=p.seed,
+                frame_stride=p.perception_frame_stride,
+                log=self.log,
+                progress=bar.update,
+            )
+        self.say(
+            f"perception: val bearing error median {fit.val_bearing_error_px_median:.2f} px, "
+            f"p95 {fit.val_bearing_error_px_p95:.2f} px; position error median "
+            f"{fit.val_position_error_m_median:.3f} m ({fit.seconds:.0f} s)"
+        )
+        # the perception checkpoint carries the privileged DAgger controller if it exists yet
+        control = ControlLSTM(cfg)
+        path = save_checkpoint(
+            self.root / "checkpoints" / "perception.pt",
+            cfg,
+            control,
+            cnn,
+            self.metadata("perception", {"episodes": [e.name for e in eps], "fit": fit.to_dict()}),
+        )
+        return self.finish("perception", {"checkpoint": str(path), **fit.to_dict()})
+
+    def _vision_policy(self) -> tuple[NetConfig, ControlLSTM, PerceptionCNN]:
+        _, control, _, _ = load_networks(self.need("dagger")["checkpoint"])
+        cfg, _, cnn, _ = load_networks(self.need("perception")["checkpoint"])
+        assert cnn is not None
+        fresh = ControlLSTM(cfg)
+        fresh.load_state_dict(control.state_dict())
+        return cfg, fresh, cnn
+
+    def stage_vision(self) -> dict[str, Any]:
+        p = self.profile
+        cfg, control, cnn = self._vision_policy()
+        policy = LearnedPolicy(cfg, control, cnn)
+        buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 50)
+        names: list[str] = []
+        t0 = time.perf_counter()
+        for ep in self.episodes(self.expert_pairs(), images=True):
+            buf.add(vision_episode(policy, ep))
+            names.append(ep.name)
+        self.say(
+            f"vision features of {len(names)} expert flights: {time.perf_counter() - t0:.0f} s"
+        )
+        fits = [
+            self._train(control, buf, p.vision_bc_steps, p.finetune_lr, "vision_bc", p.seed + 20)
+        ]
+        ckpt = save_checkpoint(
+            self.root / "checkpoints" / "vision_bc.pt",
+            cfg,
+            control,
+            cnn,
+            self.metadata("vision_bc", {"episodes": list(names), "fit": fits[-1]}),
+        )
+        for k in range(p.vision_rounds):
+            name = f"vision_r{k}"
+            logs = self.fly(str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
+            pairs = self.relabel(logs, name)
+            policy = LearnedPolicy(cfg, control, cnn)
+            for ep in self.episodes(pairs, images=True):
+                buf.add(vision_episode(policy, ep))
+                names.append(ep.name)
+            fits.append(
+                self._train(control, buf, p.vision_steps, p.finetune_lr, name, p.seed + 30 + k)
+            )
+            ckpt = save_checkpoint(
+                self.root / "checkpoints" / f"{name}.pt",
+                cfg,
+                control,
+                cnn,
+                self.metadata(name, {"episodes": list(names), "fit": fits[-1]}),
+            )
+        final = self.root / "checkpoints" / "vision.pt"
+        save_checkpoint(
+            final, cfg, control, cnn, self.metadata("vision", {"episodes": names, "fits": fits})
+        )
+        return self.finish("vision", {"checkpoint": str(final), "fits": fits})
+
+    def stage_eval(self) -> dict[str, Any]:
+        from training.evaluate import EvalConfig, evaluate
+
+        p = self.profile
+        rows = {}
+        policies = [
+            ("expert", "expert", False),
+            ("bc", self.need("bc")["checkpoint"], False),
+            ("dagger", self.need("dagger")["checkpoint"], False),
+            ("vision", self.need("vision")["checkpoint"], True),
+        ]
+        for row, policy, camera in policies:
+            report = evaluate(
+                EvalConfig(
+                    policy=policy,
+                    episodes=p.eval_episodes,
+                    seed=p.eval_seed,
+                    scenario=self.scenario_path,
+                    workers=p.workers,
+                    render_camera=camera,
+                    progress=self.progress,
+                )
+            )
+            rows[row] = report
+            self.say(
+                f"eval {row}: mean error {report['landing_error_m']['mean']:.3f} m, "
+                f"max {report['landing_error_m']['max']:.3f} m, success "
+                f"{100 * report['success_rate']:.1f} %"
+            )
+        timing = inference_timing(self.need("vision")["checkpoint"], self)
+        metrics = {
+            "profile": p.to_dict(),
+            "git_commit": self.commit,
+            "eval_seed": p.eval_seed,
+            "episodes": p.eval_episodes,
+            "rows": rows,
+            "timing": timing,
+            "stages": {s: self.done(s) for s in STAGES if s != "eval"},
+        }
+        path = self.root / "metrics.json"
+        path.write_text(json.dumps(_clean(metrics), indent=2, default=_json_default))
+        return self.finish("eval", {"metrics": str(path)})
+
+
+def inference_timing(vision_checkpoint: str, run: Run, steps: int = 300) -> dict[str, Any]:
+    """Per-step compute of the MPC expert vs the shipped policy, same process, one thread."""
+    from expert.bench import bench_mpc
+    from training.bench_policy import bench_policy
+
+    torch.set_num_threads(1)
+    policy = bench_policy(vision_checkpoint, steps=steps)
+    mpc = bench_mpc()
+    return {"policy": policy, "mpc": mpc}
+
+
+def run_pipeline(
+    out: str | Path,
+    profile: str | Profile = "quick",
+    scenario: str | None = None,
+    stages: tuple[str, ...] = STAGES,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run (or resume) the stages in order; returns the stage records."""
+    prof = PROFILES[profile] if isinstance(profile, str) else profile
+    run = Run(out, prof, scenario, progress)
+    records = {}
+    t0 = time.perf_counter()
+    try:
+        for stage in stages:
+            if stage not in STAGES:
+                raise PipelineError(f"unknown stage {stage!r}; stages are {', '.join(STAGES)}")
+            rec = run.done(stage)
+            if rec is not None:
+                run.say(f"stage {stage}: already done")
+            else:
+                s0 = time.perf_counter()
+                run.say(f"stage {stage}: running")
+                rec = getattr(run, f"stage_{stage}")()
+                run.say(f"stage {stage}: done in {time.perf_counter() - s0:.0f} s")
+            records[stage] = rec
+    finally:
+        run.close()
+    timing_path = Path(out) / "pipeline_time.json"
+    prev = json.loads(timing_path.read_text()) if timing_path.exists() else {"sessions": []}
+    prev["sessions"].append({"stages": list(stages), "seconds": time.perf_counter() - t0})
+    timing_path.write_text(json.dumps(prev, indent=2))
+    return records
