@@ -629,3 +629,47 @@ def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
     for key in ("landing_error_m", "touchdown_speed_m_s"):
         a, b = over_udp[key]["mean"], here[key]["mean"]
         assert abs(a - b) <= max(0.05, 0.1 * abs(b)), (key, a, b)
+
+
+def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_scenario, tmp_path):
+    sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
+    comp = procs.start(
+        "companion", _companion_args(ports.remote, ports.camera, comp_dir, "--shadow")
+    )
+    sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir, "--hold-timeout-s", "3"))
+    procs.wait_text("companion", r"-> flying: shadow", 30.0)
+    assert sitl.wait(60) == 0, procs.text("sitl")  # nobody took over: HOLD timed out
+    comp.send_signal(signal.SIGTERM)
+    assert comp.wait(20) == 0, procs.text("companion")
+    (log_path,) = sorted(comp_dir.glob("*.mcap"))
+    flight = read_log(log_path)
+    assert not flight.truncated  # SIGTERM closes the log cleanly
+    cmds = flight.topic(TOPIC_COMMAND)
+    assert len(cmds) >= 5 and all(m["kind"] == "shadow" and not m["sent"] for m in cmds)
+    sitl_flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
+    received = {t for t in sitl_flight.messages if t.startswith("/mavlink/in/")}
+    assert "/mavlink/in/HEARTBEAT" in received  # it is connected...
+    assert "/mavlink/in/SET_ATTITUDE_TARGET" not in received  # ...and sends no setpoint
+    assert not any(
+        "command 176" in e["text"] for e in sitl_flight.topic("/events")
+    )  # and no mode change
+
+
+def test_card_sigterm_in_flight_hands_back_with_land_and_closes_the_log(procs, ports, tmp_path):
+    sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
+    comp = procs.start("companion", _companion_args(ports.remote, ports.camera, comp_dir))
+    sitl = procs.start("sitl", _sitl_args(ports, str(REPO / "configs" / "scenario.toml"), sitl_dir))
+    procs.wait_text("companion", r"-> flying", 30.0)
+    time.sleep(0.3)
+    comp.send_signal(signal.SIGTERM)
+    assert comp.wait(20) == 0, procs.text("companion")
+    assert sitl.wait(60) == 0, procs.text("sitl")
+    (log_path,) = sorted(comp_dir.glob("*.mcap"))
+    flight = read_log(log_path)
+    assert not flight.truncated
+    assert flight.topic("/companion/summary")[-1]["result"] == "aborted"
+    assert any("LAND requested" in e["text"] for e in flight.topic("/events"))
+    sitl_flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
+    modes = [m["mode"] for m in sitl_flight.topic("/autopilot/command")]
+    assert modes[0] == "OFFBOARD" and modes[-1] == "AUTO.LAND"
+    assert sitl_flight.topic("/episode/result")[-1]["landed"]
