@@ -673,3 +673,30 @@ def test_card_sigterm_in_flight_hands_back_with_land_and_closes_the_log(procs, p
     modes = [m["mode"] for m in sitl_flight.topic("/autopilot/command")]
     assert modes[0] == "OFFBOARD" and modes[-1] == "AUTO.LAND"
     assert sitl_flight.topic("/episode/result")[-1]["landed"]
+
+
+def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_scenario, tmp_path):
+    """A learned vision network (untrained weights, shipped size) loaded from a checkpoint
+    file: camera rendered, images in the log, the replay reproduces every command."""
+    from companion.policy_net import save_checkpoint, untrained_policy
+    from companion.runtime import load_policy_file
+    from tools.fly import FlyConfig, fly
+
+    net = untrained_policy(seed=3)
+    ckpt = save_checkpoint(tmp_path / "net.pt", net.config, net.control, net.perception, {})
+    report = fly(
+        FlyConfig(
+            policy=str(ckpt),
+            episodes=1,
+            seed=0,
+            scenario=low_scenario,
+            out=str(tmp_path / "run"),
+            progress=False,
+        )
+    )
+    assert report["episodes"] == 1 and report["latency_ms"]["commands"] > 10
+    (log_path,) = sorted((tmp_path / "run" / "companion").glob("*f000.mcap"))
+    assert read_log(log_path, topics=["/camera/image"]).topic("/camera/image")
+    replay = replay_log(log_path, PolicyRuntime(load_policy_file(ckpt), str(ckpt)))
+    assert replay.errors == [] and replay.commands == report["latency_ms"]["commands"]
+    assert replay.max_abs_diff <= 1e-5
