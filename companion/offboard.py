@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.contract import Command, Observation
+from companion.contract import Observation
 from companion.link import MavlinkLink, mavlink
 from companion.record import CompanionLog
 from companion.runtime import PolicyRuntime
@@ -646,7 +646,3 @@ class FlightController:
             self.link.request_mode(target, armed=self._armed())
             self._event("hand_back", f"{reason}: {mode.upper()} requested, setpoints stopped")
         self._finish("aborted", reason)
-
-
-def command_dict(cmd: Command) -> dict[str, Any]:
-    return {"thrust_norm": cmd.thrust_norm, "rate_frd_rad_s": cmd.rate_frd_rad_s.tolist()}
