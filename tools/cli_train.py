@@ -48,6 +48,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ship(args: argparse.Namespace) -> int:
+    from training.ship import ship
+
+    dst = ship(args.run, args.out)
+    print(f"shipped {dst} with {dst.parent / 'MODEL_CARD.md'}")
+    return 0
+
+
 def register_training(sub: argparse._SubParsersAction) -> None:
     from training.pipeline import PROFILES, STAGES
 
@@ -73,6 +81,11 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_cmd_train)
+
+    sh = sub.add_parser("ship", help="copy a run's vision policy to models/ with its model card")
+    sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
+    sh.add_argument("--out", type=Path, default=Path("models"))
+    sh.set_defaults(func=_cmd_ship)
 
 
 if __name__ == "__main__":
