@@ -117,3 +117,53 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path):
     log = read_log(path)
     last = log.topic(TOPIC_GROUNDTRUTH)[-1]["wall"]
     assert kill_wall - last <= 1.2  # flushed at least every second (+ scheduling slack)
+
+
+def _random_value(rng: np.random.Generator, depth: int = 0):
+    """A message-like value mixing every type a log message may hold."""
+    specials = [float("nan"), float("inf"), -float("inf"), 1e308, -0.0]
+    kind = int(rng.integers(0, 14 if depth < 3 else 7))
+    if kind == 0:
+        return float(rng.normal())
+    if kind == 1:
+        return specials[int(rng.integers(0, len(specials)))]
+    if kind == 2:
+        return int(rng.integers(-5, 5))
+    if kind == 3:
+        return [True, False, None, "text"][int(rng.integers(0, 4))]
+    if kind == 4:
+        return np.float64(rng.normal()) if rng.random() < 0.5 else np.float32("nan")
+    if kind == 5:
+        return np.int32(7) if rng.random() < 0.5 else np.bool_(True)
+    if kind == 6:
+        return np.uint8(200)
+    if kind == 7:
+        arr = rng.normal(size=int(rng.integers(0, 5)))
+        if arr.size and rng.random() < 0.3:
+            arr[int(rng.integers(0, arr.size))] = specials[int(rng.integers(0, 3))]
+        return arr.astype([np.float64, np.float32][int(rng.integers(0, 2))])
+    if kind == 8:
+        return rng.integers(0, 9, size=(2, 3)).astype(np.float64)  # 2-D
+    if kind == 9:
+        return np.array([1e308, 1e308])  # finite, but the sum overflows
+    if kind == 10:
+        return rng.integers(-3, 3, size=3).astype([np.int64, np.uint16, np.bool_][depth % 3])
+    if kind == 11:
+        return tuple(_random_value(rng, depth + 1) for _ in range(int(rng.integers(0, 4))))
+    if kind == 12:
+        return [_random_value(rng, depth + 1) for _ in range(int(rng.integers(0, 4)))]
+    keys = ["a", 3, 2.5, "b"]
+    return {keys[i % 4]: _random_value(rng, depth + 1) for i in range(int(rng.integers(0, 5)))}
+
+
+def test_fast_json_conversion_is_exactly_the_reference_one():
+    from types import MappingProxyType
+
+    from companion.flightlog import _jsonable, _jsonable_slow
+
+    rng = np.random.default_rng(5)
+    for _ in range(3000):
+        value = {"v": _random_value(rng), "proxy": MappingProxyType({1: np.zeros(2)})}
+        fast, slow = _jsonable(value), _jsonable_slow(value)
+        assert json.dumps(fast) == json.dumps(slow)
+        assert json.dumps(fast, allow_nan=False)  # no NaN/inf ever reaches the JSON text

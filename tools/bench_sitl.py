@@ -11,12 +11,15 @@ In one run, on the same initial state and with the same pilot (the privileged Ca
 Printed: the SITL's lockstep real-time factor (flight sim seconds per wall second, take-over to
 disarm), wall time per 10 Hz frame for both, and the difference = the per-frame overhead of the
 MAVLink/camera/log path (telemetry streams at 50 Hz, their encoding, the flight log, UDP, the
-client's decoding).
+client's decoding). Also the SITL process's own CPU time per frame over the same frames (Linux
+``/proc``): unlike wall time it hardly moves when other work shares the machine, so it is the
+figure to compare before/after a change.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -47,6 +50,15 @@ class SitlBenchConfig:
     """Flight-log folder for the SITL run (None: a temporary folder; logging stays on)."""
     timeout_s: float = 300.0
     """Wall-clock limit for the SITL run."""
+
+
+def _cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (None where /proc is missing)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _free_port() -> int:
@@ -96,6 +108,7 @@ def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
         with SitlClient(("127.0.0.1", mav_port), remote_port, cam_port) as client:
             client.wait_for("HEARTBEAT", 60.0)
             n, flight_frames, t_first, t_last, us_first, us_last = 0, 0, 0.0, 0.0, 0, 0
+            cpu_first = cpu_last = None
             deadline = time.monotonic() + cfg.timeout_s
             while time.monotonic() < deadline:
                 try:
@@ -113,11 +126,13 @@ def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
                 gt = client.truth_at(frame.time_us)
                 if flight_frames == 0:
                     t_first, us_first = time.perf_counter(), frame.time_us
+                    cpu_first = _cpu_s(proc.pid)
                 client.command(
                     pilot.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz),
                     frame.time_us // 1000,
                 )
                 t_last, us_last = time.perf_counter(), frame.time_us
+                cpu_last = _cpu_s(proc.pid)
                 flight_frames += 1
                 n += 1
         proc.wait(30)
@@ -137,6 +152,11 @@ def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
         "sim_s": sim_s,
         "wall_s": wall,
         "s_per_frame": wall / (flight_frames - 1),
+        "cpu_s_per_frame": (
+            (cpu_last - cpu_first) / (flight_frames - 1)
+            if cpu_first is not None and cpu_last is not None
+            else None
+        ),
         "control_period_s": sim_cfg.control_dt_s,
     }
 
@@ -161,13 +181,17 @@ def bench_sitl(cfg: SitlBenchConfig | None = None) -> dict[str, Any]:
         "in_process_ms_per_frame": 1e3 * bare,
         "in_process_realtime_factor": udp["control_period_s"] / bare,
         "overhead_ms_per_frame": 1e3 * (udp["s_per_frame"] - bare),
+        "sitl_cpu_ms_per_frame": (
+            1e3 * udp["cpu_s_per_frame"] if udp["cpu_s_per_frame"] is not None else None
+        ),
     }
     print(
         f"SITL lockstep over UDP: {result['sitl_lockstep_realtime_factor']:.1f}x real time "
         f"({result['sitl_ms_per_frame']:.2f} ms per 10 Hz frame, {result['frames']} frames); "
         f"in-process simulator: {result['in_process_ms_per_frame']:.2f} ms per frame "
         f"({result['in_process_realtime_factor']:.1f}x); MAVLink/camera/log overhead "
-        f"{result['overhead_ms_per_frame']:.2f} ms per frame",
+        f"{result['overhead_ms_per_frame']:.2f} ms per frame; SITL process CPU "
+        f"{result['sitl_cpu_ms_per_frame'] or float('nan'):.2f} ms per frame",
         file=sys.stderr,
     )
     return result
