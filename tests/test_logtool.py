@@ -1,9 +1,10 @@
 """``visland log info`` / ``log plot`` on real flight logs of every kind.
 
 The logs are made by the real code: an in-process episode (``training.rollout.fly_episode``, the
-``collect`` path), a SITL episode over UDP landed by the SITL's own AUTO.LAND, and a
-companion-style log (telemetry + commands, no ground truth) written with the flight-log writer.
-Every flight starts 5-6 m above the pad with rendering off, so the file runs in a few seconds.
+``collect`` path), a SITL episode over UDP landed by the SITL's own AUTO.LAND, a ``visland fly``
+episode (SITL and companion processes: the companion's own log), and a minimal companion-style
+log (``/observation`` + ``/command`` only) written with the flight-log writer. Every flight
+starts 5-6 m above the pad with rendering off, so the file runs in about ten seconds.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from companion.flightlog import (
 from sitl_sim.env import LandingEnv
 from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
 from tools.cli import main
+from tools.fly import FlyConfig, fly
 from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
 from tools.sitl_client import SitlClient
 from training.rollout import fly_episode, make_policy
@@ -103,11 +105,20 @@ def logs(tmp_path_factory) -> dict[str, Path]:
     data = rollout.read_bytes()
     truncated = root / "truncated.mcap"
     truncated.write_bytes(data[: len(data) // 2])
+
+    report = fly(
+        FlyConfig(
+            policy="cascade", episodes=1, seed=0, scenario=str(scenario), out=str(root / "fly")
+        )
+    )
+    assert report["success_rate"] == 1.0
+    onboard = sorted((root / "fly" / "companion").glob("*.mcap"), key=lambda p: p.stat().st_size)
     return {
         "rollout": rollout,
         "sitl": root / "sitl" / "sitl_seed0_ep0000.mcap",
         "companion": companion,
         "truncated": truncated,
+        "onboard": onboard[-1],  # the flight's log (a restart may leave an empty second one)
     }
 
 
@@ -179,7 +190,24 @@ def test_plot_of_a_companion_log_uses_telemetry_and_says_position_is_missing(log
         "attitude": "/observation",
         "command": "/command",
     }
-    assert report.missing == ["position: none of /groundtruth/state in the log"]
+    assert report.missing == [
+        "position: none of /groundtruth/state, /mavlink/in/ODOMETRY in the log"
+    ]
+    assert _png(report.out).std() > 10
+
+
+def test_a_real_companion_log_plots_from_its_own_topics(logs, tmp_path):
+    info = log_info(logs["onboard"])
+    assert info["kind"] == "companion" and not info["truncated"]
+    assert info["result"]["result"] == "landed"  # /companion/summary stands in for the result
+    report = plot_flight(logs["onboard"], tmp_path / "onboard.png")
+    assert report.missing == []
+    assert report.sources == {
+        "position": "/mavlink/in/ODOMETRY",  # ground truth, as a privileged pilot received it
+        "altitude": "/mavlink/in/ODOMETRY",
+        "attitude": "/companion/observation",
+        "command": "/companion/command",
+    }
     assert _png(report.out).std() > 10
 
 

@@ -6,12 +6,13 @@ Works on the three kinds of flight log (DESIGN.md "Flight logs"), telling them a
   command the autopilot applied, whatever the mode), ``/mavlink/in|out/<NAME>``;
 * **rollout** — the in-process path (``visland collect``/``eval``): ``/groundtruth/state``,
   ``/observation``, ``/command`` per control step;
-* **companion** — the on-board record: telemetry as received (``/observation``-like) and
-  ``/command``, no ground truth.
+* **companion** — the on-board record (``companion.record``): ``/companion/observation``,
+  ``/companion/command``, ``/mavlink/in/<NAME>`` as received (ODOMETRY = ground truth only for
+  privileged flights), ``/companion/summary``; no ground-truth channel.
 
 Each plot panel takes the best source the log has (ground truth before measurements, the pilot's
-``/command`` before the autopilot's before the raw SET_ATTITUDE_TARGET) and says which it used in
-its title; a panel with no source says what is missing instead of drawing nothing silently.
+command before the autopilot's before the raw SET_ATTITUDE_TARGET; :data:`SOURCES`) and says which
+it used in its title; a panel with no source says what is missing instead of drawing nothing.
 Logs are read with :func:`companion.flightlog.read_log`, so a truncated (crashed) log shows its
 readable prefix and is reported as truncated.
 """
@@ -34,9 +35,11 @@ from companion.flightlog import (
     FlightLog,
     read_log,
 )
+from sitl_sim.dynamics import euler_from_quat
 
 __all__ = [
     "PANELS",
+    "SOURCES",
     "PlotReport",
     "PlotSources",
     "default_plot_path",
@@ -48,9 +51,9 @@ __all__ = [
 ]
 
 TOPIC_AUTOPILOT_COMMAND = "/autopilot/command"
-TOPIC_MAVLINK_ATTITUDE = "/mavlink/out/ATTITUDE"
-TOPIC_MAVLINK_DISTANCE = "/mavlink/out/DISTANCE_SENSOR"
-TOPIC_MAVLINK_SETPOINT = "/mavlink/in/SET_ATTITUDE_TARGET"
+TOPIC_COMPANION_OBSERVATION = "/companion/observation"
+TOPIC_COMPANION_COMMAND = "/companion/command"
+TOPIC_COMPANION_SUMMARY = "/companion/summary"
 
 PANELS = ("position", "altitude", "attitude", "command")
 """The plot's panels: top view, altitude vs time, attitude vs time, commands vs time."""
@@ -58,16 +61,61 @@ PANELS = ("position", "altitude", "attitude", "command")
 _PAD_HALF_M = 2.0  # the pad is a 4 m square (sitl_sim.scene)
 _CROSS_HALF_M, _CROSS_HALF_W_M = 1.6, 0.3  # red cross arms 3.2 m x 0.6 m
 _UINT16_MAX = 65_535
-_MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed")
-"""Event kinds drawn as vertical lines on the time plots (the autopilot's mode/arming story)."""
+_MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed", "flight_start", "state")
+"""Event kinds drawn as vertical lines on the time plots (the SITL autopilot's mode/arming
+story; the companion's state machine)."""
 
-# topic -> what it offers, best first, per panel.
-_SOURCES: dict[str, tuple[str, ...]] = {
-    "position": (TOPIC_GROUNDTRUTH,),
-    "altitude": (TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_MAVLINK_DISTANCE),
-    "attitude": (TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_MAVLINK_ATTITUDE),
-    "command": (TOPIC_COMMAND, TOPIC_AUTOPILOT_COMMAND, TOPIC_MAVLINK_SETPOINT),
+Getter = Callable[[dict[str, Any]], Any]
+
+
+def _radar_cm(m: dict[str, Any]) -> float | None:
+    """DISTANCE_SENSOR in m; UINT16_MAX = no return."""
+    return None if m["current_distance"] >= _UINT16_MAX else m["current_distance"] / 100
+
+
+def _euler(quat_wxyz: Any) -> np.ndarray:
+    return euler_from_quat(np.asarray(quat_wxyz, dtype=float))
+
+
+SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
+    "position": (  # NED metres
+        (TOPIC_GROUNDTRUTH, lambda m: m["pos_ned_m"], "ground truth"),
+        ("/mavlink/in/ODOMETRY", lambda m: (m["x"], m["y"], m["z"]), "ODOMETRY (ground truth)"),
+    ),
+    "altitude": (  # metres above ground (ground truth) or radar range
+        (TOPIC_GROUNDTRUTH, lambda m: -m["pos_ned_m"][2], "altitude (ground truth)"),
+        ("/mavlink/in/ODOMETRY", lambda m: -m["z"], "altitude (ODOMETRY)"),
+        (TOPIC_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
+        (TOPIC_COMPANION_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
+        ("/mavlink/out/DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
+        ("/mavlink/in/DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
+    ),
+    "attitude": (  # roll, pitch, yaw (rad)
+        (TOPIC_GROUNDTRUTH, lambda m: _euler(m["quat_wxyz"]), "ground truth"),
+        (TOPIC_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
+        (TOPIC_COMPANION_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
+        ("/mavlink/out/ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
+        ("/mavlink/in/ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
+    ),
+    "command": (  # thrust_norm, p, q, r
+        (TOPIC_COMMAND, lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]), "pilot"),
+        (TOPIC_COMPANION_COMMAND, lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]), "pilot"),
+        (
+            TOPIC_AUTOPILOT_COMMAND,
+            lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]),
+            "autopilot",
+        ),
+        (
+            "/mavlink/in/SET_ATTITUDE_TARGET",
+            lambda m: (m["thrust"], m["body_roll_rate"], m["body_pitch_rate"], m["body_yaw_rate"]),
+            "SET_ATTITUDE_TARGET",
+        ),
+    ),
 }
+"""Per panel, the topics it can draw, best first: ``(topic, message -> values, label)``."""
+
+_WIDTH = {"position": 3, "altitude": 1, "attitude": 3, "command": 4}
+_RESULT_TOPICS = (TOPIC_RESULT, TOPIC_COMPANION_SUMMARY)
 
 
 @dataclass(frozen=True)
@@ -84,7 +132,9 @@ class PlotSources:
 
 
 def _kind(topics: set[str]) -> str:
-    if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith("/mavlink/") for t in topics):
+    if any(t.startswith("/companion/") for t in topics):
+        return "companion"
+    if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith("/mavlink/out/") for t in topics):
         return "sitl"
     if TOPIC_GROUNDTRUTH in topics:
         return "rollout"
@@ -98,10 +148,11 @@ def plot_sources(log: FlightLog) -> PlotSources:
     sources: dict[str, str | None] = {}
     missing: list[str] = []
     for panel in PANELS:
-        found = next((t for t in _SOURCES[panel] if log.topic(t)), None)
+        topics = list(dict.fromkeys(topic for topic, _, _ in SOURCES[panel]))
+        found = next((t for t in topics if log.topic(t)), None)
         sources[panel] = found
         if found is None:
-            missing.append(f"{panel}: none of {', '.join(_SOURCES[panel])} in the log")
+            missing.append(f"{panel}: none of {', '.join(topics)} in the log")
     return PlotSources(sources, missing)
 
 
@@ -113,7 +164,8 @@ def log_info(path: str | Path) -> dict[str, Any]:
     ``start_time_s`` / ``end_time_s`` / ``duration_s`` (the log's sim clock), ``topics``
     (topic -> ``{count, schema}``, every channel of the readable part), ``metadata`` (record
     name -> its keys), ``episode`` (the ``episode`` metadata record, if any), ``result`` (the
-    last ``/episode/result`` message, or None), ``plot_sources`` and ``plot_missing``.
+    last ``/episode/result``, else the companion's ``/companion/summary``, else None),
+    ``plot_sources`` and ``plot_missing``.
 
     Raises:
         FlightLogError: the file is missing or not an MCAP file.
@@ -125,7 +177,6 @@ def log_info(path: str | Path) -> dict[str, Any]:
         topic: {"count": len(log.topic(topic)), "schema": log.schemas.get(topic, "")}
         for topic in sorted(set(log.schemas) | set(log.messages))
     }
-    results = log.topic(TOPIC_RESULT)
     sources = plot_sources(log)
     return {
         "path": str(path),
@@ -140,7 +191,7 @@ def log_info(path: str | Path) -> dict[str, Any]:
         "topics": topics,
         "metadata": {name: sorted(values) for name, values in log.metadata.items()},
         "episode": log.metadata.get("episode"),
-        "result": results[-1] if results else None,
+        "result": _last_result(log),
         "plot_sources": sources.sources,
         "plot_missing": sources.missing,
     }
@@ -170,6 +221,9 @@ def format_info(info: dict[str, Any]) -> str:
     result = info["result"]
     if result is None:
         lines.append("  result: none (no /episode/result)")
+    elif isinstance(result.get("result"), str):  # /companion/summary
+        reason = result.get("reason") or "no reason given"
+        lines.append(f"  result (companion summary): {result['result']} ({reason})")
     else:
         shown = ("landed", "success", "landing_error_m", "touchdown_vertical_speed_m_s", "tilt_deg")
         parts = [f"{k} {_fmt(result[k])}" for k in shown if k in result]
@@ -207,55 +261,11 @@ def _array(msgs: list[dict[str, Any]], get: Callable[[dict[str, Any]], Any], wid
     return times, values
 
 
-def _euler_deg(quats: np.ndarray) -> np.ndarray:
-    """(N, 4) wxyz -> (N, 3) roll, pitch, yaw in degrees (ZYX, as MAVLink's ATTITUDE)."""
-    w, x, y, z = quats.T
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.degrees(np.stack([roll, pitch, yaw], axis=1))
-
-
-def _altitude(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
-    msgs = log.topic(topic)
-    if topic == TOPIC_GROUNDTRUTH:
-        t, pos = _array(msgs, lambda m: m["pos_ned_m"], 3)
-        return t, -pos[:, 2], "altitude above ground (ground truth)"
-    if topic == TOPIC_OBSERVATION:
-        t, rng = _array(msgs, lambda m: m["range_m"], 1)
-        return t, rng[:, 0], "radar range (observation)"
-
-    def cm(m: dict[str, Any]) -> float | None:
-        return None if m["current_distance"] >= _UINT16_MAX else m["current_distance"] / 100
-
-    t, rng = _array(msgs, cm, 1)
-    return t, rng[:, 0], "radar range (DISTANCE_SENSOR)"
-
-
-def _attitude(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
-    msgs = log.topic(topic)
-    if topic == TOPIC_GROUNDTRUTH:
-        t, q = _array(msgs, lambda m: m["quat_wxyz"], 4)
-        return t, _euler_deg(q), "ground truth"
-    if topic == TOPIC_OBSERVATION:
-        t, att = _array(msgs, lambda m: m["attitude_rad"], 3)
-        return t, np.degrees(att), "observation"
-    t, att = _array(msgs, lambda m: (m["roll"], m["pitch"], m["yaw"]), 3)
-    return t, np.degrees(att), "ATTITUDE"
-
-
-def _commands(log: FlightLog, topic: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(times, thrust_norm (N,), rates (N, 3))``."""
-    msgs = log.topic(topic)
-    if topic == TOPIC_MAVLINK_SETPOINT:
-        t, thrust = _array(msgs, lambda m: m["thrust"], 1)
-        _, rates = _array(
-            msgs, lambda m: (m["body_roll_rate"], m["body_pitch_rate"], m["body_yaw_rate"]), 3
-        )
-    else:
-        t, thrust = _array(msgs, lambda m: m["thrust_norm"], 1)
-        _, rates = _array(msgs, lambda m: m["rate_frd_rad_s"], 3)
-    return t, thrust[:, 0], rates
+def _series(log: FlightLog, panel: str, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """``(times (N,), values (N, width), label)`` of ``topic`` as :data:`SOURCES` reads it."""
+    get, label = next((g, lab) for t, g, lab in SOURCES[panel] if t == topic)
+    times, values = _array(log.topic(topic), get, _WIDTH[panel])
+    return times, values, label
 
 
 def _events(log: FlightLog) -> list[tuple[float, str]]:
@@ -300,14 +310,24 @@ def _mark_events(ax, events: list[tuple[float, str]], label: bool = False) -> No
             )
 
 
+def _last_result(log: FlightLog) -> dict[str, Any] | None:
+    """The episode's ``/episode/result``, else the companion's ``/companion/summary``."""
+    for topic in _RESULT_TOPICS:
+        msgs = log.topic(topic)
+        if msgs:
+            return msgs[-1]
+    return None
+
+
 def _title(log: FlightLog, kind: str) -> str:
     head = f"{log.path.name} — {kind} log"
     if log.truncated:
         head += " (TRUNCATED: readable prefix only)"
-    results = log.topic(TOPIC_RESULT)
-    if not results:
+    r = _last_result(log)
+    if r is None:
         return head + "\nno episode result"
-    r = results[-1]
+    if isinstance(r.get("result"), str):  # the companion's own account
+        return f"{head}\ncompanion: {r['result']} ({r.get('reason') or 'no reason given'})"
     if r.get("aborted"):
         verdict = "aborted"
     elif not r.get("landed"):
@@ -363,7 +383,8 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
-    wanted = {t for topics in _SOURCES.values() for t in topics} | {TOPIC_RESULT, TOPIC_EVENTS}
+    wanted = {t for rows in SOURCES.values() for t, _, _ in rows}
+    wanted |= {*_RESULT_TOPICS, TOPIC_EVENTS}
     log = read_log(path, topics=wanted)
     kind = _kind(set(log.schemas))  # every channel, read or not
     src = plot_sources(log)
@@ -378,7 +399,7 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
         if topic is None:
             _missing(ax_top, "no position\n" + _missing_line(src, "position"))
         else:
-            _, pos = _array(log.topic(topic), lambda m: m["pos_ned_m"], 3)
+            _, pos, _ = _series(log, "position", topic)
             ax_top.add_patch(
                 Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35)
             )
@@ -401,14 +422,19 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
         if topic is None:
             _missing(ax_alt, "no altitude or range\n" + _missing_line(src, "altitude"))
         else:
-            t, alt, label = _altitude(log, topic)
-            ax_alt.plot(t, alt, color="tab:blue", label=label)
+            t, alt, label = _series(log, "altitude", topic)
+            ax_alt.plot(t, alt[:, 0], color="tab:blue", label=label)
             radar = next(
-                (s for s in (TOPIC_OBSERVATION, TOPIC_MAVLINK_DISTANCE) if log.topic(s)), None
+                (
+                    t
+                    for t, _, lab in SOURCES["altitude"]
+                    if lab.startswith("radar") and log.topic(t)
+                ),
+                None,
             )
             if radar is not None and radar != topic:  # the measurement beside the truth
-                t2, rng, label2 = _altitude(log, radar)
-                ax_alt.plot(t2, rng, color="tab:orange", linewidth=0.8, label=label2)
+                t2, rng, label2 = _series(log, "altitude", radar)
+                ax_alt.plot(t2, rng[:, 0], color="tab:orange", linewidth=0.8, label=label2)
             ax_alt.legend(fontsize=8)
             ax_alt.grid(alpha=0.3)
             _mark_events(ax_alt, events, label=True)
@@ -420,13 +446,13 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
         if topic is None:
             _missing(ax_att, "no attitude\n" + _missing_line(src, "attitude"))
         else:
-            t, att, label = _attitude(log, topic)
+            t, att, label = _series(log, "attitude", topic)
             for k, name in enumerate(("roll", "pitch", "yaw")):
-                ax_att.plot(t, att[:, k], label=name)
+                ax_att.plot(t, np.degrees(att[:, k]), label=name)
             ax_att.legend(fontsize=8)
             ax_att.grid(alpha=0.3)
             _mark_events(ax_att, events)
-        ax_att.set_title(f"attitude, deg ({topic or 'missing'})", fontsize=10)
+        ax_att.set_title(f"attitude ({topic or 'missing'})", fontsize=10)
         ax_att.set_xlabel("time (s)")
         ax_att.set_ylabel("deg")
 
@@ -434,8 +460,9 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
         if topic is None:
             _missing(ax_cmd, "no commands\n" + _missing_line(src, "command"))
         else:
-            t, thrust, rates = _commands(log, topic)
-            ax_cmd.step(t, thrust, where="post", color="k", label="thrust_norm")
+            t, cmd, label = _series(log, "command", topic)
+            thrust, rates = cmd[:, 0], cmd[:, 1:]
+            ax_cmd.step(t, thrust, where="post", color="k", label=f"thrust_norm ({label})")
             ax_cmd.set_ylabel("thrust_norm")
             ax_cmd.set_ylim(-0.02, 1.02)
             ax_rate = ax_cmd.twinx()
