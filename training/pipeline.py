@@ -522,6 +522,8 @@ class Run:
     def stage_vision(self) -> dict[str, Any]:
         p = self.profile
         cfg, control, cnn = self._vision_policy()
+        prior_control = ControlLSTM(cfg)
+        prior_control.load_state_dict(control.state_dict())
         policy = LearnedPolicy(cfg, control, cnn)
         buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 50)
         names: list[str] = []
@@ -542,7 +544,18 @@ class Run:
             cnn,
             self.metadata("vision_bc", {"episodes": list(names), "fit": fits[-1]}),
         )
-        candidates = [str(ckpt)]
+        # candidate 0: the privileged controller as it is, fed by CNN + estimator. Fine-tuning on
+        # the expert's flights alone shrinks the controller's gain on the (noisy) position
+        # estimate — the expert stays over the pad, so position noise looks uncorrelated with
+        # its commands (regression dilution) — and validation decides which one flies better.
+        prior = save_checkpoint(
+            self.root / "checkpoints" / "vision_prior.pt",
+            cfg,
+            prior_control,
+            cnn,
+            self.metadata("vision_prior", {"controller": self.need("dagger")["checkpoint"]}),
+        )
+        candidates = [str(prior), str(ckpt)]
         for k in range(p.vision_rounds):
             name = f"vision_r{k}"
             logs = self.fly(str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
