@@ -430,20 +430,18 @@ class Run:
             rounds.append(rec)
         # model selection on validation flights (never on the evaluation seeds)
         candidates = [str(self.need("bc")["checkpoint"])] + [r["checkpoint"] for r in rounds]
-        scores = [self.validate(c, camera=False) for c in candidates]
-        best = min(scores, key=lambda r: r["score"])
-        final = self.root / "checkpoints" / "dagger.pt"
-        cfg, control, _, meta = load_networks(best["checkpoint"])
-        save_checkpoint(final, cfg, control, None, {**meta, "selected_from": scores})
         return self.finish(
-            "dagger",
-            {
-                "checkpoint": str(final),
-                "rounds": len(rounds),
-                "selected": best["checkpoint"],
-                "validation": scores,
-            },
+            "dagger", {"rounds": len(rounds), **self.select(candidates, camera=False, out="dagger")}
         )
+
+    def select(self, candidates: list[str], camera: bool, out: str) -> dict[str, Any]:
+        """Copy the candidate with the best validation score to ``checkpoints/<out>.pt``."""
+        scores = [self.validate(c, camera=camera) for c in candidates]
+        best = min(scores, key=lambda r: r["score"])
+        final = self.root / "checkpoints" / f"{out}.pt"
+        cfg, control, cnn, meta = load_networks(best["checkpoint"])
+        save_checkpoint(final, cfg, control, cnn, {**meta, "selected_from": scores})
+        return {"checkpoint": str(final), "selected": best["checkpoint"], "validation": scores}
 
     def validate(self, checkpoint: str, camera: bool) -> dict[str, Any]:
         """Fly the validation episodes; score = mean error + 10 m per failed episode."""
@@ -575,19 +573,8 @@ class Run:
                 self.metadata(name, {"episodes": list(names), "fit": fits[-1]}),
             )
             candidates.append(str(ckpt))
-        scores = [self.validate(c, camera=True) for c in candidates]
-        best = min(scores, key=lambda r: r["score"])
-        final = self.root / "checkpoints" / "vision.pt"
-        cfg, control, cnn, meta = load_networks(best["checkpoint"])
-        save_checkpoint(final, cfg, control, cnn, {**meta, "selected_from": scores})
         return self.finish(
-            "vision",
-            {
-                "checkpoint": str(final),
-                "fits": fits,
-                "selected": best["checkpoint"],
-                "validation": scores,
-            },
+            "vision", {"fits": fits, **self.select(candidates, camera=True, out="vision")}
         )
 
     def stage_eval(self) -> dict[str, Any]:
