@@ -114,8 +114,8 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   validation frames (episode split 90/10); validation bearing error median
   {_fmt(perception.get("val_bearing_error_px_median"), 2)} px, p95
   {_fmt(perception.get("val_bearing_error_px_p95"), 2)} px.
-- training time on this machine (2 CPU cores): {total_s / 60:.1f} min for the whole pipeline,
-  evaluation included.
+- pipeline wall time recorded in `pipeline_time.json` (2 CPU cores): {total_s / 60:.1f} min
+  over {len(session_times)} completed session(s); an interrupted session is not recorded.
 
 ## Results ({metrics["episodes"]} evaluation episodes, seed {metrics["eval_seed"]}, disjoint from
 training)
