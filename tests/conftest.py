@@ -28,3 +28,27 @@ def quiet_cfg(sim_cfg: SimConfig) -> SimConfig:
 def scene():
     with Scene() as s:
         yield s
+
+
+LOW_SCENARIO = """
+[initial_state]
+roll_pitch_deg = [-1.5, 1.5]
+yaw_deg = [-180.0, 180.0]
+north_east_m = [-1.0, 1.0]
+altitude_m = [5.0, 6.0]
+vel_north_east_m_s = [-0.2, 0.2]
+vel_down_m_s = [0.0, 0.2]
+rate_rad_s = [0.0, 0.0]
+sampler = "uniform"
+[world]
+planet = "earth"
+"""
+"""Short flights from 5-6 m over the pad (SITL, companion and log tests)."""
+
+
+@pytest.fixture(scope="session")
+def low_scenario(tmp_path_factory) -> str:
+    """Path of a scenario file with :data:`LOW_SCENARIO`."""
+    path = tmp_path_factory.mktemp("scenario") / "low.toml"
+    path.write_text(LOW_SCENARIO)
+    return str(path)

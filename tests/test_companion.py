@@ -37,20 +37,6 @@ from tools.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 
-LOW_SCENARIO = """
-[initial_state]
-roll_pitch_deg = [-1.5, 1.5]
-yaw_deg = [-180.0, 180.0]
-north_east_m = [-1.0, 1.0]
-altitude_m = [5.0, 6.0]
-vel_north_east_m_s = [-0.2, 0.2]
-vel_down_m_s = [0.0, 0.2]
-rate_rad_s = [0.0, 0.0]
-sampler = "uniform"
-[world]
-planet = "earth"
-"""
-
 
 class _Msg(SimpleNamespace):
     """A stand-in for a decoded pymavlink message (its fields and get_type())."""
@@ -371,13 +357,6 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
 
 
 # --------------------------------------------------------------------------- flight cards
-
-
-@pytest.fixture(scope="module")
-def low_scenario(tmp_path_factory) -> str:
-    path = tmp_path_factory.mktemp("scenario") / "low.toml"
-    path.write_text(LOW_SCENARIO)
-    return str(path)
 
 
 class _Procs:

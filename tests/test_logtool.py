@@ -34,20 +34,6 @@ from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
 from tools.sitl_client import SitlClient
 from training.rollout import fly_episode, make_policy
 
-LOW_SCENARIO = """
-[initial_state]
-roll_pitch_deg = [-1.5, 1.5]
-yaw_deg = [-180.0, 180.0]
-north_east_m = [-1.0, 1.0]
-altitude_m = [5.0, 6.0]
-vel_north_east_m_s = [-0.2, 0.2]
-vel_down_m_s = [0.0, 0.2]
-rate_rad_s = [0.0, 0.0]
-sampler = "uniform"
-[world]
-planet = "earth"
-"""
-
 
 def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -56,11 +42,10 @@ def _free_udp_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory) -> dict[str, Path]:
+def logs(tmp_path_factory, low_scenario: str) -> dict[str, Path]:
     """One log of each kind (plus a truncated copy of the rollout log)."""
     root = tmp_path_factory.mktemp("logs")
-    scenario = root / "low.toml"
-    scenario.write_text(LOW_SCENARIO)
+    scenario = Path(low_scenario)
 
     env = LandingEnv(scenario=str(scenario), render_camera=False)
     try:

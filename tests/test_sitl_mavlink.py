@@ -56,19 +56,6 @@ from tools.sitl_client import (
 REPO = Path(__file__).resolve().parent.parent
 ACCEPTED = int(MavResult.ACCEPTED)
 
-LOW_SCENARIO = """
-[initial_state]
-roll_pitch_deg = [-1.5, 1.5]
-yaw_deg = [-180.0, 180.0]
-north_east_m = [-1.0, 1.0]
-altitude_m = [5.0, 6.0]
-vel_north_east_m_s = [-0.2, 0.2]
-vel_down_m_s = [0.0, 0.2]
-rate_rad_s = [0.0, 0.0]
-sampler = "uniform"
-[world]
-planet = "earth"
-"""
 
 # --------------------------------------------------------------------------- fixtures
 
@@ -94,13 +81,6 @@ def ports() -> SimpleNamespace:
         gcs=_free_udp_port(),
         gcs_remote=_free_udp_port(),
     )
-
-
-@pytest.fixture(scope="module")
-def low_scenario(tmp_path_factory) -> str:
-    path = tmp_path_factory.mktemp("scenario") / "low.toml"
-    path.write_text(LOW_SCENARIO)
-    return str(path)
 
 
 class _Runner:

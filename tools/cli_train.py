@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 __all__ = ["register_training"]
@@ -86,7 +85,3 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
     sh.add_argument("--out", type=Path, default=Path("models"))
     sh.set_defaults(func=_cmd_ship)
-
-
-if __name__ == "__main__":
-    sys.exit(0)

@@ -443,22 +443,28 @@ class Run:
         save_checkpoint(final, cfg, control, cnn, {**meta, "selected_from": scores})
         return {"checkpoint": str(final), "selected": best["checkpoint"], "validation": scores}
 
-    def validate(self, checkpoint: str, camera: bool) -> dict[str, Any]:
-        """Fly the validation episodes; score = mean error + 10 m per failed episode."""
+    def evaluate(
+        self, policy: str, episodes: int, seed: int, camera: bool, progress: bool
+    ) -> dict[str, Any]:
+        """``training.evaluate.evaluate`` on this run's scenario and workers."""
         from training.evaluate import EvalConfig, evaluate
 
-        p = self.profile
-        rep = evaluate(
+        return evaluate(
             EvalConfig(
-                policy=checkpoint,
-                episodes=p.validation_episodes,
-                seed=p.validation_seed,
+                policy=policy,
+                episodes=episodes,
+                seed=seed,
                 scenario=self.scenario_path,
-                workers=p.workers,
+                workers=self.profile.workers,
                 render_camera=camera,
-                progress=False,
+                progress=progress,
             )
         )
+
+    def validate(self, checkpoint: str, camera: bool) -> dict[str, Any]:
+        """Fly the validation episodes; score = mean error + 10 m per failed episode."""
+        p = self.profile
+        rep = self.evaluate(checkpoint, p.validation_episodes, p.validation_seed, camera, False)
         mean = rep["landing_error_m"]["mean"]
         score = (mean if mean is not None else 100.0) + 10.0 * (1.0 - rep["success_rate"])
         out = {
@@ -578,8 +584,6 @@ class Run:
         )
 
     def stage_eval(self) -> dict[str, Any]:
-        from training.evaluate import EvalConfig, evaluate
-
         p = self.profile
         rows = {}
         policies = [
@@ -589,17 +593,7 @@ class Run:
             ("vision", self.need("vision")["checkpoint"], True),
         ]
         for row, policy, camera in policies:
-            report = evaluate(
-                EvalConfig(
-                    policy=policy,
-                    episodes=p.eval_episodes,
-                    seed=p.eval_seed,
-                    scenario=self.scenario_path,
-                    workers=p.workers,
-                    render_camera=camera,
-                    progress=self.progress,
-                )
-            )
+            report = self.evaluate(policy, p.eval_episodes, p.eval_seed, camera, self.progress)
             rows[row] = report
             self.say(
                 f"eval {row}: mean error {report['landing_error_m']['mean']:.3f} m, "
