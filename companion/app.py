@@ -67,9 +67,24 @@ class CompanionConfig:
     )
     camera_fx_px: float | None = _opt(None, "real camera: focal length fx in pixels", float)
     camera_hfov_deg: float | None = _opt(None, "real camera: horizontal FOV (no intrinsics)", float)
+    camera_cx_px: float | None = _opt(
+        None, "real camera: principal point cx (default: centre)", float
+    )
+    camera_cy_px: float | None = _opt(
+        None, "real camera: principal point cy (default: centre)", float
+    )
     camera_rotate_deg: int = _opt(0, "real camera: rotation (CCW) so image top = body forward")
+    camera_rate_hz: float = _opt(
+        10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
+    )
     policy: str = _opt("", "policy checkpoint (visland companion also takes expert | cascade)")
-    torch_threads: int = _opt(1, "torch intra-op threads for the policy")
+    runtime: str = _opt(
+        "torch",
+        "learned policy backend: torch, or onnx (ONNX Runtime on the visland export-onnx "
+        "graphs beside the checkpoint; pip install 'visland[onnx]')",
+        choices=("torch", "onnx"),
+    )
+    torch_threads: int = _opt(1, "intra-op threads for the policy (torch or ONNX Runtime)")
     shadow: bool = _opt(False, "compute and log every command; send no setpoint, no mode change")
     arm: bool = _opt(False, "arm when disarmed (SITL demo only; on hardware the pilot arms)")
     flights: int = _opt(1, "flights to fly before exiting (0: until stopped)")
@@ -100,6 +115,13 @@ class CompanionConfig:
             raise CompanionError(f"max_age_ms = {self.max_age_ms}; expected > 0")
         if self.camera_rotate_deg % 90:
             raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
+        if self.camera.startswith("opencv:"):
+            from companion.camera import CameraError, check_intrinsics
+
+            try:
+                check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
+            except CameraError as exc:
+                raise CompanionError(f"camera {self.camera!r}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -185,7 +207,10 @@ def _open_camera(cfg: CompanionConfig):
         opts = {
             "fx_px": cfg.camera_fx_px,
             "hfov_deg": cfg.camera_hfov_deg,
+            "cx_px": cfg.camera_cx_px,
+            "cy_px": cfg.camera_cy_px,
             "rotate_deg": cfg.camera_rotate_deg,
+            "rate_hz": cfg.camera_rate_hz,
         }
     return open_camera(cfg.camera, **opts)
 
@@ -449,7 +474,7 @@ def run_from_args(
         if resolve_policy is None:
             from companion.runtime import load_policy_file
 
-            policy = load_policy_file(cfg.policy, cfg.torch_threads)
+            policy = load_policy_file(cfg.policy, cfg.torch_threads, cfg.runtime)
         else:
             policy = resolve_policy(cfg.policy, cfg)
         if args.replay is not None:

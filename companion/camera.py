@@ -6,8 +6,8 @@ with a 45° full field of view, row 0 = body forward, column 0 = body left.
 * :class:`OpenCvCameraSource` — a real camera: an OpenCV device index, a video file or a
   GStreamer pipeline. Each frame is turned to mono8, centre-cropped to the 45° field of view
   given the camera's focal length (from intrinsics ``fx`` or its horizontal FOV), rotated for
-  the mounting and resized to 128×128 (:func:`fit_to_policy`). Time stamps on the companion's
-  monotonic clock.
+  the mounting and resized to 128×128 (:func:`fit_to_policy`); frames are handed on at the
+  policy's control rate (10 Hz). Time stamps on the companion's monotonic clock.
 * :class:`McapReplaySource` — the frames of a flight log (``/camera/image``), paced as recorded
   or as fast as they are read.
 
@@ -41,6 +41,7 @@ __all__ = [
     "OpenCvCameraSource",
     "ReceivedFrame",
     "UdpCameraSource",
+    "check_intrinsics",
     "fit_to_policy",
     "focal_px_from_fov",
     "open_camera",
@@ -236,17 +237,68 @@ class UdpCameraSource:
 # --------------------------------------------------------------------------- OpenCV
 
 
+def check_intrinsics(fx_px: float | None, hfov_deg: float | None) -> None:
+    """Check a real camera's lens description before any frame is read.
+
+    Exactly one of ``fx_px`` (focal length in pixels, from a calibration) or ``hfov_deg`` (the
+    lens' horizontal field of view) is given; a horizontal FOV must be wider than the policy's
+    45° (the crop cannot invent pixels). Whether an ``fx`` fits is known only with the frame
+    size (:func:`fit_to_policy` on the first frame).
+
+    Raises:
+        CameraError: naming the value and what was expected.
+    """
+    if (fx_px is None) == (hfov_deg is None):
+        raise CameraError(
+            "give exactly one of camera_fx_px (intrinsics, pixels) or camera_hfov_deg (lens "
+            f"FOV), got fx_px = {fx_px}, hfov_deg = {hfov_deg}"
+        )
+    if fx_px is not None and not (math.isfinite(fx_px) and fx_px > 0):
+        raise CameraError(f"camera_fx_px = {fx_px}; expected a focal length > 0 px")
+    if hfov_deg is not None:
+        if not (math.isfinite(hfov_deg) and 0.0 < hfov_deg < 180.0):
+            raise CameraError(f"camera_hfov_deg = {hfov_deg}; expected in (0, 180)")
+        if hfov_deg <= CAMERA_FOV_DEG:
+            raise CameraError(
+                f"camera_hfov_deg = {hfov_deg}: a lens narrower than the policy's "
+                f"{CAMERA_FOV_DEG:g}° field of view cannot be cropped to it (use a wider lens)"
+            )
+
+
+def _has_gstreamer(cv2) -> bool:
+    for line in cv2.getBuildInformation().splitlines():
+        if line.strip().startswith("GStreamer:"):
+            return "YES" in line
+    return False
+
+
 class OpenCvCameraSource:
-    """A real camera through OpenCV (``opencv-python-headless``): device index, file or
-    GStreamer pipeline. A reader thread grabs frames; ``poll`` returns the newest ones.
+    """A real camera through OpenCV (``opencv-python-headless``, the ``camera`` extra):
+    device index, video file or GStreamer pipeline. A reader thread grabs frames, hands the
+    policy one every ``1 / rate_hz`` seconds (its control period: a 30 fps camera is decimated
+    to 10 Hz, the rate the LSTM and the estimator were trained at) and ``poll`` returns them.
+
+    The first frame is read when the source opens, so a camera that gives nothing, or whose
+    field of view cannot hold the 45° crop, fails here with a :class:`CameraError` instead of
+    silently never delivering a frame.
 
     Args:
-        spec: ``"0"`` (device index), a file path, or a GStreamer pipeline (contains ``!``).
+        spec: ``"0"`` (device index), a file path, or a GStreamer pipeline (contains ``!``,
+            needs an OpenCV built with GStreamer: the distribution's ``python3-opencv``; the
+            pip wheels have none).
         fx_px: focal length in pixels (camera matrix ``fx``); or give ``hfov_deg``.
         hfov_deg: the camera's horizontal field of view, when intrinsics are not known.
         cx_px / cy_px: principal point (default: image centre).
         rotate_deg: mounting rotation so the image top is body forward (multiple of 90).
+        rate_hz: frames handed on per second (None: every frame). Decimation follows the
+            capture time: the wall clock for a device or pipeline, the media time for a file.
+        realtime: a file plays at its recorded speed (False: as fast as it decodes, no frame
+            dropped — for tests and offline checks). Devices and pipelines are live anyway.
         loop: restart a video file at its end (bench/demo).
+
+    Counters: ``bad_frames`` (unreadable or unfit frames), ``dropped`` (live frames the flight
+    loop did not take in time), ``decimated`` (frames skipped for ``rate_hz``); ``ended`` when
+    a file (or a device) stopped giving frames.
     """
 
     clock: Clock = "companion"
@@ -260,68 +312,149 @@ class OpenCvCameraSource:
         cx_px: float | None = None,
         cy_px: float | None = None,
         rotate_deg: int = 0,
+        rate_hz: float | None = 10.0,
+        realtime: bool = True,
         loop: bool = False,
     ) -> None:
         try:
-            import cv2  # optional: pip install opencv-python-headless
+            import cv2  # optional: pip install 'visland[camera]' (opencv-python-headless)
         except ImportError:
             raise CameraError(
-                f"camera {spec!r}: OpenCV is not installed (pip install opencv-python-headless)"
+                f"camera {spec!r}: OpenCV is not installed (pip install 'visland[camera]', i.e. "
+                "opencv-python-headless; on a Pi/Jetson: apt install python3-opencv)"
             ) from None
-        if (fx_px is None) == (hfov_deg is None):
-            raise CameraError("camera: give exactly one of fx_px (intrinsics) or hfov_deg")
+        try:
+            check_intrinsics(fx_px, hfov_deg)
+        except CameraError as exc:
+            raise CameraError(f"camera {spec!r}: {exc}") from None
+        if rotate_deg % 90 != 0:
+            raise CameraError(f"camera {spec!r}: rotate_deg = {rotate_deg}; a multiple of 90")
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise CameraError(f"camera {spec!r}: rate_hz = {rate_hz}; expected > 0 (or None)")
         self._cv2 = cv2
+        self.live = spec.isdigit() or "!" in spec
         if spec.isdigit():
             cap = cv2.VideoCapture(int(spec))
         elif "!" in spec:
+            if not _has_gstreamer(cv2):
+                raise CameraError(
+                    f"camera {spec!r}: a GStreamer pipeline, but this OpenCV "
+                    f"({cv2.__version__}) is built without GStreamer (the pip wheels are); "
+                    "install the distribution's python3-opencv"
+                )
             cap = cv2.VideoCapture(spec, cv2.CAP_GSTREAMER)
         else:
-            if not Path(spec).exists():
+            if not Path(spec).is_file():
                 raise CameraError(f"camera file {spec!r} does not exist")
             cap = cv2.VideoCapture(spec)
         if not cap.isOpened():
             raise CameraError(f"camera {spec!r}: OpenCV could not open it")
         self.spec = spec
         self._cap = cap
-        self._fx, self._hfov = fx_px, hfov_deg
         self._cx, self._cy, self._rot = cx_px, cy_px, rotate_deg
-        self._loop = loop
+        self._period = None if rate_hz is None else 1.0 / rate_hz
+        self._realtime = realtime and not self.live
+        self._loop = loop and not self.live
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.fps = fps if math.isfinite(fps) and 0 < fps < 1000 else 30.0
+        ok, first = cap.read()
+        if not ok or first is None:
+            cap.release()
+            raise CameraError(f"camera {spec!r}: opened, but no frame could be read")
+        self.frame_size_px = (int(first.shape[1]), int(first.shape[0]))
+        self.fx_px = fx_px if fx_px is not None else focal_px_from_fov(first.shape[1], hfov_deg)
+        try:
+            self._fit(first)
+        except CameraError as exc:
+            cap.release()
+            raise CameraError(f"camera {spec!r}: {exc}") from None
+        self._first = first
         self._queue: queue.Queue[ReceivedFrame] = queue.Queue(maxsize=4)
         self._rfd, self._wfd = os.pipe()
         os.set_blocking(self._rfd, False)
         self._stop = threading.Event()
         self.bad_frames = 0
         self.dropped = 0
+        self.decimated = 0
         self.ended = False
         self._thread = threading.Thread(target=self._reader, daemon=True, name="camera")
         self._thread.start()
 
-    def _reader(self) -> None:
-        frame_id = 0
+    def _fit(self, raw: np.ndarray) -> np.ndarray:
+        return fit_to_policy(raw, self.fx_px, cx_px=self._cx, cy_px=self._cy, rotate_deg=self._rot)
+
+    def _media_time_s(self, index: int) -> float:
+        """A file frame's media time (container timestamps; ``index / fps`` if it has none)."""
+        ms = float(self._cap.get(self._cv2.CAP_PROP_POS_MSEC) or 0.0)
+        return ms / 1000.0 if ms > 0 or index == 0 else index / self.fps
+
+    def _put(self, frame: ReceivedFrame) -> bool:
+        """Hand a frame on: a live camera drops the oldest waiting one, a file waits."""
         while not self._stop.is_set():
-            ok, raw = self._cap.read()
-            if not ok:
-                if self._loop and not self.spec.isdigit():
-                    self._cap.set(self._cv2.CAP_PROP_POS_FRAMES, 0)
-                    continue
-                self.ended = True
-                return
-            rx = time.monotonic()
-            try:
-                fx = self._fx or focal_px_from_fov(raw.shape[1], self._hfov or CAMERA_FOV_DEG)
-                image = fit_to_policy(raw, fx, cx_px=self._cx, cy_px=self._cy, rotate_deg=self._rot)
-            except CameraError:
-                self.bad_frames += 1
-                continue
-            if self._queue.full():
+            if self.live and self._queue.full():
                 try:
                     self._queue.get_nowait()
                     self.dropped += 1
                 except queue.Empty:
                     pass
-            self._queue.put(ReceivedFrame(frame_id, rx, image, rx))
-            frame_id += 1
+            try:
+                self._queue.put(frame, timeout=0.05)
+            except queue.Full:
+                continue
             os.write(self._wfd, b"x")
+            return True
+        return False
+
+    def _reader(self) -> None:
+        frame_id = 0  # frames read (the id a frame keeps, decimated or not)
+        raw: np.ndarray | None = self._first
+        self._first = None
+        start_wall = time.monotonic()
+        offset_s = 0.0  # media time of a looped file keeps increasing
+        last_media = 0.0
+        next_due: float | None = None
+        while not self._stop.is_set():
+            if raw is None:
+                ok, raw = self._cap.read()
+                if not ok or raw is None:
+                    if self._loop:
+                        self._cap.set(self._cv2.CAP_PROP_POS_FRAMES, 0)
+                        offset_s = last_media + 1.0 / self.fps
+                        raw = None
+                        continue
+                    self.ended = True
+                    return
+            rx = time.monotonic()
+            t = rx if self.live else offset_s + self._media_time_s(frame_id)
+            last_media = t
+            if self._realtime:  # play a file at its recorded speed
+                delay = start_wall + t - rx
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                rx = time.monotonic()
+            take = True
+            if self._period is not None:
+                # a frame is due every period; accept one a little early (a quarter of a
+                # camera frame interval) so 30 fps -> 10 Hz takes every third frame on jitter
+                slack = 0.25 / self.fps
+                if next_due is not None and t < next_due - slack:
+                    take = False
+                else:
+                    next_due = t + self._period if next_due is None else next_due + self._period
+                    if next_due < t - self._period:  # fell behind (a stall): resynchronise
+                        next_due = t + self._period
+            if not take:
+                self.decimated += 1
+            else:
+                try:
+                    image = self._fit(raw)
+                except CameraError:
+                    self.bad_frames += 1
+                else:
+                    if not self._put(ReceivedFrame(frame_id, rx, image, rx)):
+                        return
+            frame_id += 1
+            raw = None
 
     def fileno(self) -> int | None:
         return self._rfd

@@ -1,7 +1,8 @@
 """The policy runtime: one policy, its recurrent state held explicitly, one command per frame.
 
 Any object with the :class:`PolicyLike` shape flies: the learned CNN+LSTM
-(:func:`companion.policy_net.load_policy`, torch on the CPU), or — wired in by ``tools/`` — the
+(:func:`load_policy_file`: torch on the CPU, or its networks in ONNX Runtime — ``runtime =
+"onnx"``, :mod:`companion.onnx_runtime`), or — wired in by ``tools/`` — the
 MPC expert and the cascade lander for SITL runs. ``reset()`` starts a flight afresh
 (``initial_state()``); ``step()`` never raises: a policy exception or a non-finite command comes
 back as ``StepResult.error``, which the safety monitor turns into a failsafe.
@@ -16,7 +17,11 @@ from typing import Any, Protocol, runtime_checkable
 
 from companion.contract import Command, Observation
 
-__all__ = ["PolicyLike", "PolicyRuntime", "StepResult", "load_policy_file"]
+__all__ = ["RUNTIMES", "PolicyLike", "PolicyRuntime", "StepResult", "load_policy_file"]
+
+RUNTIMES = ("torch", "onnx")
+"""Backends of a learned checkpoint: ``torch`` (the checkpoint itself) or ``onnx`` (its
+``visland export-onnx`` graphs in ONNX Runtime; same geometry/estimator code in Python)."""
 
 
 @runtime_checkable
@@ -120,19 +125,33 @@ class PolicyRuntime:
         return StepResult(command, None, time.perf_counter() - t0)
 
 
-def load_policy_file(path: str | Path, torch_threads: int = 1) -> PolicyLike:
-    """A learned-policy checkpoint for the CPU (torch, explicit LSTM state).
+def load_policy_file(
+    path: str | Path, torch_threads: int = 1, runtime: str = "torch"
+) -> PolicyLike:
+    """A learned-policy checkpoint for the CPU (explicit LSTM state).
 
-    ``torch_threads`` limits torch's intra-op threads: on a small board one thread gives the
-    steadiest latency and leaves a core to the link and the camera.
+    ``runtime``: ``torch`` runs the checkpoint's networks in torch; ``onnx`` runs its
+    ``visland export-onnx`` graphs (beside the checkpoint, checked to be exported from it) in
+    ONNX Runtime — the optional ``onnx`` extra. ``torch_threads`` limits the intra-op threads
+    of either: on a small board one thread gives the steadiest latency and leaves a core to the
+    link and the camera.
 
     Raises:
         companion.policy_net.CheckpointError: not a readable checkpoint (names the file).
+        companion.onnx_runtime.OnnxModelError: runtime onnx: onnxruntime missing, or an ONNX
+            file missing, corrupt or stale (names the file and the fix).
+        ValueError: an unknown ``runtime``.
     """
     import torch
 
-    from companion.policy_net import load_policy
-
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
     if torch_threads > 0:
         torch.set_num_threads(torch_threads)
+    if runtime == "onnx":
+        from companion.onnx_runtime import load_onnx_policy
+
+        return load_onnx_policy(path, threads=max(1, torch_threads))
+    from companion.policy_net import load_policy
+
     return load_policy(path)

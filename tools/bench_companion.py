@@ -1,23 +1,100 @@
 """Companion latency: frame receipt -> setpoint handed to the OS, read from companion logs.
 
-``python -m tools.bench_companion LOG...`` reads existing companion logs;
-without logs it first flies (``visland fly``: SITL + companion processes, lockstep, camera
-rendered) a policy — by default ``untrained``, a randomly initialised network of the shipped
-size, which is what the latency depends on — and reads the logs of that run. Prints median /
-p90 / p99 / max of the latency and of the policy's share of it.
+``visland bench companion [--checkpoint CKPT] [--runtime torch|onnx]`` flies (``visland
+fly``: SITL + companion processes, lockstep, camera rendered) the checkpoint — by default the
+shipped ``models/visland_vision.pt`` — with the chosen policy backend, and reads the latency
+of every sent policy command from the companion's logs: median / p90 / p99 / max, and the
+policy's share of it. ``runtime = onnx`` exports the checkpoint first (into the run folder, so
+nothing is written beside the checkpoint).
+
+In the same run, the first flight's recorded frames and telemetry are replayed in this process
+through *both* backends, one thread each, alternating (:func:`compare_runtimes`): the per-step
+policy time of torch and ONNX Runtime on identical inputs — a fair ratio even on a shared,
+noisy machine — and how far each backend's commands are from the ones flown.
+
+``python -m tools.bench_companion LOG...`` reads existing companion logs instead;
+``--policy untrained`` flies a randomly initialised network of the shipped size (what the
+latency depends on) and ``--policy expert`` the MPC.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from companion.record import latency_stats
 
-__all__ = ["bench_companion", "main"]
+__all__ = ["bench_companion", "compare_runtimes", "format_bench", "main"]
+
+DEFAULT_CHECKPOINT = "models/visland_vision.pt"
+
+
+class _Timed:
+    """A PolicyLike that records the wall time of each ``act`` of the policy it wraps."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+        self.privileged = bool(getattr(policy, "privileged", False))
+        self.samples: list[float] = []
+
+    def initial_state(self) -> Any:
+        return self.policy.initial_state()
+
+    def act(self, observation: Any, groundtruth: Any, state: Any):
+        t0 = time.perf_counter()
+        out = self.policy.act(observation, groundtruth, state)
+        self.samples.append(time.perf_counter() - t0)
+        return out
+
+
+def compare_runtimes(checkpoint: str | Path, log: str | Path, rounds: int = 2) -> dict[str, Any]:
+    """Replay ``log`` (a companion log of ``checkpoint``) through the torch and the ONNX
+    backend, one intra-op thread each, ``rounds`` times alternating. ONNX graphs must be
+    beside the checkpoint (``visland export-onnx``).
+
+    Returns per backend the policy step median / p99 (ms) over every replayed step, and the
+    largest |difference| of its commands from the recorded ones (the backend that flew the log
+    gives its own commands back; the other shows how far the two backends are apart).
+    """
+    from companion.record import replay_log
+    from companion.runtime import PolicyRuntime, load_policy_file
+
+    policies = {name: load_policy_file(checkpoint, 1, name) for name in ("torch", "onnx")}
+    samples: dict[str, list[float]] = {name: [] for name in policies}
+    diffs: dict[str, float] = {}
+    steps: dict[str, int] = {}
+    for _ in range(rounds):
+        for name, policy in policies.items():
+            runtime = PolicyRuntime(policy, name)
+            error = runtime.warm_up()
+            if error is not None:
+                raise ValueError(f"{checkpoint} ({name}): fails on a synthetic hover: {error}")
+            timed = _Timed(policy)
+            report = replay_log(log, PolicyRuntime(timed, name))
+            if report.errors:
+                raise ValueError(f"replay of {log} with {name}: {report.errors[:3]}")
+            samples[name] += timed.samples
+            diffs[name] = max(diffs.get(name, 0.0), report.max_abs_diff)
+            steps[name] = report.commands
+    out: dict[str, Any] = {"log": str(log), "rounds": rounds, "threads": 1}
+    for name, values in samples.items():
+        arr = np.asarray(values) * 1e3
+        out[name] = {
+            "steps": steps[name],
+            "median_ms": float(np.median(arr)),
+            "p99_ms": float(np.percentile(arr, 99)),
+            "max_abs_diff_vs_flown": diffs[name],
+        }
+    out["onnx_speedup"] = out["torch"]["median_ms"] / out["onnx"]["median_ms"]
+    return out
 
 
 def bench_companion(
@@ -26,51 +103,116 @@ def bench_companion(
     episodes: int = 3,
     seed: int = 0,
     scenario: str | None = None,
+    runtime: str = "torch",
+    compare: bool = True,
 ) -> dict[str, Any]:
-    """Latency figures from ``logs``, or from a fresh ``fly`` run of ``policy``."""
-    source: dict[str, Any]
-    if not logs:
-        from tools.fly import FlyConfig, fly
+    """Latency figures from ``logs``, or from a fresh ``fly`` run of ``policy`` on ``runtime``
+    (``torch`` | ``onnx``); with ``compare`` and a checkpoint file, also
+    :func:`compare_runtimes` on the run's first flight."""
+    if logs:
+        return {"logs": [str(p) for p in logs], **latency_stats(list(logs))}
+    from companion.runtime import RUNTIMES
+    from tools.fly import FlyConfig, fly
 
-        report = fly(
-            FlyConfig(
-                policy=policy,
-                episodes=episodes,
-                seed=seed,
-                scenario=scenario,
-                render=True,
-                progress=False,
-            )
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
+    is_file = policy not in ("untrained", "untrained-privileged", "expert", "cascade")
+    if is_file and not Path(policy).is_file():
+        raise FileNotFoundError(f"{policy}: no such checkpoint file")
+    if runtime == "onnx" and not is_file:
+        raise ValueError(f"--runtime onnx needs a checkpoint file, not {policy!r}")
+    run = Path(tempfile.mkdtemp(prefix="visland_bench_companion_"))
+    flown = Path(policy)
+    if is_file and (runtime == "onnx" or compare):
+        # the ONNX graphs are exported beside a copy, never beside the user's checkpoint
+        from companion.onnx_runtime import export_onnx
+
+        flown = run / "policy" / Path(policy).name
+        flown.parent.mkdir(parents=True)
+        shutil.copyfile(policy, flown)
+        export_onnx(flown)
+    report = fly(
+        FlyConfig(
+            policy=str(flown) if is_file else policy,
+            episodes=episodes,
+            seed=seed,
+            scenario=scenario,
+            render=True,
+            progress=False,
+            out=str(run / "fly"),
+            companion_args=("--runtime", runtime),
         )
-        logs = sorted((Path(report["out"]) / "companion").glob("*.mcap"))
-        source = {"policy": policy, "episodes": episodes, "seed": seed, "run": report["out"]}
-    else:
-        source = {"logs": [str(p) for p in logs]}
-    return {**source, **latency_stats(list(logs))}
+    )
+    logs = sorted((Path(report["out"]) / "companion").glob("*.mcap"))
+    res: dict[str, Any] = {
+        "policy": policy,
+        "runtime": runtime,
+        "episodes": episodes,
+        "seed": seed,
+        "success_rate": report["success_rate"],
+        "run": str(run),
+        **latency_stats(list(logs)),
+    }
+    if is_file and compare and logs:
+        res["compare"] = compare_runtimes(flown, logs[0])
+    return res
+
+
+def format_bench(res: dict[str, Any]) -> str:
+    """The human-readable lines of a :func:`bench_companion` result."""
+    where = f"runtime {res['runtime']}, {res['policy']}, " if "runtime" in res else ""
+    lines = [
+        f"frame receipt -> setpoint sent ({where}{res['commands']} commands"
+        + (f", {res['episodes']} episodes" if "episodes" in res else "")
+        + f"): median {res['median_ms']:.2f} ms, p90 {res['p90_ms']:.2f} ms, "
+        f"p99 {res['p99_ms']:.2f} ms, max {res['max_ms']:.2f} ms "
+        f"(policy: median {res['policy_median_ms']:.2f} ms, p99 {res['policy_p99_ms']:.2f} ms)"
+    ]
+    cmp = res.get("compare")
+    if cmp:
+        t, o = cmp["torch"], cmp["onnx"]
+        lines.append(
+            f"same run, the first flight's {t['steps']} frames replayed here, one thread: "
+            f"policy step torch median {t['median_ms']:.3f} ms (p99 {t['p99_ms']:.3f}), "
+            f"onnx median {o['median_ms']:.3f} ms (p99 {o['p99_ms']:.3f}) -> onnx "
+            f"{cmp['onnx_speedup']:.2f}x faster"
+        )
+        lines.append(
+            f"commands vs the flown ones ({res['runtime']}): torch max |diff| "
+            f"{t['max_abs_diff_vs_flown']:.2g}, onnx max |diff| {o['max_abs_diff_vs_flown']:.2g}"
+        )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from tools.fly import FlyError
+
     p = argparse.ArgumentParser(prog="python -m tools.bench_companion", description=__doc__)
     p.add_argument("logs", nargs="*", type=Path, help="companion MCAP logs (none: fly first)")
     p.add_argument("--policy", default="untrained", help="untrained | expert | checkpoint")
+    p.add_argument("--runtime", choices=("torch", "onnx"), default="torch")
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scenario", default=None)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
-    res = bench_companion(args.logs, args.policy, args.episodes, args.seed, args.scenario)
+    try:
+        res = bench_companion(
+            args.logs, args.policy, args.episodes, args.seed, args.scenario, args.runtime
+        )
+    except (ValueError, OSError) as exc:
+        print(f"{p.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except FlyError as exc:
+        print(f"{p.prog}: failed: {exc}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(res, indent=2))
     elif not res.get("commands"):
         print("no sent policy commands in those logs", file=sys.stderr)
         return 1
     else:
-        print(
-            f"frame receipt -> setpoint sent over {res['commands']} commands: median "
-            f"{res['median_ms']:.2f} ms, p90 {res['p90_ms']:.2f} ms, p99 {res['p99_ms']:.2f} ms, "
-            f"max {res['max_ms']:.2f} ms (policy: median {res['policy_median_ms']:.2f} ms, "
-            f"p99 {res['policy_p99_ms']:.2f} ms)"
-        )
+        print(format_bench(res))
     return 0
 
 

@@ -240,6 +240,28 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 f"paper's reported policy step: {res['paper_reported_ms']} ms"
             )
         return 0
+    if args.what == "companion":
+        from tools.bench_companion import DEFAULT_CHECKPOINT, bench_companion, format_bench
+        from tools.fly import FlyError
+
+        try:
+            res = bench_companion(
+                policy=args.checkpoint or DEFAULT_CHECKPOINT,
+                episodes=args.episodes,
+                seed=args.seed,
+                runtime=args.runtime,
+            )
+        except FlyError as exc:
+            print(f"visland bench companion: failed: {exc}", file=sys.stderr)
+            return 1
+        if args.json:
+            _print_json(res)
+        elif not res.get("commands"):
+            print("visland bench companion: no sent policy commands", file=sys.stderr)
+            return 1
+        else:
+            print(format_bench(res))
+        return 0
     if args.what == "sim":
         from tools.bench import SimBenchConfig, bench_sim
 
@@ -278,11 +300,25 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")
     b.add_argument(
         "what",
-        choices=["sim", "mpc", "policy"],
+        choices=["sim", "mpc", "policy", "companion"],
         help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's; "
-        "policy: per-step inference of a checkpoint (default: shipped size) vs a paper-style net",
+        "policy: per-step inference of a checkpoint (default: shipped size) vs a paper-style net; "
+        "companion: frame receipt -> setpoint latency of the real companion process (SITL "
+        "flights), and torch vs ONNX Runtime policy step on the same frames",
     )
-    b.add_argument("--checkpoint", default=None, help="bench policy: checkpoint to time")
+    b.add_argument(
+        "--checkpoint",
+        default=None,
+        help="bench policy: checkpoint to time; bench companion: checkpoint to fly (default "
+        "models/visland_vision.pt)",
+    )
+    b.add_argument(
+        "--runtime",
+        choices=["torch", "onnx"],
+        default="torch",
+        help="bench companion: the companion's policy backend",
+    )
+    b.add_argument("--episodes", type=int, default=3, help="bench companion: flights")
     b.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per repeat")
     b.add_argument("--repeats", type=int, default=3, help="repeats (median reported)")
     b.add_argument("--seed", type=int, default=0)
@@ -369,6 +405,10 @@ def _parser() -> argparse.ArgumentParser:
     from tools.cli_train import register_training
 
     register_training(sub)
+
+    from tools.export_onnx import register_export
+
+    register_export(sub)
     return p
 
 

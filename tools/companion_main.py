@@ -32,7 +32,13 @@ def resolve_policy(name: str, cfg: Any = None) -> Any:
 
         return CascadeLander(vehicle, sim.planet)
     threads = getattr(cfg, "torch_threads", 1) if cfg is not None else 1
+    runtime = getattr(cfg, "runtime", "torch") if cfg is not None else "torch"
     if name in ("untrained", "untrained-privileged"):
+        if runtime != "torch":
+            raise ValueError(
+                f"--policy {name} is built in torch; runtime {runtime!r} needs a checkpoint file "
+                "(save it, then visland export-onnx)"
+            )
         import torch
 
         from companion.policy_net import untrained_policy
@@ -41,7 +47,7 @@ def resolve_policy(name: str, cfg: Any = None) -> Any:
         return untrained_policy(seed=0, privileged=name.endswith("privileged"))
     from companion.runtime import load_policy_file
 
-    return load_policy_file(name, threads)
+    return load_policy_file(name, threads, runtime)
 
 
 def main(argv: list[str] | None = None) -> int:
