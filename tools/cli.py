@@ -44,13 +44,26 @@ def _print_json(obj: Any) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from tools.demo import DemoConfig, run
+    from tools.fly import FlyError
 
     # With --json the narration goes to stderr so stdout is one JSON document.
     narration = sys.stderr if args.json else sys.stdout
-    result = run(DemoConfig(seed=args.seed, scenario=args.scenario), narration)
+    cfg = DemoConfig(
+        policy=args.policy,
+        episodes=args.episodes,
+        seed=args.seed,
+        scenario=args.scenario,
+        out=args.out,
+        progress=not args.json,
+    )
+    try:
+        report = run(cfg, narration)
+    except FlyError as exc:
+        print(f"visland demo: failed: {exc}", file=sys.stderr)
+        return 1
     if args.json:
-        _print_json(result)
-    return 0 if result["landed"] else 1
+        _print_json(report)
+    return 0  # failed landings are results, reported above, not errors of the demo
 
 
 def _cmd_sitl(args: argparse.Namespace) -> int:
@@ -291,10 +304,41 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="fly one simulated descent and print what happened")
-    d.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    from tools.demo import EVAL_SEED, SHIPPED_MODEL
+
+    d = sub.add_parser(
+        "demo",
+        help="the shipped vision policy flies 3 landings: SITL + companion over MAVLink, "
+        "results table, MCAP logs, PNG",
+        description="Start the SITL and the companion as two processes over MAVLink/UDP, fly "
+        "the shipped vision policy through N landings (lockstep), then print one row per "
+        "landing, the MCAP flight logs of both processes and a PNG of all flights. Exit 0 when "
+        "every episode was flown, whatever the landings scored (failures are reported); 1 when "
+        "a process failed; 2 on bad input.",
+    )
+    d.add_argument(
+        "--policy",
+        default=str(SHIPPED_MODEL),
+        help="checkpoint path, or expert | cascade (default: the shipped model, "
+        "models/visland_vision.pt of this repository)",
+    )
+    d.add_argument("--episodes", type=int, default=3, help="landings to fly (default 3)")
+    d.add_argument(
+        "--seed",
+        type=int,
+        default=EVAL_SEED,
+        help=f"scenario seed: episodes 0..N-1 of it are flown (default {EVAL_SEED}, the "
+        "evaluation seed, disjoint from training)",
+    )
     d.add_argument("--scenario", type=Path, default=None, help="scenario TOML")
-    d.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    d.add_argument(
+        "--out",
+        type=Path,
+        default=Path("runs/demo"),
+        help="output folder: logs, flights.png, demo.json; a previous demo there is replaced "
+        "(default runs/demo)",
+    )
+    d.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     d.set_defaults(func=_cmd_demo)
 
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")

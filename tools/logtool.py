@@ -40,12 +40,14 @@ from sitl_sim.dynamics import euler_from_quat
 __all__ = [
     "PANELS",
     "SOURCES",
+    "FlightsPlotReport",
     "PlotReport",
     "PlotSources",
     "default_plot_path",
     "format_info",
     "log_info",
     "plot_flight",
+    "plot_flights",
     "plot_log",
     "plot_sources",
 ]
@@ -288,6 +290,15 @@ def default_plot_path(path: str | Path) -> Path:
     return path.with_name(name + ".png")
 
 
+def _draw_pad(ax) -> None:
+    """The pad (4 m green square) and its red cross at the origin of a top view (east, north)."""
+    from matplotlib.patches import Rectangle
+
+    ax.add_patch(Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35))
+    for w, h in ((_CROSS_HALF_M, _CROSS_HALF_W_M), (_CROSS_HALF_W_M, _CROSS_HALF_M)):
+        ax.add_patch(Rectangle((-w, -h), 2 * w, 2 * h, color="tab:red", alpha=0.5))
+
+
 def _missing(ax, text: str) -> None:
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, wrap=True)
     ax.set_xticks([])
@@ -328,17 +339,20 @@ def _title(log: FlightLog, kind: str) -> str:
         return head + "\nno episode result"
     if isinstance(r.get("result"), str):  # the companion's own account
         return f"{head}\ncompanion: {r['result']} ({r.get('reason') or 'no reason given'})"
-    if r.get("aborted"):
-        verdict = "aborted"
-    elif not r.get("landed"):
-        verdict = "timeout"
-    else:
-        verdict = "success" if r.get("success") else "landed, not a success"
     speed = r.get("touchdown_vertical_speed_m_s")
     return (
-        f"{head}\n{verdict}: landing error {_fmt(r.get('landing_error_m'))} m, "
+        f"{head}\n{_verdict(r)}: landing error {_fmt(r.get('landing_error_m'))} m, "
         f"vertical speed {_fmt(speed)} m/s, tilt {_fmt(r.get('tilt_deg'))} deg"
     )
+
+
+def _verdict(r: dict[str, Any]) -> str:
+    """One word or phrase for an ``/episode/result``."""
+    if r.get("aborted"):
+        return "aborted"
+    if not r.get("landed"):
+        return "timeout"
+    return "success" if r.get("success") else "landed, not a success"
 
 
 @dataclass(frozen=True)
@@ -381,7 +395,6 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
 
     matplotlib.use("Agg")  # files only, never a window (CI, SSH, a companion computer)
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
 
     wanted = {t for rows in SOURCES.values() for t, _, _ in rows}
     wanted |= {*_RESULT_TOPICS, TOPIC_EVENTS}
@@ -400,11 +413,7 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
             _missing(ax_top, "no position\n" + _missing_line(src, "position"))
         else:
             _, pos, _ = _series(log, "position", topic)
-            ax_top.add_patch(
-                Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35)
-            )
-            for w, h in ((_CROSS_HALF_M, _CROSS_HALF_W_M), (_CROSS_HALF_W_M, _CROSS_HALF_M)):
-                ax_top.add_patch(Rectangle((-w, -h), 2 * w, 2 * h, color="tab:red", alpha=0.5))
+            _draw_pad(ax_top)
             ax_top.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
             ax_top.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
             ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
@@ -489,3 +498,167 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
 def _missing_line(src: PlotSources, panel: str) -> str:
     line = next(m for m in src.missing if m.startswith(panel + ":"))
     return line.split(": ", 1)[1]
+
+
+# --------------------------------------------------------------------------- several flights
+
+_FLIGHT_START_EVENTS = ("flight", "flight_start")
+"""Event kinds that mark the start of the flight proper (SITL: OFFBOARD/LAND took over;
+companion: the policy took over); the multi-flight plot's clock starts there."""
+_ZOOM_HALF_M = 3.0  # the touchdown panel: the pad (+-2 m) and a margin
+_SUCCESS_RADIUS_M = 1.0  # sitl_sim.metrics.SUCCESS_MAX_ERROR_M (logtool reads logs, not sitl_sim)
+
+
+@dataclass(frozen=True)
+class FlightsPlotReport:
+    """What :func:`plot_flights` drew.
+
+    Attributes:
+        out: the PNG written.
+        drawn: the logs drawn (those with a position source), in the order given.
+        skipped: ``"<path>: why"`` for each log left out of the picture.
+        outside_zoom: logs whose touchdown point lies outside the touchdown panel.
+    """
+
+    out: Path
+    drawn: list[Path]
+    skipped: list[str]
+    outside_zoom: list[Path]
+
+
+def _flight_start_s(log: FlightLog, first_sample_s: float) -> float:
+    starts = [
+        float(e["time_s"])
+        for e in log.topic(TOPIC_EVENTS)
+        if e.get("kind") in _FLIGHT_START_EVENTS and "time_s" in e
+    ]
+    return min(starts) if starts else first_sample_s
+
+
+def _flight_label(path: Path, log: FlightLog, label: str | None) -> str:
+    r = _last_result(log)
+    head = label if label is not None else path.name.removesuffix(".mcap")
+    if r is None or isinstance(r.get("result"), str):
+        return f"{head}: no episode result"
+    return f"{head}: {_verdict(r)}, error {_fmt(r.get('landing_error_m'))} m"
+
+
+def plot_flights(
+    paths: list[str | Path],
+    out: str | Path,
+    title: str | None = None,
+    labels: list[str] | None = None,
+) -> FlightsPlotReport:
+    """Draw several flights of one run overlaid in one PNG and say what it drew.
+
+    Panels: top view (north/east) of every path around the pad; the touchdown area (the pad,
+    the 1 m success circle, each flight's end point); altitude vs time since each flight's
+    start (the ``flight``/``flight_start`` event: the HOLD before it is left out). Each flight
+    keeps one colour, its legend entry gives its result (:func:`_verdict`) and landing error.
+    Position and altitude take the best source the log has (:data:`SOURCES`); a log with no
+    position source is skipped and named in the report.
+
+    Args:
+        paths: flight logs (SITL or rollout logs carry ground truth; a vision companion's
+            log has none and is skipped).
+        out: the PNG to write (its folder is created).
+        title: the figure title (default: how many flights succeeded).
+        labels: one legend name per path (default: the file name).
+
+    Raises:
+        ValueError: no paths, or ``labels`` of another length.
+        FlightLogError: a file is missing or not an MCAP file.
+    """
+    if not paths:
+        raise ValueError("plot_flights: no flight logs given")
+    if labels is not None and len(labels) != len(paths):
+        raise ValueError(f"plot_flights: {len(labels)} labels for {len(paths)} logs")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    wanted = {t for panel in ("position", "altitude") for t, _, _ in SOURCES[panel]}
+    wanted |= {*_RESULT_TOPICS, TOPIC_EVENTS}
+    out_path = Path(out)
+    drawn: list[Path] = []
+    skipped: list[str] = []
+    outside: list[Path] = []
+    successes = 0
+    fig, (ax_top, ax_zoom, ax_alt) = plt.subplots(
+        1, 3, figsize=(18, 6.2), gridspec_kw={"width_ratios": [1, 1, 1.35]}
+    )
+    try:
+        _draw_pad(ax_top)
+        _draw_pad(ax_zoom)
+        ax_zoom.add_patch(
+            Circle((0, 0), _SUCCESS_RADIUS_M, fill=False, linestyle="--", color="k", lw=1)
+        )
+        span = 3.0
+        colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        for k, path in enumerate(Path(p) for p in paths):
+            log = read_log(path, topics=wanted)
+            src = plot_sources(log)
+            if src.sources["position"] is None:
+                skipped.append(f"{path}: {_missing_line(src, 'position')}")
+                continue
+            colour = colours[len(drawn) % len(colours)]
+            label = _flight_label(path, log, labels[k] if labels is not None else None)
+            r = _last_result(log)
+            successes += bool(r and r.get("success"))
+            t, pos, _ = _series(log, "position", src.sources["position"])
+            t0 = _flight_start_s(log, float(t[0]))
+            keep = t >= t0 - 1e-9
+            if keep.any():
+                t, pos = t[keep], pos[keep]
+            ax_top.plot(pos[:, 1], pos[:, 0], color=colour, linewidth=1.3, label=label)
+            ax_top.plot(pos[0, 1], pos[0, 0], "o", color=colour)
+            ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color=colour, markersize=9)
+            span = max(span, float(np.nanmax(np.abs(pos[:, :2]))) * 1.1)
+            ax_zoom.plot(pos[:, 1], pos[:, 0], color=colour, linewidth=1.0, alpha=0.6)
+            ax_zoom.plot(pos[-1, 1], pos[-1, 0], "x", color=colour, markersize=11, mew=2.5)
+            if np.nanmax(np.abs(pos[-1, :2])) > _ZOOM_HALF_M:
+                outside.append(path)
+            alt_topic = src.sources["altitude"]
+            if alt_topic is not None:
+                ta, alt, _ = _series(log, "altitude", alt_topic)
+                sel = ta >= t0 - 1e-9
+                ax_alt.plot(ta[sel] - t0, alt[sel, 0], color=colour, label=label)
+            drawn.append(path)
+
+        ax_top.set_xlim(-span, span)
+        ax_top.set_ylim(-span, span)
+        ax_top.set_aspect("equal")
+        ax_top.set_title("top view: o start, x touchdown (ground truth)", fontsize=10)
+        ax_top.set_xlabel("east (m)")
+        ax_top.set_ylabel("north (m)")
+        ax_top.grid(alpha=0.3)
+        ax_top.legend(loc="upper left", fontsize=8)
+
+        ax_zoom.set_xlim(-_ZOOM_HALF_M, _ZOOM_HALF_M)
+        ax_zoom.set_ylim(-_ZOOM_HALF_M, _ZOOM_HALF_M)
+        ax_zoom.set_aspect("equal")
+        zoom_title = "touchdown: pad (4 m), dashed = 1 m success radius"
+        if outside:
+            zoom_title += f"\n{len(outside)} touchdown(s) outside this view"
+        ax_zoom.set_title(zoom_title, fontsize=10)
+        ax_zoom.set_xlabel("east (m)")
+        ax_zoom.set_ylabel("north (m)")
+        ax_zoom.grid(alpha=0.3)
+
+        ax_alt.set_title("altitude since the flight started", fontsize=10)
+        ax_alt.set_xlabel("time since flight start (s)")
+        ax_alt.set_ylabel("altitude above ground (m)")
+        ax_alt.grid(alpha=0.3)
+        if ax_alt.get_legend_handles_labels()[0]:
+            ax_alt.legend(fontsize=8)
+
+        default = f"{len(drawn)} flights: {successes} successful landings"
+        fig.suptitle(title if title is not None else default, fontsize=12)
+        fig.tight_layout()
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out_path, dpi=100)
+    finally:
+        plt.close(fig)
+    return FlightsPlotReport(out_path, drawn, skipped, outside)
