@@ -55,6 +55,24 @@ def _cmd_ship(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from training.report import ReportConfig, write_report
+
+    res = write_report(
+        ReportConfig(
+            run=args.run,
+            out=args.out,
+            figures_dir=args.figures_dir,
+            trajectories=not args.no_trajectories,
+        )
+    )
+    print(f"wrote {res.out} and {len(res.figures)} figures")
+    print(res.standing.replace("**", ""))
+    for note in res.notes:
+        print(note.replace("**", "").replace("`", ""))
+    return 0
+
+
 def register_training(sub: argparse._SubParsersAction) -> None:
     from training.pipeline import PROFILES, STAGES
 
@@ -85,3 +103,18 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
     sh.add_argument("--out", type=Path, default=Path("models"))
     sh.set_defaults(func=_cmd_ship)
+
+    rp = sub.add_parser(
+        "report", help="docs/results.md + figures from a run's metrics.json (paper Table 3 beside)"
+    )
+    rp.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
+    rp.add_argument("--out", type=Path, default=Path("docs/results.md"), help="markdown to write")
+    rp.add_argument(
+        "--figures-dir", type=Path, default=None, help="PNG folder (default: figures/ beside --out)"
+    )
+    rp.add_argument(
+        "--no-trajectories",
+        action="store_true",
+        help="skip flying the trajectory episodes (no trajectory figures)",
+    )
+    rp.set_defaults(func=_cmd_report)

@@ -99,12 +99,20 @@ class EpisodeOutcome:
     steps: int
     log_path: str | None = None
     policy_stats: dict[str, int] = field(default_factory=dict)
+    touchdown_ne_m: tuple[float, float] | None = None
+    """(north, east) of the vehicle centre relative to the pad centre where
+    ``result.landing_error_m`` was measured: at first ground contact, or at the timeout when
+    the vehicle never landed (``result.landed`` False); its norm is the landing error."""
 
     def row(self) -> dict[str, Any]:
+        extra = {}
+        if self.touchdown_ne_m is not None:
+            extra["touchdown_ne_m"] = [float(v) for v in self.touchdown_ne_m]
         return {
             "seed": self.seed,
             "episode": self.episode_index,
             **self.result.to_dict(),
+            **extra,
             "steps": self.steps,
             "log": self.log_path,
             **{f"policy_{k}": v for k, v in self.policy_stats.items()},
@@ -163,6 +171,7 @@ def fly_episode(
         obs = sim.observe(frame_id=frame, truth=truth)
         max_steps = math.ceil(env.sim_config.episode_timeout_s * env.sim_config.control_rate_hz)
         result = None
+        where_ne = None
         while result is None:
             command, state = policy.act(obs, truth, state)
             if log is not None:
@@ -172,8 +181,10 @@ def fly_episode(
             truth = sim.ground_truth()
             if contact is not None:
                 result = EpisodeResult.from_contact(contact)
+                where_ne = contact.pos_ned_m
             elif steps >= max_steps:
                 result = EpisodeResult.timeout(truth.time_s, truth.pos_ned_m, truth.vel_ned_m_s)
+                where_ne = truth.pos_ned_m
             else:
                 frame += 1
                 obs = sim.observe(frame_id=frame, truth=truth)
@@ -192,6 +203,7 @@ def fly_episode(
         steps=steps,
         log_path=str(log_path) if log_path is not None else None,
         policy_stats=delta,
+        touchdown_ne_m=(float(where_ne[0]), float(where_ne[1])),
     )
 
 
