@@ -476,7 +476,7 @@ def _plot_states(traces: dict[str, _Trace], title: str, path: Path, prov: _Prove
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.02, 1, 1))
     return _save(fig, path, prov)
 
@@ -506,7 +506,7 @@ def _plot_inputs(traces: dict[str, _Trace], title: str, path: Path, prov: _Prove
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.02, 1, 1))
     return _save(fig, path, prov)
 
@@ -916,8 +916,8 @@ def _add_trajectories(
         )
         v = traces["vision"]
         title = (
-            f"Seed {seed}, {which}: vision error {_f(v.landing_error_m)} m in this flight, "
-            f"{_f(v.eval_error_m)} m in metrics.json — ground truth per 10 Hz control step"
+            f"Seed {seed}, {which}; vision landing error {_f(v.landing_error_m)} m flown now, "
+            f"{_f(v.eval_error_m)} m in metrics.json"
         )
         mismatches += [
             f"{row} episode {ep} ({_f(t.landing_error_m)} m now, {_f(t.eval_error_m)} m in "
@@ -928,9 +928,10 @@ def _add_trajectories(
         figs.add(
             _plot_states(traces, title, figdir / f"trajectory_states_ep{ep}.png", prov),
             f"states, episode {ep}",
-            f"state trajectories (NED position, velocity, roll/pitch/yaw) of {which}, flown in "
-            "process by all four policies — the paper's Figures 3 (expert), 6 (vision), 8 (BC) "
-            "and 10 (DAgger) show this for many episodes. " + _trajectory_caption(traces, seed, ep),
+            "state trajectories (ground-truth NED position, velocity, roll/pitch/yaw at each "
+            f"10 Hz control step) of {which}, flown in process by all four policies — the "
+            "paper's Figures 3 (expert), 6 (vision), 8 (BC) and 10 (DAgger) show this for many "
+            "episodes. " + _trajectory_caption(traces, seed, ep),
         )
         figs.add(
             _plot_inputs(traces, title, figdir / f"trajectory_inputs_ep{ep}.png", prov),
