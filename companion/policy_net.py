@@ -99,6 +99,9 @@ class NetConfig:
     kind: str = "vision"
     """``vision`` (CNN + estimator + LSTM) or ``privileged`` (ground-truth position/velocity)."""
     cnn_channels: tuple[int, ...] = (8, 16, 24, 32)
+    cnn_context_layers: int = 0
+    """Extra dilated (4) 3x3 convolutions before the heat map: a receptive field that spans the
+    image, so a pad larger than the old field (low altitude) is still localised by its cross."""
     lstm_hidden: int = 64
     mlp_hidden: int = 64
     hover_thrust_norm: float = 0.3923
@@ -113,6 +116,13 @@ class NetConfig:
     bearing_noise_floor_m: float = 0.03
     alt_noise_m: float = 0.05
     visibility_threshold: float = 0.5
+    gate_sigma: float = 4.0
+    """Innovation gate of the horizontal fix (Mahalanobis distance, 2 dof); 0 disables it."""
+    gate_reset_steps: int = 10
+    """After this many consecutive gated fixes the estimator re-acquires from the fix."""
+    min_fix_altitude_m: float = 1.5
+    """Below this the view is a piece of one cross arm and the bearing is a guess: the
+    horizontal estimate flies on the IMU prediction (the radar altitude is still used)."""
 
     def __post_init__(self) -> None:
         if self.kind not in ("vision", "privileged"):
@@ -239,6 +249,8 @@ class EstimatorState:
     cov: np.ndarray
     initialised: np.ndarray
     """(3,) bool: the axis has had a measurement."""
+    rejected: int = 0
+    """Consecutive horizontal fixes refused by the innovation gate."""
 
 
 class PadEstimator:
@@ -247,7 +259,10 @@ class PadEstimator:
     Predict with the NED acceleration ``R f + g`` (specific force from HIGHRES_IMU rotated by
     ATTITUDE), update with the geometric fix; the horizontal fix noise grows with altitude (a
     fixed angular error of the bearing). A missing fix (pad not visible, invalid range) only
-    predicts.
+    predicts. A horizontal fix further than ``gate_sigma`` (Mahalanobis) from the prediction is
+    refused — one confidently wrong CNN answer (a tilted view without the pad) would otherwise
+    move the estimate by tens of metres —, and after ``gate_reset_steps`` refusals in a row the
+    estimate re-acquires from the fix (the prediction, not the camera, was wrong).
     """
 
     def __init__(self, cfg: NetConfig) -> None:
@@ -275,6 +290,7 @@ class PadEstimator:
     ) -> EstimatorState:
         """One control period: predict from the last period's acceleration, then update."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
+        rejected = state.rejected
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
         acc = rot @ np.asarray(accel_frd_m_s2, float) + np.array([0.0, 0.0, self.cfg.gravity_m_s2])
         if not np.all(np.isfinite(acc)):
@@ -287,7 +303,22 @@ class PadEstimator:
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
             sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m)
+            horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes = (0, 1, 2) if horizontal_fix else (2,)
+            if horizontal_fix and self.cfg.gate_sigma > 0 and init[0] and init[1]:
+                d2 = sum(
+                    (float(fix_ned_m[a]) - x[a, 0]) ** 2 / (cov[a, 0, 0] + sigma_h**2)
+                    for a in (0, 1)
+                )
+                if d2 > self.cfg.gate_sigma**2:
+                    rejected += 1
+                    if rejected >= self.cfg.gate_reset_steps:
+                        init[:2] = False  # re-acquire below from this fix
+                        rejected = 0
+                    else:
+                        axes = (2,)
+                else:
+                    rejected = 0
             for axis in axes:
                 z = float(fix_ned_m[axis])
                 if not init[axis]:
@@ -300,7 +331,7 @@ class PadEstimator:
                 k = p[:, 0] / s
                 x[axis] = x[axis] + k * (z - x[axis, 0])
                 cov[axis] = p - np.outer(k, p[0, :])
-        return EstimatorState(x=x, cov=cov, initialised=init)
+        return EstimatorState(x=x, cov=cov, initialised=init, rejected=rejected)
 
 
 # ----------------------------------------------------------------------------- networks
@@ -326,6 +357,11 @@ class PerceptionCNN(nn.Module):
             nn.ReLU(inplace=True),
             nn.Conv2d(c3, c4, 3, stride=1, padding=2, dilation=2),
             nn.ReLU(inplace=True),
+            *(
+                m
+                for _ in range(cfg.cnn_context_layers)
+                for m in (nn.Conv2d(c4, c4, 3, stride=1, padding=4, dilation=4), nn.ReLU(True))
+            ),
         )
         self.heat = nn.Conv2d(c4, 1, 1)
         self.visibility = nn.Linear(c4 + 1, 1)

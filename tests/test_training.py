@@ -324,3 +324,95 @@ def test_train_stage_without_its_prerequisite_is_a_clear_cli_error(tmp_path, cap
     assert main(["train", "bc", "--run", str(tmp_path / "run"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "stage 'collect'" in err and "has not finished" in err
+
+
+# ----------------------------------------------------------------------------- robustness
+
+
+def test_pose_sampled_frames_show_the_pad_where_the_labels_say(tmp_path):
+    """Rendered by the flying camera at sampled poses; the in-view pad's bright pixels sit
+    around the labelled bearing, out-of-view samples are labelled invisible, and the cache
+    reloads the same frames."""
+    from sitl_sim.config import load_sim
+    from training.perception_data import PoseSampling, render_pose_frames, sample_poses
+
+    cam = load_sim().camera
+    sampling = PoseSampling(altitude_m=(15.0, 40.0))
+    pos, quat = sample_poses(400, 3, cam.fov_deg, sampling)
+    labels = bearing_labels(pos, quat, cam.fov_deg)
+    assert 0.7 < labels[:, 2].mean() < 0.9  # in_view_fraction 0.8
+    assert np.all((-pos[:, 2] >= 15.0) & (-pos[:, 2] <= 40.0))
+    images, pos2, quat2 = render_pose_frames(24, 3, cam, cache_dir=tmp_path, sampling=sampling)
+    assert images.shape == (24, 128, 128) and images.dtype == np.uint8
+    labels = bearing_labels(pos2, quat2, cam.fov_deg)
+    focal = 64 / math.tan(math.radians(22.5))
+    checked = 0
+    for img, lab in zip(images, labels, strict=True):
+        col, row = 64 + focal * lab[0], 64 - focal * lab[1]
+        if lab[2] and 12 < col < 116 and 12 < row < 116:  # the whole pad in view
+            rows, cols = np.nonzero(img > 130)
+            assert rows.size > 10
+            assert abs(cols.mean() - col) < 3.0 and abs(rows.mean() - row) < 3.0
+            checked += 1
+    assert checked >= 5
+    again, _, _ = render_pose_frames(24, 3, cam, cache_dir=tmp_path, sampling=sampling)
+    assert np.array_equal(again, images)
+
+
+def test_estimator_gates_a_wild_fix_and_reacquires_after_repeated_ones():
+    from companion.policy_net import PadEstimator
+
+    cfg = NetConfig()
+    est = PadEstimator(cfg)
+    level, hover = np.zeros(3), np.array([0.0, 0.0, -9.80665])
+    s = est.initial_state()
+    for _ in range(20):  # settle on a fix 2 m north at 40 m
+        s = est.step(s, np.array([2.0, 0.0, -40.0]), True, level, hover)
+    assert abs(s.x[0, 0] - 2.0) < 0.05
+    # one CNN answer 30 m off (a tilted view without the pad): refused, altitude still updated
+    s = est.step(s, np.array([-28.0, 5.0, -39.0]), True, level, hover)
+    assert abs(s.x[0, 0] - 2.0) < 0.1 and s.rejected == 1
+    assert -39.9 < s.x[2, 0] < -39.0  # the radar altitude is not gated
+    # a good fix clears the count
+    s = est.step(s, np.array([2.0, 0.0, -39.0]), True, level, hover)
+    assert s.rejected == 0
+    # the same far answer again and again: the prediction was wrong, re-acquire from the fix
+    for _ in range(cfg.gate_reset_steps):
+        s = est.step(s, np.array([-28.0, 5.0, -39.0]), True, level, hover)
+    assert abs(s.x[0, 0] + 28.0) < 1e-9 and abs(s.x[1, 0] - 5.0) < 1e-9 and s.rejected == 0
+    # with the gate off every fix is taken
+    off = PadEstimator(NetConfig(gate_sigma=0.0))
+    s = off.initial_state()
+    for _ in range(20):
+        s = off.step(s, np.array([2.0, 0.0, -40.0]), True, level, hover)
+    s = off.step(s, np.array([-28.0, 5.0, -39.0]), True, level, hover)
+    assert s.x[0, 0] < 0.0
+
+
+def test_redo_reruns_a_stage_and_drops_the_later_records(tmp_path):
+    """`visland train STAGE --redo` and a run folder made before a profile key existed."""
+    import json
+
+    from training.pipeline import PROFILES, PipelineError, run_pipeline
+
+    run = tmp_path / "run"
+    (run / "stages").mkdir(parents=True)
+    old = PROFILES["quick"].to_dict()
+    del old["perception_pose_frames"]  # as written by an older version
+    (run / "profile.json").write_text(json.dumps({"profile": old, "scenario": None}))
+    for stage in ("perception", "vision", "eval"):
+        (run / "stages" / f"{stage}.json").write_text("{}")
+    # 'vision' needs 'dagger', which never ran: the redo removes vision+eval, then stops there
+    with pytest.raises(PipelineError, match="stage 'dagger'"):
+        run_pipeline(run, "quick", stages=("vision",), progress=False, redo="vision")
+    assert (run / "stages" / "perception.json").exists()
+    assert not (run / "stages" / "vision.json").exists()
+    assert not (run / "stages" / "eval.json").exists()
+    prof = json.loads((run / "profile.json").read_text())
+    assert prof["profile"]["perception_pose_frames"] == PROFILES["quick"].perception_pose_frames
+    assert prof["upgraded"][0]["keys"] == ["perception_pose_frames"]
+    # a key that differs (not merely missing) is still another run
+    prof["profile"]["bc_steps"] += 1
+    (run / "profile.json").write_text(json.dumps(prof))
+    with pytest.raises(PipelineError, match="another profile"):
+        run_pipeline(run, "quick", stages=("vision",), progress=False)

@@ -40,7 +40,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from training.pipeline import run_pipeline
 
     run_pipeline(
-        args.run, args.profile, args.scenario, stages=(args.stage,), progress=not args.no_progress
+        args.run,
+        args.profile,
+        args.scenario,
+        stages=(args.stage,),
+        progress=not args.no_progress,
+        redo=args.stage if args.redo else None,
     )
     rec = json.loads((Path(args.run) / "stages" / f"{args.stage}.json").read_text())
     print(json.dumps(rec, indent=2) if args.json else f"{args.stage}: {rec.get('checkpoint', rec)}")
@@ -97,6 +102,11 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--scenario", default=None)
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--json", action="store_true")
+    tr.add_argument(
+        "--redo",
+        action="store_true",
+        help="run the stage again although it has finished (the later stages' records go too)",
+    )
     tr.set_defaults(func=_cmd_train)
 
     sh = sub.add_parser("ship", help="copy a run's vision policy to models/ with its model card")

@@ -43,6 +43,7 @@ from companion.policy_net import (
 from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.scenario import load_scenario
 from training.dataset import Episode, load_episodes
+from training.perception_data import render_pose_frames
 from training.replay import ReplayBuffer
 from training.rollout import RolloutSpec, git_commit, log_name, run_episodes
 from training.train import (
@@ -82,6 +83,9 @@ class Profile:
     dagger_steps: int
     perception_epochs: int
     perception_frame_stride: int
+    perception_pose_frames: int
+    """Frames rendered at sampled poses (tilted, low, pad out of view) added to the expert
+    frames for CNN training (``training.perception_data``)."""
     vision_bc_steps: int
     vision_rounds: int
     vision_rollouts: int
@@ -119,6 +123,7 @@ PROFILES: dict[str, Profile] = {
         dagger_steps=800,
         perception_epochs=15,
         perception_frame_stride=2,
+        perception_pose_frames=4000,
         vision_bc_steps=500,
         vision_rounds=1,
         vision_rollouts=16,
@@ -138,6 +143,7 @@ PROFILES: dict[str, Profile] = {
         dagger_steps=3000,
         perception_epochs=5,
         perception_frame_stride=2,
+        perception_pose_frames=24000,
         vision_bc_steps=2000,
         vision_rounds=1,
         vision_rollouts=60,
@@ -203,7 +209,14 @@ class Run:
         mine = {"profile": self.profile.to_dict(), "scenario": self.scenario_path}
         if path.exists():
             theirs = json.loads(path.read_text())
-            if theirs != mine:
+            added = sorted(set(mine["profile"]) - set(theirs.get("profile", {})))
+            if added and theirs.get("profile", {}).get("name") == self.profile.name:
+                # a run started before these profile keys existed: the stages it has done keep
+                # their records (and commits); stages run from now on use the new keys
+                theirs["profile"] = {**theirs["profile"], **{k: mine["profile"][k] for k in added}}
+                theirs.setdefault("upgraded", []).append({"commit": self.commit, "keys": added})
+                path.write_text(json.dumps(theirs, indent=2))
+            if {k: theirs.get(k) for k in mine} != mine:
                 raise PipelineError(
                     f"{path}: this run was started with another profile/scenario "
                     f"({theirs.get('profile', {}).get('name')!r}); use a new --out folder"
@@ -487,7 +500,22 @@ class Run:
         cfg = self.net_config("vision")
         cnn = PerceptionCNN(cfg)
         eps = self.episodes(self.expert_pairs(), images=True)
+        extra = None
+        if p.perception_pose_frames > 0:
+            t0 = time.perf_counter()
+            extra = render_pose_frames(
+                p.perception_pose_frames,
+                p.seed + 7,
+                self.sim.camera,
+                cache_dir=self.root / "cache",
+                workers=p.workers,
+            )
+            self.say(
+                f"perception: {p.perception_pose_frames} pose-sampled frames "
+                f"({time.perf_counter() - t0:.0f} s)"
+            )
         n_train = sum(len(range(0, len(e), p.perception_frame_stride)) for e in eps)
+        n_train += p.perception_pose_frames
         steps = p.perception_epochs * max(1, int(n_train * 0.9) // 64)
         with self.bar(steps, "train perception") as bar:
             fit = train_perception(
@@ -498,6 +526,7 @@ class Run:
                 frame_stride=p.perception_frame_stride,
                 log=self.log,
                 progress=bar.update,
+                extra=extra,
             )
         self.say(
             f"perception: val bearing error median {fit.val_bearing_error_px_median:.2f} px, "
@@ -632,10 +661,24 @@ def run_pipeline(
     scenario: str | None = None,
     stages: tuple[str, ...] = STAGES,
     progress: bool = True,
+    redo: str | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) the stages in order; returns the stage records."""
+    """Run (or resume) the stages in order; returns the stage records.
+
+    ``redo``: run this stage again although it has finished; the records of the stages after it
+    (which were built on it) are removed too, so they run again when asked for.
+    """
     prof = PROFILES[profile] if isinstance(profile, str) else profile
     run = Run(out, prof, scenario, progress)
+    if redo is not None:
+        if redo not in STAGES:
+            run.close()
+            raise PipelineError(f"unknown stage {redo!r}; stages are {', '.join(STAGES)}")
+        for later in STAGES[STAGES.index(redo) :]:
+            record = run.root / "stages" / f"{later}.json"
+            if record.exists():
+                record.unlink()
+                run.say(f"stage {later}: record removed, it will run again")
     records = {}
     t0 = time.perf_counter()
     try:

@@ -67,6 +67,7 @@ def net_config_for(
         control_dt_s=1.0 / sim.control_rate_hz,
         fov_deg=sim.camera.fov_deg,
         image_size_px=sim.camera.height_px,
+        cnn_context_layers=1,
     )
 
 
@@ -242,6 +243,10 @@ class PerceptionFit:
     val_position_error_m_p95: float
     val_visibility_accuracy: float
     seconds: float
+    pose_images: int = 0
+    pose_val_bearing_error_px_median: float = math.nan
+    pose_val_bearing_error_px_p95: float = math.nan
+    pose_val_visibility_accuracy: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -265,6 +270,7 @@ def train_perception(
     max_shift_px: int = 40,
     log: Logger = _no_log,
     progress: Callable[[int], None] | None = None,
+    extra: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> PerceptionFit:
     """Regress the pad bearing (+ visibility) from expert-flight frames, split 90/10 by episode.
 
@@ -273,6 +279,10 @@ def train_perception(
     image translations of up to ``max_shift_px`` (the bearing label moves by exactly
     ``shift / focal``): the expert keeps the pad near the image centre, and without shifts the
     CNN learns to answer "centre" whatever it sees.
+
+    ``extra``: more frames ``(images, pos_ned_m, quat_wxyz)`` (e.g. the pose-sampled renders of
+    :mod:`training.perception_data`), labelled the same way and split 90/10 by index; their
+    validation figures are reported separately (``pose_val_*``).
     """
     if not episodes or any(e.images is None for e in episodes):
         raise ValueError("perception training needs episodes with camera frames")
@@ -296,6 +306,18 @@ def train_perception(
 
     x_tr, y_tr, _ = gather(tr_idx)
     x_va, y_va, alt_va = gather(va_idx)
+    x_pv = np.zeros((0, 128, 128), np.uint8)
+    y_pv = np.zeros((0, 3), np.float32)
+    alt_pv = np.zeros(0)
+    if extra is not None and len(extra[0]):
+        images, pos, quat = extra
+        labels = bearing_labels(pos, quat, 45.0)
+        order = rng.permutation(len(images))
+        n_pv = max(1, round(len(images) * val_fraction))
+        pv, pt = np.sort(order[:n_pv]), np.sort(order[n_pv:])
+        x_tr = np.concatenate([x_tr, images[pt]])
+        y_tr = np.concatenate([y_tr, labels[pt]])
+        x_pv, y_pv, alt_pv = images[pv], labels[pv], -pos[pv, 2]
     opt = torch.optim.Adam(cnn.parameters(), lr=lr)
     n = x_tr.shape[0]
     steps_total = epochs * max(1, n // batch)
@@ -334,20 +356,9 @@ def train_perception(
                 progress(1)
         log("perception/epoch", float(epoch), step)
     cnn.eval()
-    med_px = p95_px = med_m = p95_m = acc = math.nan
-    if x_va.shape[0]:
-        with torch.inference_mode():
-            out = torch.cat(
-                [cnn(torch.from_numpy(x_va[i : i + 256])) for i in range(0, len(x_va), 256)]
-            ).numpy()
-        vis = y_va[:, 2] > 0.5
-        err = np.linalg.norm(out[:, :2] - y_va[:, :2], axis=1)
-        if vis.any():
-            med_px, p95_px = (float(np.percentile(err[vis] * focal, q)) for q in (50, 95))
-            err_m = err[vis] * alt_va[vis]
-            med_m, p95_m = (float(np.percentile(err_m, q)) for q in (50, 95))
-        acc = float(np.mean((out[:, 2] > 0) == vis))
-        log("perception/val_bearing_error_px_median", med_px, step)
+    med_px, p95_px, med_m, p95_m, acc = _perception_errors(cnn, x_va, y_va, alt_va, focal)
+    log("perception/val_bearing_error_px_median", med_px, step)
+    pose = _perception_errors(cnn, x_pv, y_pv, alt_pv, focal)
     return PerceptionFit(
         epochs=epochs,
         train_images=int(n),
@@ -358,4 +369,29 @@ def train_perception(
         val_position_error_m_p95=p95_m,
         val_visibility_accuracy=acc,
         seconds=time.perf_counter() - t0,
+        pose_images=len(extra[0]) if extra is not None else 0,
+        pose_val_bearing_error_px_median=pose[0],
+        pose_val_bearing_error_px_p95=pose[1],
+        pose_val_visibility_accuracy=pose[4],
     )
+
+
+def _perception_errors(
+    cnn: PerceptionCNN, x: np.ndarray, y: np.ndarray, alt: np.ndarray, focal: float
+) -> tuple[float, float, float, float, float]:
+    """Bearing error median/p95 (px, where visible), position error median/p95 (m), visibility
+    accuracy of ``cnn`` on labelled frames (NaN when there are none)."""
+    med_px = p95_px = med_m = p95_m = acc = math.nan
+    if x.shape[0] == 0:
+        return med_px, p95_px, med_m, p95_m, acc
+    with torch.inference_mode():
+        out = torch.cat([cnn(torch.from_numpy(x[i : i + 256])) for i in range(0, len(x), 256)])
+    out = out.numpy()
+    vis = y[:, 2] > 0.5
+    err = np.linalg.norm(out[:, :2] - y[:, :2], axis=1)
+    if vis.any():
+        med_px, p95_px = (float(np.percentile(err[vis] * focal, q)) for q in (50, 95))
+        err_m = err[vis] * alt[vis]
+        med_m, p95_m = (float(np.percentile(err_m, q)) for q in (50, 95))
+    acc = float(np.mean((out[:, 2] > 0) == vis))
+    return med_px, p95_px, med_m, p95_m, acc

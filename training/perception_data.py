@@ -1,0 +1,146 @@
+"""Pose-sampled camera frames for perception training, rendered by the simulator's own camera.
+
+Expert flights keep the pad near the image centre, nearly level, and reach low altitude only
+when already over the pad, so a CNN trained on them alone never sees the frames where a vision
+policy gets into trouble: a tilted vehicle whose pad has left the view (it answers "pad straight
+below, visible" and the estimator jumps tens of metres) or a low vehicle beside the pad (the view
+is all cross arm and it answers "centred"). This module renders those frames on purpose.
+
+Each sample draws an attitude, an altitude (log-uniform, so the last metres are as well covered
+as the first hundred) and the bearing at which the pad centre should appear — inside the view for
+most samples, outside it for the rest — and places the vehicle where that bearing holds. Labels
+come from the same :func:`training.train.bearing_labels` as flight frames. Images go through
+:class:`sitl_sim.scene.Camera` (pybullet TinyRenderer + the configured pixel noise), the camera
+that flies, and are cached as one ``.npz`` per (seed, count) in the run folder.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sitl_sim.config import CameraConfig
+from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.scene import Camera, Scene
+
+__all__ = ["PoseSampling", "render_pose_frames", "sample_poses"]
+
+
+@dataclass(frozen=True)
+class PoseSampling:
+    """The distribution of rendered poses."""
+
+    altitude_m: tuple[float, float] = (1.0, 110.0)
+    """Log-uniform altitude range (the scenario starts at 75–100 m). Below ~1 m the view is a
+    fraction of one cross arm and no image can tell where the centre is: those last metres are
+    flown on the estimator's prediction."""
+    in_view_fraction: float = 0.8
+    """Share of samples whose pad centre is inside the view (the rest: outside, label 0)."""
+    out_of_view_tan: float = 1.0
+    """Out-of-view samples put the pad centre at a bearing up to this tangent."""
+    level_fraction: float = 0.6
+    """Share of nearly level samples (|roll|, |pitch| <= ``level_tilt_deg``)."""
+    level_tilt_deg: float = 8.0
+    max_tilt_deg: float = 35.0
+    """The other samples: roll and pitch uniform in ± this (a recovering learner tilts a lot)."""
+
+
+def sample_poses(
+    n: int, seed: int, fov_deg: float, sampling: PoseSampling = PoseSampling()
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` camera poses: positions (n, 3) NED relative to the pad and quaternions (n, 4)."""
+    rng = np.random.default_rng(seed)
+    half = math.tan(math.radians(fov_deg) / 2)
+    lo, hi = (math.log(a) for a in sampling.altitude_m)
+    pos = np.zeros((n, 3))
+    quat = np.zeros((n, 4))
+    i = 0
+    while i < n:
+        tilt = (
+            sampling.level_tilt_deg
+            if rng.random() < sampling.level_fraction
+            else sampling.max_tilt_deg
+        )
+        roll, pitch = np.radians(rng.uniform(-tilt, tilt, 2))
+        yaw = rng.uniform(-math.pi, math.pi)
+        q = quat_from_euler(roll, pitch, yaw)
+        if rng.random() < sampling.in_view_fraction:
+            tan = rng.uniform(-half, half, 2)
+        else:
+            tan = rng.uniform(-sampling.out_of_view_tan, sampling.out_of_view_tan, 2)
+            if np.all(np.abs(tan) < half):
+                continue
+        # the pad lies along body (tan_forward, tan_right, 1): place the vehicle on that ray
+        ray = quat_to_rotation(q) @ np.array([tan[1], tan[0], 1.0])
+        if ray[2] < 0.1:
+            continue  # looking at the horizon: no such frame in a landing
+        alt = math.exp(rng.uniform(lo, hi))
+        pos[i] = -ray * (alt / ray[2])
+        quat[i] = q
+        i += 1
+    return pos, quat
+
+
+_WORKER: dict = {}
+
+
+def _init(cfg: dict, seed: int) -> None:
+    _WORKER["scene"] = Scene()
+    _WORKER["cfg"] = CameraConfig(**cfg)
+    _WORKER["seed"] = seed
+
+
+def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
+    chunk, pos, quat = args
+    rng = np.random.default_rng([_WORKER["seed"], chunk])
+    cam = Camera(_WORKER["scene"], _WORKER["cfg"], rng)
+    return np.stack([cam.capture(p, q) for p, q in zip(pos, quat, strict=True)])
+
+
+def render_pose_frames(
+    n: int,
+    seed: int,
+    camera: CameraConfig,
+    cache_dir: str | Path | None = None,
+    workers: int = 1,
+    sampling: PoseSampling = PoseSampling(),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` rendered frames: images (n, H, W) uint8, poses (n, 3) NED and quaternions (n, 4).
+
+    With ``cache_dir`` the result is stored as ``poses_s<seed>_n<n>.npz`` and reloaded when its
+    camera and sampling match; a damaged cache file is rendered again.
+    """
+    pos, quat = sample_poses(n, seed, camera.fov_deg, sampling)
+    key = {"camera": asdict(camera), "sampling": asdict(sampling)}
+    path = Path(cache_dir) / f"poses_s{seed}_n{n}.npz" if cache_dir is not None else None
+    if path is not None and path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["key"]) == repr(key) and z["images"].shape[0] == n:
+                    return z["images"], z["pos"], z["quat"]
+        except (OSError, ValueError, KeyError):
+            pass  # damaged or foreign cache: render again
+    chunk = 256
+    jobs = [(k, pos[s : s + chunk], quat[s : s + chunk]) for k, s in enumerate(range(0, n, chunk))]
+    if workers > 1:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, initializer=_init, initargs=(asdict(camera), seed)) as pool:
+            parts = pool.map(_render_chunk, jobs)
+    else:
+        _init(asdict(camera), seed)
+        try:
+            parts = [_render_chunk(j) for j in jobs]
+        finally:
+            _WORKER.pop("scene").close()
+    images = np.concatenate(parts) if parts else np.zeros((0, camera.height_px, camera.width_px))
+    images = images.astype(np.uint8)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, images=images, pos=pos, quat=quat, key=np.array(repr(key)))
+        tmp.replace(path)
+    return images, pos, quat
