@@ -28,8 +28,8 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     print(f"exported {res.checkpoint} (sha256 {res.checkpoint_sha256[:12]}…, opset {res.opset}):")
     if res.perception:
         print(
-            f"  {res.perception}  CNN, max |onnxruntime - torch| = "
-            f"{res.perception_max_abs_diff:.2g} over {res.check_samples} random images"
+            f"  {res.perception}  CNN, max |onnxruntime - torch| / max(1, |torch|) = "
+            f"{res.perception_max_rel_diff:.2g} over {res.check_samples} random images"
         )
     print(
         f"  {res.control}  LSTM step, max |onnxruntime - torch| = "
