@@ -87,16 +87,20 @@ def policy_is_privileged(policy: str) -> bool:
     return load_policy(policy).privileged
 
 
-def _stop(proc: subprocess.Popen | None, grace_s: float = 5.0) -> None:
-    """SIGTERM, then SIGKILL after ``grace_s``: by PID, only our own child."""
-    if proc is None or proc.poll() is not None:
-        return
-    try:
+def _stop(*procs: subprocess.Popen | None, grace_s: float = 5.0) -> None:
+    """SIGTERM to each (in order, without waiting in between), then SIGKILL what is still
+    running after ``grace_s``: by PID, only our own children. Signalling all before waiting
+    keeps a Ctrl-C to at most ``grace_s`` however many children shut down slowly."""
+    alive = [p for p in procs if p is not None and p.poll() is None]
+    for proc in alive:
         proc.send_signal(signal.SIGTERM)
-        proc.wait(grace_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(5.0)
+    deadline = time.monotonic() + grace_s
+    for proc in alive:
+        try:
+            proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
 
 
 def _tail(path: Path, lines: int = 15) -> str:
@@ -210,8 +214,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
             if sitl.returncode != 0:
                 raise FlyError(f"SITL exited with {sitl.returncode}:\n{_tail(sitl_log)}")
     finally:
-        _stop(comp)  # SIGTERM: it hands back (nothing to hand back now), closes its log
-        _stop(sitl)
+        _stop(comp, sitl)  # SIGTERM: the companion hands back and closes its log, then the SITL
     wall = time.monotonic() - t0
     rows = _results(sitl_dir, cfg.seed, cfg.episodes)
     if len(rows) != cfg.episodes:
