@@ -9,7 +9,6 @@ missing onnxruntime, are each refused with the file and the fix named.
 
 from __future__ import annotations
 
-import ast
 import importlib.util
 import json
 import shutil
@@ -32,20 +31,13 @@ needs_onnx = pytest.mark.skipif(
 )
 
 
-def test_companion_imports_nothing_of_the_project_lazy_imports_included():
+def test_companion_imports_nothing_of_the_project_lazy_imports_included(project_imports):
     """DESIGN.md's import rule for the deployable package (the ONNX backend included)."""
-    offending = []
-    for path in sorted((REPO / "companion").glob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
-            else:
-                continue
-            for name in names:
-                if name.split(".")[0] in ("sitl_sim", "expert", "training", "tools"):
-                    offending.append(f"{path.name}:{node.lineno} imports {name}")
+    offending = [
+        f"{file}:{line} imports {name}"
+        for file, line, top, name in project_imports("companion")
+        if top in ("sitl_sim", "expert", "training", "tools")
+    ]
     assert offending == []
 
 

@@ -267,25 +267,14 @@ def test_autopilot_offboard_rules_failsafe_and_auto_disarm():
     assert not ap.armed
 
 
-def test_sitl_sim_imports_only_the_companion_contract():
+def test_sitl_sim_imports_only_the_companion_contract(project_imports):
     """DESIGN.md's import rule, lazy imports inside functions included: the SITL's LAND mode
     flies ``sitl_sim.land_controller``, never ``expert``."""
-    import ast
-
-    project = {"companion", "sitl_sim", "expert", "training", "tools"}
-    offending = []
-    for path in sorted((REPO / "sitl_sim").glob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
-            else:
-                continue
-            for name in names:
-                top = name.split(".")[0]
-                if top in project and top not in ("companion", "sitl_sim"):
-                    offending.append(f"{path.name}:{node.lineno} imports {name}")
+    offending = [
+        f"{file}:{line} imports {name}"
+        for file, line, top, name in project_imports("sitl_sim")
+        if top in ("expert", "training", "tools")
+    ]
     assert offending == []
 
 
