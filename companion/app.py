@@ -496,7 +496,7 @@ def main(
     resolve_policy: Callable[[str, CompanionConfig], Any] | None = None,
     prog: str = "python -m companion",
 ) -> int:
-    """``python -m companion`` (checkpoints only) and ``tools.companion_main``."""
+    """``python -m companion`` (checkpoints only) and ``training.companion_process``."""
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     add_arguments(parser)
     args = parser.parse_args(argv)

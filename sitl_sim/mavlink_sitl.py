@@ -12,6 +12,12 @@ answers in sim ns). Per physics step:
    packet of :mod:`companion.camera_packet`), the ground-truth log record; in lockstep and
    OFFBOARD, then wait for the companion's answer.
 
+The flight log is a training record: for each control step the companion flies (in flight,
+before touchdown, armed in OFFBOARD) it also holds ``/observation`` (the attitude, IMU and range
+readings last streamed) and ``/command`` (the setpoint flown for the period after the frame),
+keyed by frame id like the in-process log, so ``visland relabel`` labels SITL flights (DAgger
+rollouts through the real processes).
+
 **Lockstep** (default): in OFFBOARD the clock stops after each camera frame until a
 SET_ATTITUDE_TARGET arrives that was received after the frame was sent and is stamped
 (``time_boot_ms``) at or after the frame's time (``lockstep_require_stamp``; turn it off for
@@ -26,7 +32,8 @@ happens in wall time). **Real time** (``lockstep=False``): the clock follows the
 armed, frozen; the flight starts at the first control period after the vehicle is armed in a mode
 other than HOLD (the simulator is re-seeded then, so a flight does not depend on how long HOLD
 lasted); it ends at touchdown + disarm (auto after COM_DISARM_LAND), at ``episode_timeout_s`` of
-flight, or after ``hold_timeout_s`` without a take-over. One MCAP flight log per episode.
+flight, or after ``hold_timeout_s`` without a take-over. One MCAP flight log per episode;
+``first_episode`` lets parallel SITLs fly disjoint parts of one seed.
 
 The message handlers are the ``handle_<message>`` methods; :data:`SUBSCRIBES` and
 :data:`PUBLISHES` list what this endpoint reads and writes.
@@ -61,8 +68,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.camera_packet import encode_frame
 from companion.contract import Command
 from companion.flightlog import (
+    TOPIC_COMMAND,
     TOPIC_EVENTS,
     TOPIC_GROUNDTRUTH,
+    TOPIC_OBSERVATION,
     TOPIC_RESULT,
     TOPIC_SCENARIO,
     FlightLogWriter,
@@ -83,7 +92,7 @@ from sitl_sim.autopilot import (
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.errors import SimError
-from sitl_sim.flight_record import groundtruth_msg
+from sitl_sim.flight_record import command_msg, groundtruth_msg
 from sitl_sim.land_controller import CascadeLandController
 from sitl_sim.mavlink_endpoint import (
     Inbound,
@@ -214,6 +223,9 @@ class SitlConfig:
     )
     speed: float = _opt(1.0, "sim seconds per wall second when paced (real time, HOLD)")
     episodes: int = _opt(1, "consecutive episodes to fly, then exit")
+    first_episode: int = _opt(
+        0, "index of the first episode (parallel SITLs split one seed's episodes)"
+    )
     seed: int = _opt(0, "episode i starts at InitialStateSampler(scenario, seed).sample(i)")
     scenario: str | None = _opt(None, "scenario TOML (default configs/scenario.toml)", str)
     sim_config: str | None = _opt(None, "simulation TOML (default configs/sim.toml)", str)
@@ -260,6 +272,8 @@ class SitlConfig:
                 raise SitlError(f"{name} = {value}; expected a finite number > 0")
         if self.episodes < 1:
             raise SitlError(f"episodes = {self.episodes}; expected >= 1")
+        if self.first_episode < 0:
+            raise SitlError(f"first_episode = {self.first_episode}; expected >= 0")
         if self.episode_timeout_s is not None and not self.episode_timeout_s > 0:
             raise SitlError(f"episode_timeout_s = {self.episode_timeout_s}; expected > 0")
         if self.signing_key is not None:
@@ -477,6 +491,9 @@ class MavlinkSitl:
         self._wait: _FrameWait | None = None
         self._sample: _Sample | None = None
         self._sample_tick = -1
+        self._streamed: dict[str, tuple[float, Any]] = {}
+        """The latest attitude / IMU / range reading sent (flight time, reading): the
+        observation a client has at the next frame, logged as ``/observation``."""
         self._episode: _Episode | None = None
         self._done = False
         self._closed = False
@@ -515,7 +532,7 @@ class MavlinkSitl:
         pace_origin = (wall0, self._tick)
         last_regime = None
         try:
-            self._start_episode(0)
+            self._start_episode(cfg.first_episode)
             while not self._stop.is_set() and not self._done:
                 now = time.monotonic()
                 if cfg.max_wall_s is not None and now - wall0 > cfg.max_wall_s:
@@ -609,6 +626,14 @@ class MavlinkSitl:
             cmd = self._current_command()
             if (self._tick - self._phase_tick) % self._substeps == 0:
                 self._log_command(cmd)
+                if cmd is not None and self._control_step():
+                    # the command flown for the period after the latest frame: in lockstep its
+                    # answer (the training record's /command, keyed like the in-process log)
+                    self._log(
+                        TOPIC_COMMAND,
+                        "visland.Command",
+                        command_msg(cmd, self._frame_id - 1, "offboard"),
+                    )
             self.sim.step_physics(cmd)
         self._tick += 1
         boundary = (self._tick - self._phase_tick) % self._substeps == 0
@@ -651,6 +676,17 @@ class MavlinkSitl:
             )
         return self._land_cmd
 
+    def _control_step(self) -> bool:
+        """The companion flies this control period: in flight, before touchdown, armed in
+        OFFBOARD. Only these steps are the training record's control steps."""
+        ap = self.autopilot
+        return (
+            self._flying
+            and self.sim.contact is None
+            and ap.armed
+            and ap.mode is FlightMode.OFFBOARD
+        )
+
     def _on_ground(self, truth: GroundTruth) -> bool:
         return self._flying and float(truth.pos_ned_m[2]) > _ON_GROUND_DOWN_M
 
@@ -667,6 +703,7 @@ class MavlinkSitl:
             # sensor readings taken while frozen cannot change the flight.
             self.sim.reset(ep.initial, np.random.SeedSequence(ep.seed_key))
             self._sample = None
+            self._streamed.clear()
             self._flying = True
             self._phase_tick = self._tick
             self._event("flight", f"flight starts at t = {self.time_s:.3f} s in {ap.mode.label}")
@@ -692,6 +729,7 @@ class MavlinkSitl:
         seed_key = (self.config.seed, index)
         self.sim.reset(initial, np.random.SeedSequence(seed_key))
         self._sample = None
+        self._streamed.clear()
         self.autopilot = Autopilot(self.params, armed=self.config.start_armed)
         self._flying = False
         self._land_cmd = None
@@ -753,11 +791,11 @@ class MavlinkSitl:
             self._statustext(6, f"Episode {ep.index} {what}: err {result.landing_error_m:.2f} m")
 
     def _next_episode(self) -> bool:
-        index = len(self.results)
-        if index >= self.config.episodes:
+        flown = len(self.results)
+        if flown >= self.config.episodes:
             self._done = True
         else:
-            self._start_episode(index)
+            self._start_episode(self.config.first_episode + flown)
         return False
 
     # ------------------------------------------------------------------ output
@@ -871,6 +909,34 @@ class MavlinkSitl:
                     "armed": ap.armed,
                 },
             )
+            obs = self._streamed_observation(frame_id, gt.time_s)
+            if obs is not None and self._control_step():
+                self._log(TOPIC_OBSERVATION, "visland.Observation", obs)
+
+    def _streamed_observation(self, frame_id: int, image_time_s: float) -> dict[str, Any] | None:
+        """What a client holds at this frame: the latest attitude, IMU and range readings this
+        SITL sent (before MAVLink's float32 / centimetre encoding), with their own times, in the
+        in-process log's ``/observation`` record. None until each has been sent since the
+        simulator was last reset."""
+        parts = self._streamed
+        if any(k not in parts for k in ("attitude", "imu", "range_m")):
+            return None
+        (att_t, att), (imu_t, imu), (rng_t, rng) = (
+            parts["attitude"],
+            parts["imu"],
+            parts["range_m"],
+        )
+        return {
+            "frame_id": frame_id,
+            "image_time_s": image_time_s,
+            "attitude_rad": att.attitude_rad,
+            "rate_frd_rad_s": att.rate_frd_rad_s,
+            "attitude_time_s": att_t,
+            "range_m": rng if math.isfinite(rng) else None,
+            "range_time_s": rng_t,
+            "accel_frd_m_s2": imu.accel_frd_m_s2,
+            "imu_time_s": imu_t,
+        }
 
     # ------------------------------------------------------------------ streams
 
@@ -963,8 +1029,14 @@ class MavlinkSitl:
             mavlink.MAV_VTOL_STATE_UNDEFINED, self._landed_state()
         )
 
+    def _streamed_reading(self, kind: str) -> Any:
+        sample = self._sample_now()
+        reading = getattr(sample, kind)
+        self._streamed[kind] = (sample.truth.time_s, reading)
+        return reading
+
     def _build_attitude(self) -> Any:
-        att = self._sample_now().attitude
+        att = self._streamed_reading("attitude")
         r = att.attitude_rad
         w = att.rate_frd_rad_s
         return self.endpoint.mav.attitude_encode(
@@ -972,7 +1044,7 @@ class MavlinkSitl:
         )
 
     def _build_attitude_quaternion(self) -> Any:
-        att = self._sample_now().attitude
+        att = self._streamed_reading("attitude")
         q = quat_from_euler(*att.attitude_rad)
         w = att.rate_frd_rad_s
         return self.endpoint.mav.attitude_quaternion_encode(
@@ -980,7 +1052,7 @@ class MavlinkSitl:
         )
 
     def _build_highres_imu(self) -> Any:
-        imu = self._sample_now().imu
+        imu = self._streamed_reading("imu")
         a, g = imu.accel_frd_m_s2, imu.gyro_frd_rad_s
         return self.endpoint.mav.highres_imu_encode(
             self.time_us,
@@ -1001,7 +1073,7 @@ class MavlinkSitl:
         )
 
     def _build_distance_sensor(self) -> Any:
-        rng = self._sample_now().range_m
+        rng = self._streamed_reading("range_m")
         max_cm = round(self.sim_cfg.radar.max_range_m * 100)
         if math.isfinite(rng):
             current, quality = min(round(rng * 100), _UINT16_MAX - 1), 100

@@ -33,7 +33,7 @@ from companion.record import TOPIC_COMMAND, latency_stats, replay_log
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
 from companion.telemetry import TelemetryStore, odometry_from_msg
-from tools.fly import free_udp_port
+from training.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -435,7 +435,7 @@ def _sitl_args(ports, scenario, log_dir, *extra) -> list[str]:
 def _companion_args(remote_port, camera_port, log_dir, *extra) -> list[str]:
     return [
         "-m",
-        "tools.companion_main",
+        "training.companion_process",
         "--policy",
         "expert",
         "--connect",
@@ -480,7 +480,7 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     lat = latency_stats([log_path])
     assert lat["commands"] == len(cmds) and lat["median_ms"] < 20.0
     # shadow replay: the same telemetry and frames, in receipt order, give the same commands
-    from tools.companion_main import resolve_policy
+    from training.companion_process import resolve_policy
 
     report = replay_log(log_path, PolicyRuntime(resolve_policy("expert"), "expert"))
     assert report.errors == [] and report.commands == len(cmds)
@@ -597,8 +597,8 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
 
 
 def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
-    from tools.fly import FlyConfig, fly
     from training.evaluate import EvalConfig, evaluate
+    from training.fly import FlyConfig, fly
 
     kw = dict(policy="expert", episodes=3, seed=5, scenario=low_scenario)
     over_udp = fly(FlyConfig(**kw, out=str(tmp_path / "fly"), progress=False))
@@ -659,7 +659,7 @@ def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_
     file: camera rendered, images in the log, the replay reproduces every command."""
     from companion.policy_net import save_checkpoint, untrained_policy
     from companion.runtime import load_policy_file
-    from tools.fly import FlyConfig, fly
+    from training.fly import FlyConfig, fly
 
     net = untrained_policy(seed=3)
     ckpt = save_checkpoint(tmp_path / "net.pt", net.config, net.control, net.perception, {})

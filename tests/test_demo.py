@@ -24,8 +24,8 @@ from PIL import Image
 
 from companion.flightlog import read_log
 from tools.demo import MARKER, DemoConfig, DemoError, run
-from tools.fly import REPO
 from tools.logtool import log_info, plot_flights
+from training.fly import REPO
 
 _ROW = re.compile(
     r"^\s*(?P<ep>\d+)\s+[+-]?\d+\.\d,\s+[+-]?\d+\.\d\s+(?P<alt>\d+\.\d)\s+(?P<time>\d+\.\d)\s+"

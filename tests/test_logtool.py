@@ -29,9 +29,9 @@ from companion.flightlog import (
 from sitl_sim.env import LandingEnv
 from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
 from tools.cli import main
-from tools.fly import FlyConfig, fly
 from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
 from tools.sitl_client import SitlClient
+from training.fly import FlyConfig, fly
 from training.rollout import fly_episode, make_policy
 
 

@@ -112,7 +112,7 @@ def bench_companion(
     if logs:
         return {"logs": [str(p) for p in logs], **latency_stats(list(logs))}
     from companion.runtime import RUNTIMES
-    from tools.fly import FlyConfig, fly
+    from training.fly import FlyConfig, fly
 
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
@@ -185,7 +185,7 @@ def format_bench(res: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tools.fly import FlyError
+    from training.fly import FlyError
 
     p = argparse.ArgumentParser(prog="python -m tools.bench_companion", description=__doc__)
     p.add_argument("logs", nargs="*", type=Path, help="companion MCAP logs (none: fly first)")

@@ -44,7 +44,7 @@ def _print_json(obj: Any) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from tools.demo import DemoConfig, run
-    from tools.fly import FlyError
+    from training.fly import FlyError
 
     # With --json the narration goes to stderr so stdout is one JSON document.
     narration = sys.stderr if args.json else sys.stdout
@@ -79,28 +79,35 @@ def _cmd_companion(args: argparse.Namespace) -> int:
     import logging
 
     from companion.app import run_from_args
-    from tools.companion_main import resolve_policy
+    from training.companion_process import resolve_policy
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     return run_from_args(args, resolve_policy, "visland companion")
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
-    from tools.fly import FlyConfig, FlyError, fly
     from training.evaluate import format_table
+    from training.fly import FlyConfig, FlyError, fly, fly_many
 
+    cfg = FlyConfig(
+        policy=args.policy,
+        episodes=args.episodes,
+        seed=args.seed,
+        scenario=str(args.scenario) if args.scenario else None,
+        realtime=getattr(args, "realtime", False),
+        out=str(args.out) if getattr(args, "out", None) else None,
+        progress=not args.json,
+    )
+    # eval --transport mavlink --workers N = fly --instances N
+    instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
+    if instances < 1:
+        print(f"visland {args.command}: --instances must be >= 1, got {instances}", file=sys.stderr)
+        return 2
     try:
-        report = fly(
-            FlyConfig(
-                policy=args.policy,
-                episodes=args.episodes,
-                seed=args.seed,
-                scenario=str(args.scenario) if args.scenario else None,
-                realtime=getattr(args, "realtime", False),
-                out=str(args.out) if getattr(args, "out", None) else None,
-                progress=not args.json,
-            )
-        )
+        if instances == 1:
+            report = fly(cfg)
+        else:
+            report = fly_many(cfg, list(range(args.episodes)), instances=instances)
     except FlyError as exc:
         print(f"visland {args.command}: failed: {exc}", file=sys.stderr)
         return 1
@@ -255,7 +262,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.what == "companion":
         from tools.bench_companion import DEFAULT_CHECKPOINT, bench_companion, format_bench
-        from tools.fly import FlyError
+        from training.fly import FlyError
 
         try:
             res = bench_companion(
@@ -382,7 +389,12 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--episodes", type=int, default=20)
     e.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
     e.add_argument("--scenario", type=Path, default=None)
-    e.add_argument("--workers", type=int, default=1, help="parallel processes")
+    e.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="parallel processes (mavlink: SITL + companion pairs)",
+    )
     e.add_argument(
         "--no-camera", action="store_true", help="skip rendering (privileged policies only)"
     )
@@ -413,6 +425,12 @@ def _parser() -> argparse.ArgumentParser:
     fl.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
     fl.add_argument("--scenario", type=Path, default=None)
     fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
+    fl.add_argument(
+        "--instances",
+        type=int,
+        default=1,
+        help="SITL + companion pairs side by side, each on its own ports (default 1)",
+    )
     fl.add_argument("--out", type=Path, default=None, help="run folder for both processes' logs")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=_cmd_fly)

@@ -9,12 +9,22 @@ from pathlib import Path
 __all__ = ["register_training"]
 
 
+def _profile(args: argparse.Namespace):
+    """The named profile, with ``--rollouts`` when given."""
+    from dataclasses import replace
+
+    from training.pipeline import PROFILES
+
+    prof = PROFILES[args.profile]
+    return replace(prof, rollouts=args.rollouts) if args.rollouts else prof
+
+
 def _cmd_pipeline(args: argparse.Namespace) -> int:
     from training.pipeline import STAGES, run_pipeline
 
     stages = tuple(args.stages.split(",")) if args.stages else STAGES
     records = run_pipeline(
-        args.out, args.profile, args.scenario, stages=stages, progress=not args.no_progress
+        args.out, _profile(args), args.scenario, stages=stages, progress=not args.no_progress
     )
     metrics = Path(args.out) / "metrics.json"
     if args.json:
@@ -41,7 +51,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     run_pipeline(
         args.run,
-        args.profile,
+        _profile(args),
         args.scenario,
         stages=(args.stage,),
         progress=not args.no_progress,
@@ -79,8 +89,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def register_training(sub: argparse._SubParsersAction) -> None:
-    from training.pipeline import PROFILES, STAGES
+    from training.pipeline import PROFILES, ROLLOUT_TRANSPORTS, STAGES
 
+    rollouts_help = (
+        "how DAgger learner rollouts fly (default: the profile's, mavlink = SITL + companion "
+        "processes over UDP in lockstep; inprocess = the env in worker processes); fixed per run"
+    )
     pp = sub.add_parser(
         "pipeline",
         help="collect -> BC -> DAgger -> perception -> vision DAgger -> eval (resumable)",
@@ -90,6 +104,7 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     pp.add_argument(
         "--scenario", default=None, help="scenario TOML (default configs/scenario.toml)"
     )
+    pp.add_argument("--rollouts", choices=ROLLOUT_TRANSPORTS, default=None, help=rollouts_help)
     pp.add_argument("--stages", default=None, help=f"comma list (default all: {','.join(STAGES)})")
     pp.add_argument("--no-progress", action="store_true")
     pp.add_argument("--json", action="store_true")
@@ -100,6 +115,7 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--run", type=Path, required=True, help="run folder")
     tr.add_argument("--profile", choices=sorted(PROFILES), default="quick")
     tr.add_argument("--scenario", default=None)
+    tr.add_argument("--rollouts", choices=ROLLOUT_TRANSPORTS, default=None, help=rollouts_help)
     tr.add_argument("--no-progress", action="store_true")
     tr.add_argument("--json", action="store_true")
     tr.add_argument(

@@ -1,6 +1,6 @@
 """``visland demo``: the shipped vision policy lands the simulated drone, over MAVLink.
 
-The demo is the product as it would fly: ``visland fly`` (:mod:`tools.fly`) starts the SITL
+The demo is the product as it would fly: ``visland fly`` (:mod:`training.fly`) starts the SITL
 and the companion as two processes talking MAVLink over UDP, the companion flies the shipped
 CNN+LSTM policy (``models/visland_vision.pt``: camera, radar, IMU — no ground truth) through
 ``episodes`` landings in lockstep, and the SITL's own ground truth scores each touchdown. Then
@@ -30,8 +30,8 @@ from sitl_sim.metrics import (
     SUCCESS_MAX_TILT_DEG,
     SUCCESS_MAX_VERTICAL_SPEED_M_S,
 )
-from tools.fly import REPO, FlyConfig, fly
 from tools.logtool import plot_flights
+from training.fly import REPO, FlyConfig, fly
 
 __all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run"]
 
@@ -238,14 +238,14 @@ def _write_report(report: dict[str, Any], out: TextIO) -> None:
 def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
     """Fly the demo, print it to ``out`` and return its report (``fly``'s, plus log paths).
 
-    Keys added to :func:`tools.fly.fly`'s report: ``initial_states`` (per episode),
+    Keys added to :func:`training.fly.fly`'s report: ``initial_states`` (per episode),
     ``companion_logs`` (per episode, None where unpaired), ``companion_logs_all``, ``plot``,
     ``sitl_stderr``, ``companion_stderr``, ``policy_description``. Also written to
     ``<out>/demo.json``.
 
     Raises:
         DemoError: bad input, before anything flies.
-        tools.fly.FlyError: a process failed (both processes are stopped first).
+        training.fly.FlyError: a process failed (both processes are stopped first).
     """
     if cfg.episodes < 1:
         raise DemoError(f"--episodes must be >= 1, got {cfg.episodes}")

@@ -184,7 +184,8 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             name=log_path.name,
             source=source,
             frame_id=np.array(frames, dtype=np.int64),
-            time_s=np.array([m["time_s"] for m in t], dtype=float),
+            # flight time: the SITL's records carry it beside their SITL-clock stamp
+            time_s=np.array([m.get("flight_time_s", m["time_s"]) for m in t], dtype=float),
             attitude_rad=_vec(o, "attitude_rad", 3),
             rate_frd_rad_s=_vec(o, "rate_frd_rad_s", 3),
             accel_frd_m_s2=_vec(o, "accel_frd_m_s2", 3),

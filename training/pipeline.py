@@ -56,6 +56,7 @@ from training.train import (
 
 __all__ = [
     "PROFILES",
+    "ROLLOUT_TRANSPORTS",
     "STAGES",
     "PipelineError",
     "Profile",
@@ -65,6 +66,7 @@ __all__ = [
 ]
 
 STAGES = ("collect", "bc", "dagger", "perception", "vision", "eval")
+ROLLOUT_TRANSPORTS = ("mavlink", "inprocess")
 
 
 class PipelineError(ValueError):
@@ -106,7 +108,20 @@ class Profile:
     segment_steps: int = 25
     burn_in_steps: int = 0
     workers: int = 2
+    """Parallel in-process workers, or SITL + companion pairs for ``mavlink`` rollouts."""
+    rollouts: str = "mavlink"
+    """How DAgger learner rollouts fly: ``mavlink`` (default) — the SITL and the companion as
+    separate processes over UDP in lockstep, ``workers`` pairs side by side, the SITL's flight
+    logs relabelled; ``inprocess`` — the gymnasium env in worker processes (faster, same
+    physics). Expert collection, validation and evaluation fly in process either way."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.rollouts not in ROLLOUT_TRANSPORTS:
+            raise PipelineError(
+                f"profile {self.name!r}: rollouts = {self.rollouts!r}; expected one of "
+                f"{', '.join(ROLLOUT_TRANSPORTS)}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -217,9 +232,14 @@ class Run:
                 theirs.setdefault("upgraded", []).append({"commit": self.commit, "keys": added})
                 path.write_text(json.dumps(theirs, indent=2))
             if {k: theirs.get(k) for k in mine} != mine:
+                prof = theirs.get("profile") or {}
+                keys = sorted(k for k in mine["profile"] if prof.get(k) != mine["profile"][k])
+                if theirs.get("scenario") != mine["scenario"]:
+                    keys.append("scenario")
                 raise PipelineError(
                     f"{path}: this run was started with another profile/scenario "
-                    f"({theirs.get('profile', {}).get('name')!r}); use a new --out folder"
+                    f"({prof.get('name')!r}; differs in {', '.join(keys)}); use a new --out "
+                    "folder"
                 )
         else:
             path.write_text(json.dumps(mine, indent=2))
@@ -286,24 +306,85 @@ class Run:
 
     # ------------------------------------------------------------------ flights
 
-    def fly(self, checkpoint: str, seed: int, count: int, folder: str, camera: bool) -> list[Path]:
-        """Learner (or expert) rollouts with logs in flights/<folder>/; resumable."""
+    def fly(
+        self,
+        checkpoint: str,
+        seed: int,
+        count: int,
+        folder: str,
+        camera: bool,
+        transport: str | None = None,
+    ) -> list[Path]:
+        """Rollouts of episodes ``0..count-1`` of ``seed`` with their flight logs in
+        ``flights/<folder>/``; resumable (complete logs are not flown again).
+
+        ``transport`` (default: the profile's ``rollouts``): ``mavlink`` flies the policy
+        through ``visland sitl`` + ``visland companion`` processes (``training.fly.fly_many``,
+        lockstep, ``workers`` pairs) and returns the SITL's logs — the training record;
+        ``inprocess`` flies the gymnasium env in ``workers`` processes."""
         from training.rollout import completed_episode
 
+        transport = transport or self.profile.rollouts
         flights = self.root / "flights" / folder
         flights.mkdir(parents=True, exist_ok=True)
-        todo = [i for i in range(count) if not completed_episode(flights / log_name(seed, i))]
-        spec = RolloutSpec(
+        if transport == "mavlink":
+            from training.fly import sitl_log_name
+
+            paths = [flights / sitl_log_name(seed, i) for i in range(count)]
+        else:
+            paths = [flights / log_name(seed, i) for i in range(count)]
+        todo = [i for i, path in enumerate(paths) if not completed_episode(path)]
+        if not todo:
+            return paths
+        with self.bar(len(todo), f"fly {folder} ({transport})") as bar:
+            if transport == "mavlink":
+                self._fly_mavlink(checkpoint, seed, todo, flights, camera, bar.update)
+            else:
+                spec = RolloutSpec(
+                    policy=checkpoint,
+                    seed=seed,
+                    scenario=self.scenario_path,
+                    render_camera=camera,
+                    log_dir=str(flights),
+                )
+                run_episodes(spec, todo, self.profile.workers, on_done=lambda _: bar.update())
+        return paths
+
+    def _fly_mavlink(
+        self,
+        checkpoint: str,
+        seed: int,
+        todo: list[int],
+        flights: Path,
+        camera: bool,
+        progress: Callable[[int], Any],
+    ) -> None:
+        """SITL + companion pairs; a failed pair's episodes are flown once more, then a
+        PipelineError names what failed (the logs that finished stay: a rerun resumes)."""
+        from training.fly import FlyConfig, FlyError, fly_many, sitl_log_name
+        from training.rollout import completed_episode
+
+        cfg = FlyConfig(
             policy=checkpoint,
             seed=seed,
             scenario=self.scenario_path,
-            render_camera=camera,
-            log_dir=str(flights),
+            render=camera,
+            out=str(flights / "mavlink"),
+            sitl_log_dir=str(flights),
+            progress=False,
         )
-        if todo:
-            with self.bar(len(todo), f"fly {folder}") as bar:
-                run_episodes(spec, todo, self.profile.workers, on_done=lambda _: bar.update())
-        return [flights / log_name(seed, i) for i in range(count)]
+        for attempt in (1, 2):
+            try:
+                fly_many(cfg, todo, instances=self.profile.workers, on_done=progress)
+                return
+            except FlyError as exc:
+                todo = [i for i in todo if not completed_episode(flights / sitl_log_name(seed, i))]
+                if attempt == 2:
+                    raise PipelineError(
+                        f"{flights}: {len(todo)} SITL + companion rollouts failed twice "
+                        f"(rerun to resume): {exc}"
+                    ) from None
+                self.say(f"fly: {exc}\nflying the {len(todo)} missing episodes again")
 
     def relabel(self, logs: list[Path], folder: str) -> list[tuple[Path, Path]]:
         """Offline expert labels for learner logs (``expert.relabel``, as `visland relabel`)."""
@@ -337,7 +418,9 @@ class Run:
     def stage_collect(self) -> dict[str, Any]:
         p = self.profile
         t0 = time.perf_counter()
-        logs = self.fly("expert", p.collect_seed, p.collect_episodes, "expert", camera=True)
+        logs = self.fly(
+            "expert", p.collect_seed, p.collect_episodes, "expert", True, transport="inprocess"
+        )
         return self.finish(
             "collect",
             {
@@ -437,7 +520,12 @@ class Run:
                 )
                 rec = self.finish(
                     name,
-                    {"checkpoint": str(out), "pairs": [[str(a), str(b)] for a, b in pairs], **fit},
+                    {
+                        "checkpoint": str(out),
+                        "rollouts": p.rollouts,
+                        "pairs": [[str(a), str(b)] for a, b in pairs],
+                        **fit,
+                    },
                 )
             ckpt = Path(rec["checkpoint"])
             rounds.append(rec)
@@ -609,7 +697,12 @@ class Run:
             )
             candidates.append(str(ckpt))
         return self.finish(
-            "vision", {"fits": fits, **self.select(candidates, camera=True, out="vision")}
+            "vision",
+            {
+                "fits": fits,
+                "rollouts": p.rollouts if p.vision_rounds else None,
+                **self.select(candidates, camera=True, out="vision"),
+            },
         )
 
     def stage_eval(self) -> dict[str, Any]:

@@ -272,12 +272,14 @@ def run_episodes(
 
 
 def completed_episode(path: Path) -> bool:
-    """True when ``path`` is a complete, readable flight log with an episode result."""
+    """True when ``path`` is a complete, readable flight log with the result of a flight that
+    was not aborted (a SITL stopped mid-episode logs ``aborted``: that episode flies again)."""
     try:
         log = read_log(path, topics=[TOPIC_RESULT])
     except FlightLogError:
         return False
-    return not log.truncated and bool(log.topic(TOPIC_RESULT))
+    results = log.topic(TOPIC_RESULT)
+    return not log.truncated and bool(results) and not results[-1].get("aborted", False)
 
 
 def default_workers() -> int:

@@ -1,7 +1,7 @@
 """``visland fly``: the SITL and the companion as two processes over UDP, N episodes, eval JSON.
 
 The SITL (``python -m sitl_sim.mavlink_sitl``) flies episodes ``0..N-1`` of ``seed``; the
-companion (``python -m tools.companion_main``) flies each through MAVLink — pre-stream,
+companion (``python -m training.companion_process``) flies each through MAVLink — pre-stream,
 OFFBOARD, one command per camera frame, touchdown, disarm. Results are the SITL's own
 (``/episode/result`` of its per-episode flight logs: ground truth at first contact, the same
 ``sitl_sim.metrics`` as in-process ``eval``), so ``fly`` and ``eval`` agree on definitions; the
@@ -21,8 +21,11 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +34,15 @@ from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize
 
-__all__ = ["FlyConfig", "FlyError", "fly", "free_udp_port", "policy_is_privileged"]
+__all__ = [
+    "FlyConfig",
+    "FlyError",
+    "fly",
+    "fly_many",
+    "free_udp_port",
+    "policy_is_privileged",
+    "sitl_log_name",
+]
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -48,6 +59,8 @@ class FlyConfig:
     """``expert`` | ``cascade`` | a checkpoint path (``untrained`` for benchmarks)."""
     episodes: int = 20
     seed: int = 1_000_000
+    first_episode: int = 0
+    """Fly episodes ``first_episode .. first_episode + episodes - 1`` of ``seed``."""
     scenario: str | None = None
     realtime: bool = False
     """Real time (the SITL follows the wall clock) instead of lockstep."""
@@ -55,6 +68,8 @@ class FlyConfig:
     """Render the camera (None: only for vision policies; privileged ones do not look)."""
     out: str | None = None
     """Run folder for the SITL and companion logs (None: a temporary folder)."""
+    sitl_log_dir: str | None = None
+    """Folder for the SITL's flight logs (None: ``<out>/sitl``)."""
     timeout_s: float | None = None
     """Wall-clock limit of the whole run (None: from the episode count)."""
     companion_args: tuple[str, ...] = ()
@@ -63,11 +78,18 @@ class FlyConfig:
     env: dict[str, str] = field(default_factory=dict)
 
 
+_RESULT_FIELDS = tuple(EpisodeResult.__dataclass_fields__)
 _handed_out: set[int] = set()
+_ports_lock = threading.Lock()
 
 
 def free_udp_port() -> int:
     """A UDP port free on 127.0.0.1 now (never the same twice in this process)."""
+    with _ports_lock:
+        return _free_udp_port()
+
+
+def _free_udp_port() -> int:
     while True:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", 0))
@@ -110,11 +132,16 @@ def _tail(path: Path, lines: int = 15) -> str:
         return ""
 
 
-def _results(sitl_dir: Path, seed: int, episodes: int) -> list[tuple[int, EpisodeResult, str]]:
+def sitl_log_name(seed: int, index: int) -> str:
+    """The SITL's flight log of episode ``index`` of ``seed`` (``sitl_sim.mavlink_sitl``)."""
+    return f"sitl_seed{seed}_ep{index:04d}.mcap"
+
+
+def _results(sitl_dir: Path, seed: int, indices: range) -> list[tuple[int, EpisodeResult, str]]:
     fields = EpisodeResult.__dataclass_fields__
     out = []
-    for i in range(episodes):
-        path = sitl_dir / f"sitl_seed{seed}_ep{i:04d}.mcap"
+    for i in indices:
+        path = sitl_dir / sitl_log_name(seed, i)
         if not path.exists():
             continue
         rec = read_log(path, topics=[TOPIC_RESULT]).topic(TOPIC_RESULT)
@@ -137,7 +164,8 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     privileged = policy_is_privileged(cfg.policy)
     render = (not privileged) if cfg.render is None else cfg.render
     out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="visland_fly_"))
-    sitl_dir, comp_dir = out / "sitl", out / "companion"
+    sitl_dir = Path(cfg.sitl_log_dir) if cfg.sitl_log_dir else out / "sitl"
+    comp_dir = out / "companion"
     out.mkdir(parents=True, exist_ok=True)
     mav, remote, cam = free_udp_port(), free_udp_port(), free_udp_port()
     episode_s = load_sim().episode_timeout_s
@@ -157,6 +185,8 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         str(cfg.episodes),
         "--seed",
         str(cfg.seed),
+        "--first-episode",
+        str(cfg.first_episode),
         "--log-dir",
         str(sitl_dir),
         "--max-wall-s",
@@ -170,7 +200,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     comp_cmd = [
         sys.executable,
         "-m",
-        "tools.companion_main",
+        "training.companion_process",
         "--policy",
         cfg.policy,
         "--connect",
@@ -216,7 +246,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     finally:
         _stop(comp, sitl)  # SIGTERM: the companion hands back and closes its log, then the SITL
     wall = time.monotonic() - t0
-    rows = _results(sitl_dir, cfg.seed, cfg.episodes)
+    rows = _results(sitl_dir, cfg.seed, range(cfg.first_episode, cfg.first_episode + cfg.episodes))
     if len(rows) != cfg.episodes:
         raise FlyError(
             f"{len(rows)} of {cfg.episodes} episodes finished; SITL log:\n{_tail(sitl_log)}\n"
@@ -245,4 +275,102 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         "per_episode": [
             {"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path} for i, r, path in rows
         ],
+    }
+
+
+def _chunks(indices: list[int], size: int) -> list[tuple[int, int]]:
+    """``(first, count)`` runs of consecutive indices, each at most ``size`` long."""
+    runs: list[tuple[int, int]] = []
+    for i in sorted(set(indices)):
+        if runs and runs[-1][0] + runs[-1][1] == i and runs[-1][1] < size:
+            runs[-1] = (runs[-1][0], runs[-1][1] + 1)
+        else:
+            runs.append((i, 1))
+    return runs
+
+
+def fly_many(
+    cfg: FlyConfig,
+    indices: list[int],
+    instances: int = 2,
+    chunk: int = 10,
+    on_done: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Fly episodes ``indices`` of ``cfg.seed`` with up to ``instances`` SITL + companion pairs
+    side by side, each in lockstep on its own free ports.
+
+    The indices are cut into runs of at most ``chunk`` consecutive episodes; each run is one
+    :func:`fly` (its SITL started at ``--first-episode``), so any subset of a seed's episodes can
+    be flown (a resumed DAgger round flies only the missing ones) and a failed pair loses at most
+    one run. The SITL logs of every run go to ``cfg.sitl_log_dir`` (default ``<out>/sitl``);
+    each run's companion logs and process output to ``<out>/ep<first>/``. ``on_done(n)`` after
+    each run with its episode count.
+
+    Returns the report of :func:`fly` over all episodes (``instances`` and ``runs`` added).
+
+    Raises:
+        FlyError: after every run has been tried, naming each that failed (the episodes of the
+            runs that finished keep their logs).
+    """
+    if not indices:
+        raise ValueError("no episodes to fly")
+    if instances < 1 or chunk < 1:
+        raise ValueError(f"instances and chunk must be >= 1, got {instances}, {chunk}")
+    out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="visland_fly_"))
+    sitl_dir = Path(cfg.sitl_log_dir) if cfg.sitl_log_dir else out / "sitl"
+    runs = _chunks(indices, chunk)
+
+    def one(run: tuple[int, int]) -> dict[str, Any]:
+        first, count = run
+        report = fly(
+            replace(
+                cfg,
+                first_episode=first,
+                episodes=count,
+                out=str(out / f"ep{first:04d}"),
+                sitl_log_dir=str(sitl_dir),
+                timeout_s=None,
+                progress=False,
+            )
+        )
+        if on_done is not None:
+            on_done(count)
+        return report
+
+    t0 = time.monotonic()
+    reports, failures = [], []
+    with ThreadPoolExecutor(max_workers=min(instances, len(runs))) as pool:
+        futures = {pool.submit(one, run): run for run in runs}
+        for future in as_completed(futures):
+            first, count = futures[future]
+            try:
+                reports.append(future.result())
+            except FlyError as exc:
+                failures.append(f"episodes {first}..{first + count - 1}: {exc}")
+    if failures:
+        raise FlyError(f"{len(failures)} of {len(runs)} runs failed:\n" + "\n".join(failures))
+    rows = sorted((r for rep in reports for r in rep["per_episode"]), key=lambda r: r["episode"])
+    results = [
+        EpisodeResult(**{k: (math.nan if r[k] is None else r[k]) for k in _RESULT_FIELDS})
+        for r in rows
+    ]
+    comp_logs = sorted(out.glob("ep*/companion/*.mcap"))
+    flights: dict[str, int] = {}
+    for rep in reports:
+        for k, v in rep["companion_flights"].items():
+            flights[k] = flights.get(k, 0) + v
+    return {
+        "policy": cfg.policy,
+        "transport": "mavlink",
+        "seed": cfg.seed,
+        "scenario": cfg.scenario or "configs/scenario.toml",
+        "realtime": cfg.realtime,
+        **summarize(results),
+        "latency_ms": latency_stats(comp_logs),
+        "companion_flights": flights,
+        "instances": min(instances, len(runs)),
+        "runs": len(runs),
+        "wall_s": time.monotonic() - t0,
+        "out": str(out),
+        "per_episode": rows,
     }
