@@ -949,6 +949,20 @@ def _regenerate_eval(run: Path, metrics: dict[str, Any]) -> str:
     return f"rm {run}/stages/eval.json && visland train eval --run {run} --profile {profile}"
 
 
+def rollouts_text(prof: dict[str, Any]) -> str:
+    """How a run's DAgger learner rollouts flew (its profile's ``rollouts`` key)."""
+    how = prof.get("rollouts")
+    if how == "mavlink":
+        return (
+            "flown by the learner through `visland sitl` + `visland companion` processes over "
+            f"MAVLink/UDP in lockstep ({prof.get('workers', 1)} pairs side by side; the SITL's "
+            "logs relabelled)"
+        )
+    if how == "inprocess":
+        return "flown in process (the gymnasium env)"
+    return "flown in process (the run predates the profile's `rollouts` key)"
+
+
 def _header(
     cfg: ReportConfig, metrics: dict[str, Any], prov: _Provenance, mismatches: list[str] | None
 ) -> str:
@@ -984,6 +998,7 @@ def _header(
 - Run: `{prov.run}`, profile `{metrics["profile"].get("name", "?")}`, eval stage at commit
   `{prov.run_commit}`{"; stages: " + ", ".join(stage_commits) if stage_commits else ""}.
 - {_seed_line(metrics)}
+- DAgger learner rollouts: {rollouts_text(metrics["profile"])}.
 {reflown}- Success = landing error ≤ 1 m, vertical touchdown speed ≤ 1 m/s, tilt ≤ 20°;
   touchdown speed in the table is the norm of the velocity at first contact (DESIGN.md,
   Metrics).

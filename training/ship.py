@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.policy_net import load_policy
+from training.report import rollouts_text
 
 __all__ = ["PAPER_TABLE3", "ship"]
 
@@ -107,7 +108,8 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   paper 4.1 initial states (`configs/scenario.toml`); {prof["dagger_rounds"]} privileged DAgger
   rounds × {prof["dagger_rollouts"]} learner rollouts (seeds {prof["dagger_seed"]}+k);
   {prof["vision_rounds"]} vision DAgger rounds × {prof["vision_rollouts"]} rollouts (seeds
-  {prof["vision_seed"]}+k); every learner flight relabelled offline from its MCAP log.
+  {prof["vision_seed"]}+k), {rollouts_text(prof)}; every learner flight relabelled offline
+  from its MCAP log.
 - replay buffer: {prof["buffer_capacity"]} episodes FIFO, {prof["segment_steps"]}-step segments
   × {prof["batch_segments"]} per batch (paper 4.2).
 - perception: {perception.get("train_images", "?")} training / {perception.get("val_images", "?")}
