@@ -416,3 +416,39 @@ def test_redo_reruns_a_stage_and_drops_the_later_records(tmp_path):
     (run / "profile.json").write_text(json.dumps(prof))
     with pytest.raises(PipelineError, match="another profile"):
         run_pipeline(run, "quick", stages=("vision",), progress=False)
+
+
+def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
+    """Privileged validation cannot tell BC and DAgger controllers apart (millimetres for
+    all), so each one that landed every flight becomes a vision candidate."""
+    import json
+
+    from training.pipeline import PROFILES, Run
+
+    run = Run(tmp_path / "run", PROFILES["quick"], progress=False, say=lambda _: None)
+    try:
+        records = []
+        for i, (name, success) in enumerate((("bc", 1.0), ("dagger_r0", 0.0), ("dagger_r1", 1.0))):
+            net = untrained_policy(seed=i, privileged=True)
+            path = save_checkpoint(
+                run.root / "checkpoints" / f"{name}.pt", net.config, net.control, None, {}
+            )
+            records.append({"checkpoint": str(path), "success_rate": success})
+        (run.root / "stages" / "dagger.json").write_text(
+            json.dumps({"checkpoint": records[0]["checkpoint"], "validation": records})
+        )
+        cfg = run.net_config("vision")
+        got = run._privileged_controllers(cfg)
+        assert [name for name, _ in got] == ["bc", "dagger_r1"]
+        _, r1, _, _ = load_networks(records[2]["checkpoint"])
+        for a, b in zip(got[1][1].state_dict().values(), r1.state_dict().values(), strict=True):
+            assert torch.equal(a, b)
+        # none landed: all of them (validation decides with the camera)
+        for rec in records:
+            rec["success_rate"] = 0.0
+        (run.root / "stages" / "dagger.json").write_text(
+            json.dumps({"checkpoint": records[0]["checkpoint"], "validation": records})
+        )
+        assert len(run._privileged_controllers(cfg)) == 3
+    finally:
+        run.close()

@@ -640,11 +640,25 @@ class Run:
         fresh.load_state_dict(control.state_dict())
         return cfg, fresh, cnn
 
+    def _privileged_controllers(self, cfg: NetConfig) -> list[tuple[str, ControlLSTM]]:
+        """The stage-1 checkpoints that landed every validation flight with ground truth
+        (all of them if none did), by file stem: the controllers a vision policy can start
+        from."""
+        scores = self.need("dagger").get("validation") or [
+            {"checkpoint": self.need("dagger")["checkpoint"], "success_rate": 1.0}
+        ]
+        good = [s for s in scores if s.get("success_rate", 0.0) >= 1.0] or scores
+        out = []
+        for rec in good:
+            _, control, _, _ = load_networks(rec["checkpoint"])
+            fresh = ControlLSTM(cfg)
+            fresh.load_state_dict(control.state_dict())
+            out.append((Path(rec["checkpoint"]).stem, fresh))
+        return out
+
     def stage_vision(self) -> dict[str, Any]:
         p = self.profile
         cfg, control, cnn = self._vision_policy()
-        prior_control = ControlLSTM(cfg)
-        prior_control.load_state_dict(control.state_dict())
         policy = LearnedPolicy(cfg, control, cnn)
         buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 50)
         names: list[str] = []
@@ -665,18 +679,28 @@ class Run:
             cnn,
             self.metadata("vision_bc", {"episodes": list(names), "fit": fits[-1]}),
         )
-        # candidate 0: the privileged controller as it is, fed by CNN + estimator. Fine-tuning on
-        # the expert's flights alone shrinks the controller's gain on the (noisy) position
-        # estimate — the expert stays over the pad, so position noise looks uncorrelated with
-        # its commands (regression dilution) — and validation decides which one flies better.
-        prior = save_checkpoint(
-            self.root / "checkpoints" / "vision_prior.pt",
-            cfg,
-            prior_control,
-            cnn,
-            self.metadata("vision_prior", {"controller": self.need("dagger")["checkpoint"]}),
-        )
-        candidates = [str(prior), str(ckpt)]
+        # Candidates 0..: each privileged controller that landed on validation (BC and every
+        # DAgger round), as it is, fed by CNN + estimator. Fine-tuning on the expert's flights
+        # alone shrinks the controller's gain on the (noisy) position estimate — the expert
+        # stays over the pad, so position noise looks uncorrelated with its commands
+        # (regression dilution). And privileged validation cannot tell them apart (millimetres
+        # for all), while with a noisy estimate a DAgger round's controller — trained on the
+        # learner's off-nominal states — can flare where the BC one hits the ground: vision
+        # validation decides.
+        priors = []
+        for name, prior_control in self._privileged_controllers(cfg):
+            priors.append(
+                str(
+                    save_checkpoint(
+                        self.root / "checkpoints" / f"vision_prior_{name}.pt",
+                        cfg,
+                        prior_control,
+                        cnn,
+                        self.metadata("vision_prior", {"controller": name}),
+                    )
+                )
+            )
+        candidates = [*priors, str(ckpt)]
         for k in range(p.vision_rounds):
             name = f"vision_r{k}"
             logs = self.fly(str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
