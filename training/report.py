@@ -275,7 +275,8 @@ def _short(commit: str | None) -> str:
     if not commit:
         return "unknown"
     head, _, rest = commit.partition(" ")
-    return head[:10] + (f" {rest}" if rest else "")
+    sha, plus, flag = head.partition("+")  # "<sha>+dirty" from training.rollout.git_commit
+    return sha[:10] + (f"+{flag}" if plus else "") + (f" {rest}" if rest else "")
 
 
 @dataclass(frozen=True)

@@ -38,19 +38,25 @@ __all__ = [
 
 
 def git_commit() -> str:
-    """The repository's HEAD commit (``unknown`` outside a git checkout)."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
+    """The repository's HEAD commit, ``+dirty`` when tracked files differ from it (the code
+    that ran is then not that commit); ``unknown`` outside a git checkout."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", *args],
             capture_output=True,
             text=True,
             timeout=5,
             cwd=Path(__file__).resolve().parent,
             check=True,
-        )
-        return out.stdout.strip()
+        ).stdout.strip()
+
+    try:
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+    return f"{head}+dirty" if dirty else head
 
 
 def make_policy(name: str, env: LandingEnv):
