@@ -27,7 +27,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
@@ -49,6 +49,7 @@ __all__ = [
     "FlightLog",
     "FlightLogError",
     "FlightLogWriter",
+    "jsonable",
     "read_log",
 ]
 
@@ -132,6 +133,8 @@ def _jsonable_slow(value: Any) -> Any:
         return {str(k): _jsonable_slow(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_jsonable_slow(v) for v in value]
+    if isinstance(value, PurePath):
+        return str(value)
     return value
 
 
@@ -204,6 +207,13 @@ def _jsonable(value: Any) -> Any:
             total = sum(floats)  # non-finite if any element is (or on overflow: slow path)
             return floats if total - total == 0.0 else _jsonable(floats)
     return _jsonable_slow(value)
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` as strict JSON data — numpy as Python numbers/lists, NaN/inf as None, paths as
+    strings — the conversion every flight-log record gets (reports and stage records use it
+    too)."""
+    return _jsonable(value)
 
 
 class FlightLogError(Exception):

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,29 +16,11 @@ from typing import Any
 __all__ = ["main"]
 
 
-def _json_default(obj: Any) -> Any:
-    import numpy as np
-
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 def _print_json(obj: Any) -> None:
-    def clean(v: Any) -> Any:
-        if isinstance(v, float) and not math.isfinite(v):
-            return None  # JSON has no NaN: null means "not defined" (e.g. no touchdown)
-        if isinstance(v, dict):
-            return {k: clean(x) for k, x in v.items()}
-        if isinstance(v, list | tuple):
-            return [clean(x) for x in v]
-        return v
+    """One JSON document on stdout; NaN (e.g. no touchdown) is null: "not defined"."""
+    from companion.flightlog import jsonable
 
-    print(json.dumps(clean(json.loads(json.dumps(obj, default=_json_default))), indent=2))
+    print(json.dumps(jsonable(obj), indent=2))
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

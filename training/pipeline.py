@@ -20,7 +20,6 @@ Scalars go to TensorBoard (``tb/``) and ``scalars.jsonl``.
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -28,10 +27,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
+from companion.flightlog import jsonable
 from companion.policy_net import (
     ControlLSTM,
     LearnedPolicy,
@@ -169,26 +168,6 @@ PROFILES: dict[str, Profile] = {
 }
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def _clean(v: Any) -> Any:
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _clean(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_clean(x) for x in v]
-    return v
-
-
 class Run:
     """One run folder: stage records, checkpoints, flights, labels, scalars, metrics."""
 
@@ -274,7 +253,7 @@ class Run:
         record = {"stage": stage, "git_commit": self.commit, **record}
         path = self.root / "stages" / f"{stage}.json"
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(_clean(record), indent=2, default=_json_default))
+        tmp.write_text(json.dumps(jsonable(record), indent=2))
         tmp.replace(path)
         return record
 
@@ -757,7 +736,7 @@ class Run:
             "stages": {s: self.done(s) for s in STAGES if s != "eval"},
         }
         path = self.root / "metrics.json"
-        path.write_text(json.dumps(_clean(metrics), indent=2, default=_json_default))
+        path.write_text(json.dumps(jsonable(metrics), indent=2))
         return self.finish("eval", {"metrics": str(path)})
 
 
