@@ -31,8 +31,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from companion.camera_packet import CameraPacketError, FrameAssembler
 from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
+from companion.contract.camera_packet import CameraPacketError, FrameAssembler
 
 __all__ = [
     "CameraError",
@@ -503,7 +503,8 @@ class McapReplaySource:
         realtime: bool = True,
         clock_fn: Callable[[], float] = time.monotonic,
     ) -> None:
-        from companion.flightlog import TOPIC_IMAGE, FlightLogError, read_log
+        from companion.contract.topics import TOPIC_IMAGE
+        from companion.flightlog import FlightLogError, read_log
 
         try:
             log = read_log(path, topics=[TOPIC_IMAGE])

@@ -37,15 +37,14 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from companion.contract.topics import (
+    SCHEMA_GROUNDTRUTH_POSE,
+    SCHEMA_IMAGE,
+    TOPIC_GROUNDTRUTH_POSE,
+    TOPIC_IMAGE,
+)
+
 __all__ = [
-    "TOPIC_COMMAND",
-    "TOPIC_EVENTS",
-    "TOPIC_GROUNDTRUTH",
-    "TOPIC_GROUNDTRUTH_POSE",
-    "TOPIC_IMAGE",
-    "TOPIC_OBSERVATION",
-    "TOPIC_RESULT",
-    "TOPIC_SCENARIO",
     "FlightLog",
     "FlightLogError",
     "FlightLogWriter",
@@ -53,14 +52,6 @@ __all__ = [
     "read_log",
 ]
 
-TOPIC_IMAGE = "/camera/image"
-TOPIC_OBSERVATION = "/observation"
-TOPIC_GROUNDTRUTH = "/groundtruth/state"
-TOPIC_GROUNDTRUTH_POSE = "/groundtruth/pose"
-TOPIC_COMMAND = "/command"
-TOPIC_SCENARIO = "/episode/scenario"
-TOPIC_RESULT = "/episode/result"
-TOPIC_EVENTS = "/events"
 
 _FLUSH_PERIOD_S = 1.0
 _COMPACT_JSON = json.JSONEncoder(separators=(",", ":"))  # = json.dumps(separators=...), reused
@@ -70,7 +61,7 @@ _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"
 _VEC = {"type": "array", "items": {"type": "number"}}
 
 _SCHEMAS: dict[str, dict[str, Any]] = {
-    "foxglove.RawImage": {
+    SCHEMA_IMAGE: {
         "type": "object",
         "properties": {
             "timestamp": _TIME,
@@ -82,7 +73,7 @@ _SCHEMAS: dict[str, dict[str, Any]] = {
             "data": {"type": "string", "contentEncoding": "base64"},
         },
     },
-    "foxglove.PoseInFrame": {
+    SCHEMA_GROUNDTRUTH_POSE: {
         "type": "object",
         "properties": {
             "timestamp": _TIME,
@@ -302,7 +293,7 @@ class FlightLogWriter:
         t_ns = self.log_time_ns(time_s)
         self.write(
             TOPIC_IMAGE,
-            "foxglove.RawImage",
+            SCHEMA_IMAGE,
             time_s,
             {
                 "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
@@ -322,7 +313,7 @@ class FlightLogWriter:
         n, e, d = (float(v) for v in pos_ned_m)
         self.write(
             TOPIC_GROUNDTRUTH_POSE,
-            "foxglove.PoseInFrame",
+            SCHEMA_GROUNDTRUTH_POSE,
             time_s,
             {
                 "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.flightlog import TOPIC_EVENTS, TOPIC_IMAGE, FlightLogWriter, read_log
+from companion.contract.topics import TOPIC_EVENTS, TOPIC_IMAGE
+from companion.flightlog import FlightLogWriter, read_log
 from companion.telemetry import TelemetryStore
 
 __all__ = [

@@ -1,6 +1,6 @@
 """The policy runtime: one policy, its recurrent state held explicitly, one command per frame.
 
-Any object with the :class:`PolicyLike` shape flies: the learned CNN+LSTM
+Any :class:`companion.contract.Policy` flies: the learned CNN+LSTM
 (:func:`load_policy_file`: torch on the CPU, or its networks in ONNX Runtime — ``runtime =
 "onnx"``, :mod:`companion.onnx_runtime`), or — wired in by ``tools/`` — the
 MPC expert and the cascade lander for SITL runs. ``reset()`` starts a flight afresh
@@ -13,33 +13,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
 
-from companion.contract import Command, Observation
+from companion.contract import Command, GroundTruth, Observation, Policy, PolicyState
 
-__all__ = ["RUNTIMES", "PolicyLike", "PolicyRuntime", "StepResult", "load_policy_file"]
+__all__ = ["RUNTIMES", "PolicyRuntime", "StepResult", "load_policy_file"]
 
 RUNTIMES = ("torch", "onnx")
 """Backends of a learned checkpoint: ``torch`` (the checkpoint itself) or ``onnx`` (its
 ``visland export-onnx`` graphs in ONNX Runtime; same geometry/estimator code in Python)."""
-
-
-@runtime_checkable
-class PolicyLike(Protocol):
-    """``initial_state()`` and ``act(observation, groundtruth, state) -> (Command, state)``.
-
-    ``groundtruth`` is duck-typed — any object with numpy ``pos_ned_m``, ``vel_ned_m_s``,
-    ``quat_wxyz``, ``rate_frd_rad_s`` and ``time_s`` — or None; only ``privileged`` policies
-    read it (the companion builds it from ODOMETRY, which only the SITL publishes).
-    """
-
-    privileged: bool
-
-    def initial_state(self) -> Any: ...
-
-    def act(
-        self, observation: Observation, groundtruth: Any, state: Any
-    ) -> tuple[Command, Any]: ...
 
 
 @dataclass(frozen=True)
@@ -59,15 +40,17 @@ class PolicyRuntime:
         name: what to call it in logs (a path, ``expert``...).
     """
 
-    def __init__(self, policy: PolicyLike, name: str) -> None:
+    def __init__(self, policy: Policy, name: str) -> None:
         for attr in ("initial_state", "act"):
             if not callable(getattr(policy, attr, None)):
-                raise TypeError(f"policy {name!r}: has no {attr}() (not a PolicyLike)")
+                raise TypeError(
+                    f"policy {name!r}: has no {attr}() (not a companion.contract.Policy)"
+                )
         self.policy = policy
         self.name = name
         self.privileged = bool(getattr(policy, "privileged", False))
         self.steps = 0
-        self._state: Any = None
+        self._state: PolicyState = None
         self._ready = False
 
     def warm_up(self, steps: int = 5) -> str | None:
@@ -75,8 +58,6 @@ class PolicyRuntime:
         picks its kernels on the first calls: 5-10x slower), then forget it. Returns the error
         a policy that cannot even do that raises (None when fine)."""
         import numpy as np
-
-        from companion.telemetry import OdometrySample
 
         obs = Observation(
             image=np.full((128, 128), 96, dtype=np.uint8),
@@ -89,12 +70,12 @@ class PolicyRuntime:
             accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
             imu_time_s=0.0,
         )
-        gt = OdometrySample(
-            np.array([0.0, 0.0, -20.0]),
-            np.zeros(3),
-            np.array([1.0, 0.0, 0.0, 0.0]),
-            np.zeros(3),
-            0.0,
+        gt = GroundTruth(
+            time_s=0.0,
+            pos_ned_m=np.array([0.0, 0.0, -20.0]),
+            vel_ned_m_s=np.zeros(3),
+            quat_wxyz=np.array([1.0, 0.0, 0.0, 0.0]),
+            rate_frd_rad_s=np.zeros(3),
         )
         self.reset()
         error = None
@@ -110,7 +91,7 @@ class PolicyRuntime:
         self.steps = 0
         self._ready = True
 
-    def step(self, observation: Observation, groundtruth: Any) -> StepResult:
+    def step(self, observation: Observation, groundtruth: GroundTruth | None) -> StepResult:
         if not self._ready:
             self.reset()
         t0 = time.perf_counter()
@@ -125,9 +106,7 @@ class PolicyRuntime:
         return StepResult(command, None, time.perf_counter() - t0)
 
 
-def load_policy_file(
-    path: str | Path, torch_threads: int = 1, runtime: str = "torch"
-) -> PolicyLike:
+def load_policy_file(path: str | Path, torch_threads: int = 1, runtime: str = "torch") -> Policy:
     """A learned-policy checkpoint for the CPU (explicit LSTM state).
 
     ``runtime``: ``torch`` runs the checkpoint's networks in torch; ``onnx`` runs its

@@ -25,11 +25,12 @@ import cvxpy as cp
 import numpy as np
 from scipy.linalg import expm
 
+from companion.contract import GroundTruth
 from expert.mpc import MpcConfig, MpcExpert, load_mpc_config
 from sitl_sim.config import SimConfig, load_sim, load_vehicle
 from sitl_sim.dynamics import Physics, derivative, euler_from_quat, make_state, quat_from_euler
 from sitl_sim.scenario import InitialStateSampler, load_scenario
-from sitl_sim.simulator import GroundTruth, Simulator
+from sitl_sim.simulator import Simulator
 
 __all__ = ["MpcBenchConfig", "bench_mpc"]
 

@@ -9,7 +9,7 @@ demo and of the simulator benchmarks, and the reference the MPC expert must beat
 
 from __future__ import annotations
 
-from expert.policy import MissingGroundTruthError
+from companion.contract import MissingGroundTruthError
 from sitl_sim.land_controller import CascadeGains, CascadeLandController
 
 __all__ = ["CascadeGains", "CascadeLander"]

@@ -57,7 +57,7 @@ import scipy.sparse as sp
 from scipy.linalg import expm
 
 from companion.contract import Command, Observation
-from expert.policy import MissingGroundTruthError, PolicyError
+from companion.contract import MissingGroundTruthError, PolicyError
 from sitl_sim.config import CONFIG_DIR, SimConfig, VehicleConfig, load_toml
 from sitl_sim.dynamics import (
     Physics,
@@ -68,7 +68,7 @@ from sitl_sim.dynamics import (
     translational_accel_ned,
 )
 from sitl_sim.errors import ConfigError
-from sitl_sim.simulator import GroundTruth
+from companion.contract import GroundTruth
 
 __all__ = [
     "HoverModel",

@@ -22,21 +22,20 @@ from typing import Any
 import numpy as np
 
 from companion.contract import IMAGE_SIZE_PX, ContractError
-from companion.flightlog import (
+from companion.contract.topics import (
+    SCHEMA_LABEL,
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
+    TOPIC_LABEL,
     TOPIC_OBSERVATION,
-    FlightLogError,
-    FlightLogWriter,
-    read_log,
 )
+from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
 from sitl_sim.config import load_sim, load_vehicle, planet
 from sitl_sim.flight_record import groundtruth_from_msg, observation_from_msg
 
-__all__ = ["TOPIC_LABEL", "RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
+__all__ = ["RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
 
-TOPIC_LABEL = "/label/command"
 _BLANK = np.zeros((IMAGE_SIZE_PX, IMAGE_SIZE_PX), dtype=np.uint8)
 _BLANK.setflags(write=False)
 
@@ -158,7 +157,7 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
             rec = recorded.get(fid)
             writer.write(
                 TOPIC_LABEL,
-                "visland.Label",
+                SCHEMA_LABEL,
                 gt.time_s,
                 {
                     "frame_id": fid,

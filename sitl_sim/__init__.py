@@ -20,14 +20,13 @@ from sitl_sim.env import ENV_ID, LandingEnv
 from sitl_sim.errors import ConfigError, SimError, SimStateError
 from sitl_sim.metrics import EpisodeResult, summarize
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
-from sitl_sim.simulator import GroundTruth, Simulator
+from sitl_sim.simulator import Simulator
 
 __all__ = [
     "ENV_ID",
     "PLANETS",
     "ConfigError",
     "EpisodeResult",
-    "GroundTruth",
     "InitialState",
     "InitialStateSampler",
     "LandingEnv",

@@ -29,11 +29,11 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from companion.contract import IMAGE_SIZE_PX, Command, ContractError, Observation
+from companion.contract import IMAGE_SIZE_PX, Command, ContractError, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
-from sitl_sim.simulator import GroundTruth, Simulator
+from sitl_sim.simulator import Simulator
 
 __all__ = ["ENV_ID", "LandingEnv", "observation_to_dict"]
 

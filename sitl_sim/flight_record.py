@@ -15,18 +15,22 @@ from typing import Any
 
 import numpy as np
 
-from companion.contract import Command, Observation
-from companion.flightlog import (
+from companion.contract import Command, GroundTruth, Observation
+from companion.contract.topics import (
+    SCHEMA_COMMAND,
+    SCHEMA_EPISODE_RESULT,
+    SCHEMA_EPISODE_SCENARIO,
+    SCHEMA_GROUNDTRUTH,
+    SCHEMA_OBSERVATION,
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
     TOPIC_SCENARIO,
-    FlightLogWriter,
 )
+from companion.flightlog import FlightLogWriter
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState
-from sitl_sim.simulator import GroundTruth
 
 __all__ = [
     "command_msg",
@@ -120,7 +124,7 @@ def write_episode_start(
 ) -> None:
     log.write(
         TOPIC_SCENARIO,
-        "visland.EpisodeStart",
+        SCHEMA_EPISODE_SCENARIO,
         0.0,
         {
             "seed": seed,
@@ -141,12 +145,12 @@ def write_control_step(
     """One camera frame: image, observation, ground truth (+ pose) and the command sent."""
     t = gt.time_s
     log.write_image(obs.image_time_s, obs.image, obs.frame_id)
-    log.write(TOPIC_OBSERVATION, "visland.Observation", obs.image_time_s, observation_msg(obs))
-    log.write(TOPIC_GROUNDTRUTH, "visland.GroundTruth", t, groundtruth_msg(gt, obs.frame_id))
+    log.write(TOPIC_OBSERVATION, SCHEMA_OBSERVATION, obs.image_time_s, observation_msg(obs))
+    log.write(TOPIC_GROUNDTRUTH, SCHEMA_GROUNDTRUTH, t, groundtruth_msg(gt, obs.frame_id))
     log.write_pose(t, gt.pos_ned_m, gt.quat_wxyz)
     if command is not None:
-        log.write(TOPIC_COMMAND, "visland.Command", t, command_msg(command, obs.frame_id, source))
+        log.write(TOPIC_COMMAND, SCHEMA_COMMAND, t, command_msg(command, obs.frame_id, source))
 
 
 def write_episode_result(log: FlightLogWriter, result: EpisodeResult) -> None:
-    log.write(TOPIC_RESULT, "visland.EpisodeResult", result.time_s, result.to_dict())
+    log.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, result.time_s, result.to_dict())

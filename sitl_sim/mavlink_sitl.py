@@ -65,17 +65,17 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.camera_packet import encode_frame
-from companion.contract import Command
-from companion.flightlog import (
+from companion.contract import Command, GroundTruth
+from companion.contract.camera_packet import encode_frame
+from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_EVENTS,
     TOPIC_GROUNDTRUTH,
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
     TOPIC_SCENARIO,
-    FlightLogWriter,
 )
+from companion.flightlog import FlightLogWriter
 from sitl_sim.autopilot import (
     FORCE_DISARM_MAGIC,
     Autopilot,
@@ -104,7 +104,7 @@ from sitl_sim.mavlink_endpoint import (
 )
 from sitl_sim.metrics import EpisodeResult, summarize
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
-from sitl_sim.simulator import GroundTruth, Simulator
+from sitl_sim.simulator import Simulator
 
 __all__ = [
     "PUBLISHES",

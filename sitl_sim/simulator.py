@@ -7,11 +7,9 @@ it. Randomness comes from the seed given to :meth:`Simulator.reset` only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from companion.contract import Command, Observation
+from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
 from sitl_sim.errors import SimStateError
@@ -20,39 +18,7 @@ from sitl_sim.scenario import InitialState
 from sitl_sim.scene import Camera, Scene
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
 
-__all__ = ["GroundTruth", "Simulator"]
-
-
-@dataclass(frozen=True)
-class GroundTruth:
-    """Privileged state (never part of an Observation).
-
-    Attributes:
-        time_s: sim time.
-        pos_ned_m: (3,) position of the vehicle centre, pad centre = origin.
-        vel_ned_m_s: (3,) velocity.
-        quat_wxyz: (4,) attitude, body FRD -> NED.
-        rate_frd_rad_s: (3,) body rates.
-        accel_ned_m_s2: (3,) acceleration.
-        rotor_thrust_n: (4,) rotor thrusts.
-    """
-
-    time_s: float
-    pos_ned_m: np.ndarray
-    vel_ned_m_s: np.ndarray
-    quat_wxyz: np.ndarray
-    rate_frd_rad_s: np.ndarray
-    accel_ned_m_s2: np.ndarray
-    rotor_thrust_n: np.ndarray
-
-    def as_dict(self) -> dict[str, np.ndarray]:
-        """The gymnasium ``info["groundtruth"]`` layout."""
-        return {
-            "pos_ned_m": self.pos_ned_m.copy(),
-            "vel_ned_m_s": self.vel_ned_m_s.copy(),
-            "quat_wxyz": self.quat_wxyz.copy(),
-            "rate_frd_rad_s": self.rate_frd_rad_s.copy(),
-        }
+__all__ = ["Simulator"]
 
 
 class Simulator:

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from companion.camera_packet import (
+from companion.contract.camera_packet import (
     HEADER_SIZE,
     MAX_DATAGRAM_BYTES,
     BadMagicError,

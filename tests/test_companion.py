@@ -25,11 +25,12 @@ import pytest
 
 from companion.app import CompanionConfig, CompanionError, load_toml
 from companion.camera import CameraError, UdpCameraSource, fit_to_policy, focal_px_from_fov
-from companion.camera_packet import encode_frame
 from companion.contract import Command, Observation
+from companion.contract.camera_packet import encode_frame
+from companion.contract.topics import TOPIC_COMPANION_COMMAND
 from companion.flightlog import read_log
 from companion.link import ARDUPILOT, PX4, LinkError, parse_connection
-from companion.record import TOPIC_COMMAND, latency_stats, replay_log
+from companion.record import latency_stats, replay_log
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
 from companion.telemetry import TelemetryStore, odometry_from_msg
@@ -328,7 +329,7 @@ def test_runtime_turns_policy_failures_into_errors_not_exceptions():
     assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 1.0
     rt.reset()
     assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 0.0
-    with pytest.raises(TypeError, match="PolicyLike"):
+    with pytest.raises(TypeError, match="not a companion.contract.Policy"):
         PolicyRuntime(object(), "nothing")
 
 
@@ -475,7 +476,7 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     assert any("OFFBOARD confirmed" in e for e in events)
     assert any("touchdown (range + IMU)" in e for e in events)
     assert flight.topic("/companion/summary")[-1]["result"] == "landed"
-    cmds = [m for m in flight.topic(TOPIC_COMMAND) if m["policy"]]
+    cmds = [m for m in flight.topic(TOPIC_COMPANION_COMMAND) if m["policy"]]
     assert len(cmds) > 50 and all(m["sent"] for m in cmds)
     lat = latency_stats([log_path])
     assert lat["commands"] == len(cmds) and lat["median_ms"] < 20.0
@@ -623,7 +624,7 @@ def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_
     (log_path,) = sorted(comp_dir.glob("*.mcap"))
     flight = read_log(log_path)
     assert not flight.truncated  # SIGTERM closes the log cleanly
-    cmds = flight.topic(TOPIC_COMMAND)
+    cmds = flight.topic(TOPIC_COMPANION_COMMAND)
     assert len(cmds) >= 5 and all(m["kind"] == "shadow" and not m["sent"] for m in cmds)
     sitl_flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
     received = {t for t in sitl_flight.messages if t.startswith("/mavlink/in/")}

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.flightlog import TOPIC_RESULT, read_log
-from companion.record import TOPIC_COMMAND as TOPIC_COMPANION_COMMAND
+from companion.contract.topics import TOPIC_COMPANION_COMMAND, TOPIC_RESULT
+from companion.flightlog import read_log
 from expert.relabel import relabel
 from training.dataset import load_episodes
 from training.fly import FlyConfig, FlyError, _chunks, fly, fly_many

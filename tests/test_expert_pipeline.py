@@ -11,15 +11,15 @@ import sys
 import numpy as np
 import pytest
 
-from companion.flightlog import (
+from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_IMAGE,
+    TOPIC_LABEL,
     TOPIC_RESULT,
-    FlightLogWriter,
-    read_log,
 )
-from expert.relabel import TOPIC_LABEL, RelabelError, relabel, relabel_log
+from companion.flightlog import FlightLogWriter, read_log
+from expert.relabel import RelabelError, relabel, relabel_log
 from sitl_sim.dynamics import ContactEvent
 from sitl_sim.metrics import EpisodeResult, summarize
 from training.evaluate import CollectConfig, EvalConfig, collect, evaluate

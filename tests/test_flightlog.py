@@ -12,13 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from companion.flightlog import (
-    TOPIC_GROUNDTRUTH,
-    TOPIC_IMAGE,
-    FlightLogError,
-    FlightLogWriter,
-    read_log,
-)
+from companion.contract.topics import TOPIC_GROUNDTRUTH, TOPIC_IMAGE
+from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 
 
 def _write(path, n=40):
@@ -91,7 +86,8 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path):
         f"""
         import sys, time
         import numpy as np
-        from companion.flightlog import FlightLogWriter, TOPIC_GROUNDTRUTH
+        from companion.contract.topics import TOPIC_GROUNDTRUTH
+        from companion.flightlog import FlightLogWriter
         w = FlightLogWriter({str(path)!r})
         t = 0.0
         while True:  # real time: 10 Hz frames and state, until killed

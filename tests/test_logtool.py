@@ -19,13 +19,8 @@ import pytest
 from PIL import Image
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.flightlog import (
-    TOPIC_COMMAND,
-    TOPIC_OBSERVATION,
-    FlightLogError,
-    FlightLogWriter,
-    read_log,
-)
+from companion.contract.topics import TOPIC_COMMAND, TOPIC_OBSERVATION
+from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from sitl_sim.env import LandingEnv
 from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
 from tools.cli import main

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.contract import Command, Observation
+from companion.contract import Command, GroundTruth, MissingGroundTruthError, Observation, Policy
 from expert.mpc import (
     ModelInput,
     ModelState,
@@ -21,13 +21,11 @@ from expert.mpc import (
     load_mpc_config,
     model_derivative,
 )
-from expert.policy import MissingGroundTruthError, Policy
 from sitl_sim.config import CONFIG_DIR, PLANETS, load_sim, load_vehicle
 from sitl_sim.dynamics import Physics, quat_from_euler
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.metrics import EpisodeResult
-from sitl_sim.simulator import GroundTruth
 
 EXPERT_TOML = CONFIG_DIR / "expert.toml"
 

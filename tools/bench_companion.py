@@ -38,7 +38,7 @@ DEFAULT_CHECKPOINT = "models/visland_vision.pt"
 
 
 class _Timed:
-    """A PolicyLike that records the wall time of each ``act`` of the policy it wraps."""
+    """A Policy that records the wall time of each ``act`` of the policy it wraps."""
 
     def __init__(self, policy: Any) -> None:
         self.policy = policy

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from companion.contract.topics import TOPIC_SCENARIO
 from sitl_sim.metrics import (
     SUCCESS_MAX_ERROR_M,
     SUCCESS_MAX_TILT_DEG,
@@ -149,7 +150,7 @@ def _initial_states(rows: list[dict[str, Any]]) -> list[dict[str, Any] | None]:
 
     states = []
     for row in rows:
-        msgs = read_log(row["log"], topics=["/episode/scenario"]).topic("/episode/scenario")
+        msgs = read_log(row["log"], topics=[TOPIC_SCENARIO]).topic(TOPIC_SCENARIO)
         states.append(msgs[0].get("initial_state") if msgs else None)
     return states
 

@@ -26,15 +26,21 @@ from typing import Any
 
 import numpy as np
 
-from companion.flightlog import (
+from companion.contract.topics import (
+    TOPIC_AUTOPILOT_COMMAND,
     TOPIC_COMMAND,
+    TOPIC_COMPANION_COMMAND,
+    TOPIC_COMPANION_OBSERVATION,
+    TOPIC_COMPANION_PREFIX,
+    TOPIC_COMPANION_SUMMARY,
     TOPIC_EVENTS,
     TOPIC_GROUNDTRUTH,
+    TOPIC_MAVLINK_IN,
+    TOPIC_MAVLINK_OUT,
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
-    FlightLog,
-    read_log,
 )
+from companion.flightlog import FlightLog, read_log
 from sitl_sim.dynamics import euler_from_quat
 
 __all__ = [
@@ -52,10 +58,6 @@ __all__ = [
     "plot_sources",
 ]
 
-TOPIC_AUTOPILOT_COMMAND = "/autopilot/command"
-TOPIC_COMPANION_OBSERVATION = "/companion/observation"
-TOPIC_COMPANION_COMMAND = "/companion/command"
-TOPIC_COMPANION_SUMMARY = "/companion/summary"
 
 PANELS = ("position", "altitude", "attitude", "command")
 """The plot's panels: top view, altitude vs time, attitude vs time, commands vs time."""
@@ -82,22 +84,26 @@ def _euler(quat_wxyz: Any) -> np.ndarray:
 SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
     "position": (  # NED metres
         (TOPIC_GROUNDTRUTH, lambda m: m["pos_ned_m"], "ground truth"),
-        ("/mavlink/in/ODOMETRY", lambda m: (m["x"], m["y"], m["z"]), "ODOMETRY (ground truth)"),
+        (
+            TOPIC_MAVLINK_IN + "ODOMETRY",
+            lambda m: (m["x"], m["y"], m["z"]),
+            "ODOMETRY (ground truth)",
+        ),
     ),
     "altitude": (  # metres above ground (ground truth) or radar range
         (TOPIC_GROUNDTRUTH, lambda m: -m["pos_ned_m"][2], "altitude (ground truth)"),
-        ("/mavlink/in/ODOMETRY", lambda m: -m["z"], "altitude (ODOMETRY)"),
+        (TOPIC_MAVLINK_IN + "ODOMETRY", lambda m: -m["z"], "altitude (ODOMETRY)"),
         (TOPIC_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
         (TOPIC_COMPANION_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
-        ("/mavlink/out/DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
-        ("/mavlink/in/DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
+        (TOPIC_MAVLINK_OUT + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
+        (TOPIC_MAVLINK_IN + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
     ),
     "attitude": (  # roll, pitch, yaw (rad)
         (TOPIC_GROUNDTRUTH, lambda m: _euler(m["quat_wxyz"]), "ground truth"),
         (TOPIC_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
         (TOPIC_COMPANION_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
-        ("/mavlink/out/ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
-        ("/mavlink/in/ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
+        (TOPIC_MAVLINK_OUT + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
+        (TOPIC_MAVLINK_IN + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
     ),
     "command": (  # thrust_norm, p, q, r
         (TOPIC_COMMAND, lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]), "pilot"),
@@ -108,7 +114,7 @@ SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
             "autopilot",
         ),
         (
-            "/mavlink/in/SET_ATTITUDE_TARGET",
+            TOPIC_MAVLINK_IN + "SET_ATTITUDE_TARGET",
             lambda m: (m["thrust"], m["body_roll_rate"], m["body_pitch_rate"], m["body_yaw_rate"]),
             "SET_ATTITUDE_TARGET",
         ),
@@ -134,9 +140,9 @@ class PlotSources:
 
 
 def _kind(topics: set[str]) -> str:
-    if any(t.startswith("/companion/") for t in topics):
+    if any(t.startswith(TOPIC_COMPANION_PREFIX) for t in topics):
         return "companion"
-    if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith("/mavlink/out/") for t in topics):
+    if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith(TOPIC_MAVLINK_OUT) for t in topics):
         return "sitl"
     if TOPIC_GROUNDTRUTH in topics:
         return "rollout"

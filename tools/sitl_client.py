@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
+from companion.contract.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
 from companion.contract import Command
 
 __all__ = [

@@ -18,20 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from companion.flightlog import (
+from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_IMAGE,
+    TOPIC_LABEL,
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
-    FlightLogError,
-    read_log,
 )
+from companion.flightlog import FlightLogError, read_log
 
 __all__ = ["DatasetError", "Episode", "load_episode", "load_episodes"]
 
-TOPIC_LABEL = "/label/command"  # expert.relabel.TOPIC_LABEL (training may import expert; kept
-# literal so reading data never needs the solver stack)
 _CACHE_VERSION = 2
 
 

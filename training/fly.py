@@ -29,7 +29,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from companion.flightlog import TOPIC_RESULT, read_log
+from companion.contract.topics import TOPIC_RESULT
+from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize

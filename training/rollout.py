@@ -16,7 +16,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from companion.flightlog import TOPIC_RESULT, FlightLogError, FlightLogWriter, read_log
+from companion.contract.topics import TOPIC_RESULT
+from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.env import LandingEnv
 from sitl_sim.flight_record import (

@@ -1,4 +1,5 @@
-"""The contract every part of visland shares with the companion: Command and Observation.
+"""The messages every part of visland shares with the companion: Command, Observation and the
+privileged GroundTruth.
 
 Frames are MAVLink's: NED world, FRD body. Times are simulation (or autopilot boot) seconds.
 
@@ -8,6 +9,9 @@ Frames are MAVLink's: NED world, FRD body. Times are simulation (or autopilot bo
 * ``Observation`` is what a deployable policy may see: the downward camera image, the attitude
   estimate and body rates (ATTITUDE), the radar range (DISTANCE_SENSOR, along the body down axis)
   and the specific force (HIGHRES_IMU). Ground truth never travels in an Observation.
+* ``GroundTruth`` is the privileged channel (PX4's ``*_groundtruth`` topics): the simulator's
+  true state, or on a SITL link the companion's reading of ODOMETRY. Only *privileged* policies
+  (the MPC expert, the paper's LSTM-only rows) read it; hardware has none.
 """
 
 from __future__ import annotations
@@ -17,7 +21,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["CAMERA_FOV_DEG", "IMAGE_SIZE_PX", "Command", "ContractError", "Observation"]
+__all__ = [
+    "CAMERA_FOV_DEG",
+    "IMAGE_SIZE_PX",
+    "Command",
+    "ContractError",
+    "GroundTruth",
+    "Observation",
+]
 
 IMAGE_SIZE_PX = 128
 """Side of the square mono8 camera image every policy is trained on (paper Table 1)."""
@@ -113,3 +124,57 @@ class Observation:
         if not (math.isnan(rng) or rng >= 0.0):
             raise ContractError(f"range_m: expected >= 0 or NaN (invalid), got {rng}")
         object.__setattr__(self, "range_m", rng)
+
+
+def _vec(name: str, value: object, n: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)  # no copy for a float64 array: the caller's values
+    if arr.shape != (n,):
+        raise ContractError(f"{name}: expected shape ({n},), got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Privileged state at one instant (never part of an Observation).
+
+    Attributes:
+        time_s: sim (autopilot boot) time of the state.
+        pos_ned_m: (3,) position of the vehicle centre, pad centre = origin.
+        vel_ned_m_s: (3,) velocity.
+        quat_wxyz: (4,) attitude, body FRD -> NED.
+        rate_frd_rad_s: (3,) body rates.
+        accel_ned_m_s2: (3,) acceleration, or None where the source has none (ODOMETRY).
+        rotor_thrust_n: (4,) rotor thrusts, or None where the source has none (ODOMETRY).
+    """
+
+    time_s: float
+    pos_ned_m: np.ndarray
+    vel_ned_m_s: np.ndarray
+    quat_wxyz: np.ndarray
+    rate_frd_rad_s: np.ndarray
+    accel_ned_m_s2: np.ndarray | None = None
+    rotor_thrust_n: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        # Shapes only: finiteness is the producer's business (the simulator raises its own
+        # SimStateError on a non-finite state; a log reader checks what it reads).
+        for name, n in (
+            ("pos_ned_m", 3),
+            ("vel_ned_m_s", 3),
+            ("quat_wxyz", 4),
+            ("rate_frd_rad_s", 3),
+        ):
+            object.__setattr__(self, name, _vec(name, getattr(self, name), n))
+        for name, n in (("accel_ned_m_s2", 3), ("rotor_thrust_n", 4)):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _vec(name, value, n))
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        """The gymnasium ``info["groundtruth"]`` layout."""
+        return {
+            "pos_ned_m": self.pos_ned_m.copy(),
+            "vel_ned_m_s": self.vel_ned_m_s.copy(),
+            "quat_wxyz": self.quat_wxyz.copy(),
+            "rate_frd_rad_s": self.rate_frd_rad_s.copy(),
+        }

@@ -8,20 +8,18 @@ the rollout loop, the relabeller and the evaluator never ask which policy they h
     for each control step:
         command, state = policy.act(observation, groundtruth, state)
 
-``groundtruth`` is the privileged channel (``sitl_sim.simulator.GroundTruth``): the simulator
-passes it, hardware passes ``None``. A *privileged* policy (the MPC expert, the LSTM-only policies
+``groundtruth`` is the privileged channel (:class:`~companion.contract.GroundTruth`): the
+simulator passes its true state, the companion on a SITL link passes ODOMETRY read as a
+GroundTruth, hardware passes ``None``. A *privileged* policy (the MPC expert, the LSTM-only policies
 of the paper's Table 3) needs it and raises :class:`MissingGroundTruthError` without it; a
 deployable policy must accept ``None`` and never read it.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol, TypeAlias, runtime_checkable
+from typing import Any, Protocol, TypeAlias, runtime_checkable
 
-from companion.contract import Command, Observation
-
-if TYPE_CHECKING:
-    from sitl_sim.simulator import GroundTruth
+from companion.contract.messages import Command, GroundTruth, Observation
 
 __all__ = ["MissingGroundTruthError", "Policy", "PolicyError", "PolicyState"]
 

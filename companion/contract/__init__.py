@@ -1,0 +1,47 @@
+"""The contract: everything that crosses a boundary between visland's parts, owned by the
+companion (the part that flies on hardware) and read by every other package.
+
+=====================  ===============================================================
+module                 what it fixes
+=====================  ===============================================================
+``messages``           Command (thrust + FRD rates = SET_ATTITUDE_TARGET mask 128),
+                       Observation (what a deployable policy sees), GroundTruth (the
+                       privileged channel), ContractError
+``policy``             the one Policy protocol ``act(obs, groundtruth, state)`` with
+                       explicit recurrent state, PolicyError, MissingGroundTruthError
+``topics``             every flight-log topic name and schema name
+``camera_packet``      the UDP camera frame format (header, chunks, CRC, assembler)
+``signing``            MAVLink 2 signing key parsing and PX4's unsigned allow-list
+=====================  ===============================================================
+
+It depends on numpy and the standard library (``signing`` on pymavlink's dialect, imported
+only by whoever needs it). Nothing here imports another visland package.
+"""
+
+from companion.contract.messages import (
+    CAMERA_FOV_DEG,
+    IMAGE_SIZE_PX,
+    Command,
+    ContractError,
+    GroundTruth,
+    Observation,
+)
+from companion.contract.policy import (
+    MissingGroundTruthError,
+    Policy,
+    PolicyError,
+    PolicyState,
+)
+
+__all__ = [
+    "CAMERA_FOV_DEG",
+    "IMAGE_SIZE_PX",
+    "Command",
+    "ContractError",
+    "GroundTruth",
+    "MissingGroundTruthError",
+    "Observation",
+    "Policy",
+    "PolicyError",
+    "PolicyState",
+]
