@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import ast
-from pathlib import Path
-
 import pytest
 
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
@@ -55,26 +52,3 @@ def low_scenario(tmp_path_factory) -> str:
     path = tmp_path_factory.mktemp("scenario") / "low.toml"
     path.write_text(LOW_SCENARIO)
     return str(path)
-
-
-@pytest.fixture(scope="session")
-def project_imports():
-    """``project_imports(package)``: every absolute import in ``package/*.py`` — lazy ones inside
-    functions included — as ``(file name, line, top-level module, full name)`` (the import
-    rules of DESIGN.md are tested on it)."""
-    repo = Path(__file__).resolve().parent.parent
-
-    def scan(package: str) -> list[tuple[str, int, str, str]]:
-        found = []
-        for path in sorted((repo / package).glob("*.py")):
-            for node in ast.walk(ast.parse(path.read_text(), str(path))):
-                if isinstance(node, ast.Import):
-                    names = [alias.name for alias in node.names]
-                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                    names = [node.module]
-                else:
-                    continue
-                found += [(path.name, node.lineno, n.split(".")[0], n) for n in names]
-        return found
-
-    return scan

@@ -31,16 +31,6 @@ needs_onnx = pytest.mark.skipif(
 )
 
 
-def test_companion_imports_nothing_of_the_project_lazy_imports_included(project_imports):
-    """DESIGN.md's import rule for the deployable package (the ONNX backend included)."""
-    offending = [
-        f"{file}:{line} imports {name}"
-        for file, line, top, name in project_imports("companion")
-        if top in ("sitl_sim", "expert", "training", "tools")
-    ]
-    assert offending == []
-
-
 @pytest.fixture(scope="module")
 def shipped(tmp_path_factory) -> Path:
     """A copy of the shipped checkpoint with its ONNX export beside it."""

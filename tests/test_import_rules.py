@@ -1,0 +1,114 @@
+"""DESIGN.md's "who may import whom", as allow-lists.
+
+Every absolute import in a package's files — lazy ones inside functions included, subpackages
+included — must be on that package's list: project modules by prefix, third-party distributions
+by top-level name (the standard library is always allowed). A new dependency is a decision: add
+it here and to DESIGN.md in the same change.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+COMPANION_THIRD_PARTY = {
+    "numpy",
+    "pymavlink",
+    "mcap",
+    "zstandard",
+    "torch",  # the torch runtime and `visland export-onnx` (see test below: not in the contract)
+    "onnxruntime",
+    "onnx",
+    "cv2",
+}
+
+RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
+    # package (folder, relative): (project module prefixes it may import, third-party tops)
+    "companion/contract": (("companion.contract",), {"numpy", "pymavlink"}),
+    "companion": (("companion",), COMPANION_THIRD_PARTY),
+    "sitl_sim": (
+        ("sitl_sim", "companion.contract", "companion.flightlog"),
+        {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL"},
+    ),
+    "expert": (
+        ("expert", "sitl_sim", "companion.contract", "companion.flightlog"),
+        {"numpy", "scipy", "osqp", "clarabel", "cvxpy"},
+    ),
+    "training": (
+        ("training", "expert", "sitl_sim", "companion"),
+        {"numpy", "scipy", "torch", "tqdm", "matplotlib", "tomli_w"},
+    ),
+}
+PROJECT = ("companion", "sitl_sim", "expert", "training", "tools")
+
+
+def _imports(folder: Path) -> list[tuple[str, int, str]]:
+    """``(file, line, module)`` for every absolute import under ``folder`` (recursive)."""
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    raise AssertionError(f"{path}:{node.lineno}: relative import; use absolute")
+                names = [node.module or ""]
+            else:
+                continue
+            found += [(str(path.relative_to(REPO)), node.lineno, n) for n in names]
+    return found
+
+
+def _allowed(module: str, prefixes: tuple[str, ...], third_party: set[str]) -> bool:
+    top = module.split(".")[0]
+    if top in PROJECT:
+        return any(module == p or module.startswith(p + ".") for p in prefixes)
+    return top == "__future__" or top in sys.stdlib_module_names or top in third_party
+
+
+@pytest.mark.parametrize("package", list(RULES))
+def test_each_package_imports_only_what_its_allow_list_names(package):
+    prefixes, third_party = RULES[package]
+    folder = REPO / package
+    offending = [
+        f"{file}:{line} imports {module}"
+        for file, line, module in _imports(folder)
+        # a subpackage with its own rule is checked by that rule
+        if not any(
+            sub != package and sub.startswith(package + "/") and file.startswith(sub + "/")
+            for sub in RULES
+        )
+        and not _allowed(module, prefixes, third_party)
+    ]
+    assert offending == []
+
+
+def test_the_allow_lists_catch_a_forbidden_import(tmp_path, monkeypatch):
+    """The check itself: a SITL file importing the companion's policy network is refused."""
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    pkg = tmp_path / "sitl_sim"
+    pkg.mkdir()
+    (pkg / "bad.py").write_text(
+        "def f():\n    from companion.policy_net import load_policy\n    return load_policy\n"
+    )
+    prefixes, third_party = RULES["sitl_sim"]
+    bad = [m for _, _, m in _imports(pkg) if not _allowed(m, prefixes, third_party)]
+    assert bad == ["companion.policy_net"]
+
+
+def test_the_contract_needs_no_torch_and_no_other_companion_module():
+    """The contract is what a board without torch and a simulator without the companion's
+    runtime both load: numpy, the standard library, pymavlink's dialect (signing only)."""
+    modules = {m for _, _, m in _imports(REPO / "companion" / "contract")}
+    assert not {m for m in modules if m.split(".")[0] == "torch"}
+    assert {m for m in modules if m.startswith("companion.")} <= {
+        "companion.contract",
+        "companion.contract.messages",
+        "companion.contract.policy",
+    }
