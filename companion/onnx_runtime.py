@@ -22,7 +22,6 @@ needs ``onnx`` too. Both run on the CPU, single-threaded by default (``torch_thr
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import warnings
@@ -33,6 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+from companion.files import sha256_file
 
 __all__ = [
     "ONNX_FORMAT",
@@ -63,10 +64,6 @@ def onnx_paths(checkpoint: str | Path) -> tuple[Path, Path]:
         ckpt.with_name(ckpt.stem + ".perception.onnx"),
         ckpt.with_name(ckpt.stem + ".control.onnx"),
     )
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 # --------------------------------------------------------------------------- export
@@ -174,7 +171,7 @@ def export_onnx(
 
     ckpt = Path(checkpoint)
     policy = load_policy(ckpt)
-    sha = _sha256(ckpt)
+    sha = sha256_file(ckpt)
     perception_path, control_path = onnx_paths(ckpt)
     cfg = policy.config
     base = {
@@ -383,7 +380,7 @@ def load_onnx_policy(checkpoint: str | Path, threads: int = 1):
 
     ckpt = Path(checkpoint)
     torch_policy = load_policy(ckpt)  # config, metadata, and the CheckpointError checks
-    sha = _sha256(ckpt)
+    sha = sha256_file(ckpt)
     perception_path, control_path = onnx_paths(ckpt)
     control_sess, meta = _session(control_path, "control", ckpt, sha, threads)
     zero = tuple(torch_policy.control.zero_state(1))

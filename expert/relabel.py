@@ -11,7 +11,6 @@ not decoded (that keeps relabelling far above 500 steps/s per core).
 
 from __future__ import annotations
 
-import hashlib
 import math
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ from companion.contract.topics import (
     TOPIC_LABEL,
     TOPIC_OBSERVATION,
 )
+from companion.files import sha256_file
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
 from sitl_sim.config import load_sim, load_vehicle, planet
@@ -69,14 +69,6 @@ class RelabelReport:
 
 def label_path(log: Path, out_dir: Path) -> Path:
     return out_dir / f"{log.stem}.labels.mcap"
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 _EXPERTS: dict[str, MpcExpert] = {}
@@ -136,7 +128,7 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
     meta = {
         "labels": {
             "source_log": log_path.name,
-            "source_sha256": _sha256(log_path),
+            "source_sha256": sha256_file(log_path),
             "expert": "mpc",
             "expert_config": expert.config.to_dict(),
             "truncated_source": log.truncated,

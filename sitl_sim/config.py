@@ -7,13 +7,13 @@ controller, sensors, camera, the MPC expert) takes these objects, never a loose 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from companion.files import read_toml
 from sitl_sim.errors import ConfigError
 
 __all__ = [
@@ -144,16 +144,7 @@ class _Fields:
 
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file; a missing or malformed file is a ConfigError naming it."""
-    path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc}") from None
+    return read_toml(path, ConfigError)
 
 
 # --------------------------------------------------------------------------- vehicle

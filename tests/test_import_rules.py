@@ -32,11 +32,11 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
     "companion/contract": (("companion.contract",), {"numpy", "pymavlink"}),
     "companion": (("companion",), COMPANION_THIRD_PARTY),
     "sitl_sim": (
-        ("sitl_sim", "companion.contract", "companion.flightlog"),
+        ("sitl_sim", "companion.contract", "companion.flightlog", "companion.files"),
         {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL"},
     ),
     "expert": (
-        ("expert", "sitl_sim", "companion.contract", "companion.flightlog"),
+        ("expert", "sitl_sim", "companion.contract", "companion.flightlog", "companion.files"),
         {"numpy", "scipy", "osqp", "clarabel", "cvxpy"},
     ),
     "training": (

