@@ -220,7 +220,8 @@ class Companion:
     signal handler or another thread."""
 
     def __init__(self, cfg: CompanionConfig, policy: Any, policy_name: str) -> None:
-        from companion.link import PROFILES, MavlinkLink, signing_key_bytes
+        from companion.contract.signing import signing_key_bytes
+        from companion.link import PROFILES, MavlinkLink
         from companion.offboard import OffboardConfig
         from companion.runtime import PolicyRuntime
         from companion.safety import SafetyConfig, SafetyMonitor

@@ -32,6 +32,8 @@ os.environ.setdefault("MAVLINK_DIALECT", "common")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.signing import UNSIGNED_ALLOWED
+
 mavutil.set_dialect("common")  # v20.common, whatever MAVLINK_DIALECT said
 
 __all__ = [
@@ -44,21 +46,11 @@ __all__ = [
     "MavlinkLink",
     "mavlink",
     "parse_connection",
-    "signing_key_bytes",
 ]
 
 log = logging.getLogger("visland.companion.link")
 
 COMPANION_COMPID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
-_UNSIGNED_OK = frozenset(
-    {
-        mavlink.MAVLINK_MSG_ID_HEARTBEAT,
-        mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
-        mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
-        mavlink.MAVLINK_MSG_ID_COLLISION,
-    }
-)
-"""Unsigned messages accepted on a signed link (PX4's list)."""
 
 
 class LinkError(Exception):
@@ -191,20 +183,6 @@ def parse_connection(url: str, baud: int) -> tuple[str, int]:
     return text, baud
 
 
-def signing_key_bytes(key: str) -> bytes:
-    """The 32-byte MAVLink 2 signing secret: 64 hex digits as is, else SHA-256 of the text
-    (MAVProxy's ``signing key <passphrase>`` convention, as ``visland sitl --signing-key``)."""
-    import hashlib
-    import string
-
-    text = key.strip()
-    if not text:
-        raise LinkError("signing key is empty")
-    if len(text) == 64 and all(c in string.hexdigits for c in text):
-        return bytes.fromhex(text)
-    return hashlib.sha256(text.encode()).digest()
-
-
 @dataclass(frozen=True)
 class LinkEvent:
     """Something that happened to the link: ``discovered``, ``lost``, ``reconnected``,
@@ -324,7 +302,7 @@ class MavlinkLink:
             self.conn.setup_signing(
                 self.signing_key,
                 sign_outgoing=True,
-                allow_unsigned_callback=lambda _mav, msg_id: msg_id in _UNSIGNED_OK,
+                allow_unsigned_callback=lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED,
             )
 
     def fileno(self) -> int | None:

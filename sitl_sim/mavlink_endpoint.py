@@ -29,11 +29,11 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.signing import UNSIGNED_ALLOWED
 from sitl_sim.errors import SimError
 
 __all__ = [
     "MAX_DATAGRAM_BYTES",
-    "UNSIGNED_ALLOWED",
     "Inbound",
     "LinkStats",
     "MavlinkEndpoint",
@@ -43,15 +43,6 @@ __all__ = [
     "signing_timestamp_now",
 ]
 
-UNSIGNED_ALLOWED = frozenset(
-    {
-        mavlink.MAVLINK_MSG_ID_HEARTBEAT,
-        mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
-        mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
-        mavlink.MAVLINK_MSG_ID_COLLISION,
-    }
-)
-"""Message ids accepted unsigned when signing is on (PX4's allow-list)."""
 
 _SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC
 _NEW_STREAM_WINDOW = 6_000_000  # 60 s in 10 us units: how far behind a new stream may start
