@@ -1,0 +1,84 @@
+"""The learned policy's configuration: :class:`NetConfig` and :class:`CheckpointError`.
+
+:class:`NetConfig` is everything needed to rebuild the networks and the estimator; it is stored
+in every checkpoint. No torch here: the estimator reads it too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
+
+__all__ = ["CheckpointError", "NetConfig"]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupt, of another format, or does not fit its network."""
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Everything needed to rebuild the networks and the estimator (stored in checkpoints)."""
+
+    kind: str = "vision"
+    """``vision`` (CNN + estimator + LSTM) or ``privileged`` (ground-truth position/velocity)."""
+    cnn_channels: tuple[int, ...] = (8, 16, 24, 32)
+    cnn_context_layers: int = 0
+    """Extra dilated (4) 3x3 convolutions before the heat map: a receptive field that spans the
+    image, so a pad larger than the old field (low altitude) is still localised by its cross."""
+    lstm_hidden: int = 64
+    mlp_hidden: int = 64
+    hover_thrust_norm: float = 0.3923
+    max_rate_rad_s: tuple[float, float, float] = (3.5, 3.5, 1.5)
+    gravity_m_s2: float = 9.80665
+    control_dt_s: float = 0.1
+    fov_deg: float = CAMERA_FOV_DEG
+    image_size_px: int = IMAGE_SIZE_PX
+    # PadEstimator noise model (1-sigma)
+    accel_noise_m_s2: float = 0.3
+    bearing_noise_rad: float = 0.01
+    bearing_noise_floor_m: float = 0.03
+    alt_noise_m: float = 0.05
+    visibility_threshold: float = 0.5
+    gate_sigma: float = 4.0
+    """Innovation gate of the horizontal fix (Mahalanobis distance, 2 dof); 0 disables it."""
+    gate_reset_steps: int = 10
+    """After this many consecutive gated fixes the estimator re-acquires from the fix."""
+    min_fix_altitude_m: float = 1.5
+    """Below this the view is a piece of one cross arm and the bearing is a guess: the
+    horizontal estimate flies on the IMU prediction (the radar altitude is still used)."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("vision", "privileged"):
+            raise CheckpointError(
+                f"net config kind: expected 'vision' or 'privileged', got {self.kind!r}"
+            )
+        if not 0.0 < self.hover_thrust_norm < 1.0:
+            raise CheckpointError(
+                f"net config hover_thrust_norm: expected in (0, 1), got {self.hover_thrust_norm}"
+            )
+        if len(self.max_rate_rad_s) != 3 or min(self.max_rate_rad_s) <= 0:
+            raise CheckpointError(
+                f"net config max_rate_rad_s: expected 3 positive values, got {self.max_rate_rad_s}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["cnn_channels"] = list(self.cnn_channels)
+        d["max_rate_rad_s"] = list(self.max_rate_rad_s)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> NetConfig:
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise CheckpointError(f"net config: unknown keys {sorted(unknown)}")
+        d = dict(d)
+        if "cnn_channels" in d:
+            d["cnn_channels"] = tuple(int(c) for c in d["cnn_channels"])
+        if "max_rate_rad_s" in d:
+            d["max_rate_rad_s"] = tuple(float(v) for v in d["max_rate_rad_s"])
+        return cls(**d)

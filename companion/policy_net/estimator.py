@@ -1,0 +1,105 @@
+"""The pad estimator: a Kalman filter of pad-relative position and velocity (numpy, no torch)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.policy_net.config import NetConfig
+from companion.policy_net.geometry import rotation_zyx
+
+__all__ = ["EstimatorState", "PadEstimator"]
+
+
+@dataclass(frozen=True)
+class EstimatorState:
+    """Kalman state per NED axis: ``x`` (3, 2) = (position, velocity), ``cov`` (3, 2, 2)."""
+
+    x: np.ndarray
+    cov: np.ndarray
+    initialised: np.ndarray
+    """(3,) bool: the axis has had a measurement."""
+    rejected: int = 0
+    """Consecutive horizontal fixes refused by the innovation gate."""
+
+
+class PadEstimator:
+    """Pad-relative position and velocity from position fixes and the IMU (3 decoupled axes).
+
+    Predict with the NED acceleration ``R f + g`` (specific force from HIGHRES_IMU rotated by
+    ATTITUDE), update with the geometric fix; the horizontal fix noise grows with altitude (a
+    fixed angular error of the bearing). A missing fix (pad not visible, invalid range) only
+    predicts. A horizontal fix further than ``gate_sigma`` (Mahalanobis) from the prediction is
+    refused — one confidently wrong CNN answer (a tilted view without the pad) would otherwise
+    move the estimate by tens of metres —, and after ``gate_reset_steps`` refusals in a row the
+    estimate re-acquires from the fix (the prediction, not the camera, was wrong).
+    """
+
+    def __init__(self, cfg: NetConfig) -> None:
+        self.cfg = cfg
+        dt = cfg.control_dt_s
+        self._f = np.array([[1.0, dt], [0.0, 1.0]])
+        self._b = np.array([0.5 * dt * dt, dt])
+        q = cfg.accel_noise_m_s2**2
+        self._q = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt * dt]])
+
+    def initial_state(self) -> EstimatorState:
+        return EstimatorState(
+            x=np.zeros((3, 2)),
+            cov=np.tile(np.eye(2) * 1e6, (3, 1, 1)),
+            initialised=np.zeros(3, bool),
+        )
+
+    def step(
+        self,
+        state: EstimatorState,
+        fix_ned_m: np.ndarray | None,
+        horizontal_fix: bool,
+        attitude_rad: np.ndarray,
+        accel_frd_m_s2: np.ndarray,
+    ) -> EstimatorState:
+        """One control period: predict from the last period's acceleration, then update."""
+        x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
+        rejected = state.rejected
+        rot = rotation_zyx(*(float(a) for a in attitude_rad))
+        acc = rot @ np.asarray(accel_frd_m_s2, float) + np.array([0.0, 0.0, self.cfg.gravity_m_s2])
+        if not np.all(np.isfinite(acc)):
+            acc = np.zeros(3)
+        for axis in range(3):
+            if init[axis]:
+                x[axis] = self._f @ x[axis] + self._b * acc[axis]
+                cov[axis] = self._f @ cov[axis] @ self._f.T + self._q
+        if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
+            alt = max(-float(fix_ned_m[2]), 0.0)
+            sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
+            sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m)
+            horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
+            axes = (0, 1, 2) if horizontal_fix else (2,)
+            if horizontal_fix and self.cfg.gate_sigma > 0 and init[0] and init[1]:
+                d2 = sum(
+                    (float(fix_ned_m[a]) - x[a, 0]) ** 2 / (cov[a, 0, 0] + sigma_h**2)
+                    for a in (0, 1)
+                )
+                if d2 > self.cfg.gate_sigma**2:
+                    rejected += 1
+                    if rejected >= self.cfg.gate_reset_steps:
+                        init[:2] = False  # re-acquire below from this fix
+                        rejected = 0
+                    else:
+                        axes = (2,)
+                else:
+                    rejected = 0
+            for axis in axes:
+                z = float(fix_ned_m[axis])
+                if not init[axis]:
+                    x[axis] = (z, 0.0)
+                    cov[axis] = np.diag([sigmas[axis] ** 2, 4.0])
+                    init[axis] = True
+                    continue
+                p = cov[axis]
+                s = p[0, 0] + sigmas[axis] ** 2
+                k = p[:, 0] / s
+                x[axis] = x[axis] + k * (z - x[axis, 0])
+                cov[axis] = p - np.outer(k, p[0, :])
+        return EstimatorState(x=x, cov=cov, initialised=init, rejected=rejected)

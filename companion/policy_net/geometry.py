@@ -1,0 +1,118 @@
+"""Pad-relative geometry and the controller's input features (numpy only, no torch).
+
+The camera gives the pad's bearing, the radar the scale: :func:`position_from_bearing` turns
+them into the vehicle position relative to the pad (NED), and :func:`control_features` the
+position, velocity, attitude and IMU into the controller's input vector (:data:`FEATURE_NAMES`,
+in the heading frame).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["FEATURE_NAMES", "control_features", "position_from_bearing", "rotation_zyx"]
+
+FEATURE_NAMES = (
+    "x_h/10",
+    "y_h/10",
+    "alt/50",
+    "min(alt,5)/5",
+    "x_h/(alt+1)",
+    "y_h/(alt+1)",
+    "vx_h/3",
+    "vy_h/3",
+    "vz/3",
+    "roll",
+    "pitch",
+    "p",
+    "q",
+    "r",
+    "fx/g0",
+    "fy/g0",
+    "fz/g0",
+    "visibility",
+)
+"""The controller's inputs, in order (``x_h``/``y_h``: vehicle position relative to the pad in
+the heading frame — NED rotated by the current yaw —, ``alt`` above the pad, velocities in the
+same frame, attitude and rates from ATTITUDE, specific force from HIGHRES_IMU in g0 units)."""
+
+_G0 = 9.80665
+
+
+def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation body FRD -> NED from ZYX Euler angles (MAVLink ATTITUDE)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def position_from_bearing(
+    tan_right: float, tan_forward: float, attitude_rad: np.ndarray, range_m: float
+) -> np.ndarray | None:
+    """Vehicle position relative to the pad (NED, m) from the pad's bearing in the camera.
+
+    The camera looks along body down with image up = body forward, so a pad seen at
+    ``(tan_right, tan_forward)`` lies along body ``(tan_forward, tan_right, 1)``. The radar range
+    is along body down, so the altitude is ``range * cos(roll) cos(pitch)``. Returns ``None`` when
+    the geometry is degenerate (invalid range, ray not pointing at the ground).
+    """
+    if not math.isfinite(range_m) or range_m < 0:
+        return None
+    rot = rotation_zyx(*(float(a) for a in attitude_rad))
+    alt = range_m * rot[2, 2]
+    ray = rot @ np.array([tan_forward, tan_right, 1.0])
+    if ray[2] <= 1e-3 or alt <= 0:
+        return None
+    to_pad = ray * (alt / ray[2])
+    return np.array([-to_pad[0], -to_pad[1], -alt])
+
+
+def control_features(
+    pos_ned_m: np.ndarray,
+    vel_ned_m_s: np.ndarray,
+    attitude_rad: np.ndarray,
+    rate_frd_rad_s: np.ndarray,
+    accel_frd_m_s2: np.ndarray,
+    visibility: float,
+) -> np.ndarray:
+    """The controller's input vector (:data:`FEATURE_NAMES`), float32."""
+    roll, pitch, yaw = (float(a) for a in attitude_rad)
+    c, s = math.cos(yaw), math.sin(yaw)
+    x_h = c * pos_ned_m[0] + s * pos_ned_m[1]
+    y_h = -s * pos_ned_m[0] + c * pos_ned_m[1]
+    vx_h = c * vel_ned_m_s[0] + s * vel_ned_m_s[1]
+    vy_h = -s * vel_ned_m_s[0] + c * vel_ned_m_s[1]
+    alt = -float(pos_ned_m[2])
+    inv = 1.0 / (max(alt, 0.0) + 1.0)
+    return np.array(
+        [
+            x_h / 10,
+            y_h / 10,
+            alt / 50,
+            min(max(alt, 0.0), 5.0) / 5,
+            x_h * inv,
+            y_h * inv,
+            vx_h / 3,
+            vy_h / 3,
+            float(vel_ned_m_s[2]) / 3,
+            roll,
+            pitch,
+            float(rate_frd_rad_s[0]),
+            float(rate_frd_rad_s[1]),
+            float(rate_frd_rad_s[2]),
+            float(accel_frd_m_s2[0]) / _G0,
+            float(accel_frd_m_s2[1]) / _G0,
+            float(accel_frd_m_s2[2]) / _G0,
+            float(visibility),
+        ],
+        dtype=np.float32,
+    )
