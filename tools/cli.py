@@ -13,6 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from training.transport import Transport
+
 __all__ = ["main"]
 
 
@@ -109,7 +111,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     from training.evaluate import EvalConfig, evaluate, format_table
 
-    if args.transport == "mavlink":  # SITL + companion processes over UDP: visland fly
+    if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
         return _cmd_fly(args)
     report = evaluate(
         EvalConfig(
@@ -382,8 +384,9 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument(
         "--transport",
-        choices=["inprocess", "mavlink"],
-        default="inprocess",
+        type=Transport,
+        choices=list(Transport),
+        default=Transport.INPROCESS,
         help="inprocess: the simulator in this process; mavlink: SITL + companion processes "
         "over UDP (as visland fly)",
     )

@@ -24,6 +24,7 @@ from training.rollout import (
     log_name,
     run_episodes,
 )
+from training.transport import Transport
 
 __all__ = ["CollectConfig", "EvalConfig", "collect", "evaluate", "format_table"]
 
@@ -70,7 +71,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     results = [o.result for o in outcomes]
     return {
         "policy": cfg.policy,
-        "transport": "inprocess",
+        "transport": Transport.INPROCESS.value,
         "seed": cfg.seed,
         "scenario": cfg.scenario or "configs/scenario.toml",
         **summarize(results),

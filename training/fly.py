@@ -34,6 +34,7 @@ from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize
+from training.transport import Transport
 
 __all__ = [
     "FlyConfig",
@@ -261,7 +262,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     flights = companion_report.get("flights", [])
     return {
         "policy": cfg.policy,
-        "transport": "mavlink",
+        "transport": Transport.MAVLINK.value,
         "seed": cfg.seed,
         "scenario": cfg.scenario or "configs/scenario.toml",
         "realtime": cfg.realtime,
@@ -362,7 +363,7 @@ def fly_many(
             flights[k] = flights.get(k, 0) + v
     return {
         "policy": cfg.policy,
-        "transport": "mavlink",
+        "transport": Transport.MAVLINK.value,
         "seed": cfg.seed,
         "scenario": cfg.scenario or "configs/scenario.toml",
         "realtime": cfg.realtime,
