@@ -6,12 +6,16 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test test-slow lint bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	# torch first and pinned: the CPU build, never a CUDA download.
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e '.[dev]'
+	# MAVProxy (the ground-station interop test) without its declared dependencies: they pull
+	# opencv-python and vtk, which clash with opencv-python-headless; its core needs pymavlink
+	# and pyserial (both in [dev]).
+	$(BIN)/pip install --quiet --no-deps MAVProxy==1.8.75
 	touch $(STAMP)
 
 setup: $(STAMP)
