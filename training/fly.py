@@ -258,25 +258,40 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         companion_report = json.loads(comp_out.read_text() or "{}")
     except ValueError:
         companion_report = {}
-    comp_logs = sorted(comp_dir.glob("*.mcap"))
     flights = companion_report.get("flights", [])
+    return _report(
+        cfg,
+        [r for _, r, _ in rows],
+        sorted(comp_dir.glob("*.mcap")),
+        {
+            k: sum(1 for f in flights if f.get("result") == k)
+            for k in sorted({f.get("result") for f in flights})
+        },
+        {"wall_s": wall, "out": str(out)},
+        [{"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path} for i, r, path in rows],
+    )
+
+
+def _report(
+    cfg: FlyConfig,
+    results: list[EpisodeResult],
+    companion_logs: list[Path],
+    companion_flights: dict[str, int],
+    extra: dict[str, Any],
+    per_episode: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """The eval-style report of :func:`fly` and :func:`fly_many` (key order kept)."""
     return {
         "policy": cfg.policy,
         "transport": Transport.MAVLINK.value,
         "seed": cfg.seed,
         "scenario": cfg.scenario or "configs/scenario.toml",
         "realtime": cfg.realtime,
-        **summarize([r for _, r, _ in rows]),
-        "latency_ms": latency_stats(comp_logs),
-        "companion_flights": {
-            k: sum(1 for f in flights if f.get("result") == k)
-            for k in sorted({f.get("result") for f in flights})
-        },
-        "wall_s": wall,
-        "out": str(out),
-        "per_episode": [
-            {"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path} for i, r, path in rows
-        ],
+        **summarize(results),
+        "latency_ms": latency_stats(companion_logs),
+        "companion_flights": companion_flights,
+        **extra,
+        "per_episode": per_episode,
     }
 
 
@@ -356,23 +371,20 @@ def fly_many(
         EpisodeResult(**{k: (math.nan if r[k] is None else r[k]) for k in _RESULT_FIELDS})
         for r in rows
     ]
-    comp_logs = sorted(out.glob("ep*/companion/*.mcap"))
     flights: dict[str, int] = {}
     for rep in reports:
         for k, v in rep["companion_flights"].items():
             flights[k] = flights.get(k, 0) + v
-    return {
-        "policy": cfg.policy,
-        "transport": Transport.MAVLINK.value,
-        "seed": cfg.seed,
-        "scenario": cfg.scenario or "configs/scenario.toml",
-        "realtime": cfg.realtime,
-        **summarize(results),
-        "latency_ms": latency_stats(comp_logs),
-        "companion_flights": flights,
-        "instances": min(instances, len(runs)),
-        "runs": len(runs),
-        "wall_s": time.monotonic() - t0,
-        "out": str(out),
-        "per_episode": rows,
-    }
+    return _report(
+        cfg,
+        results,
+        sorted(out.glob("ep*/companion/*.mcap")),
+        flights,
+        {
+            "instances": min(instances, len(runs)),
+            "runs": len(runs),
+            "wall_s": time.monotonic() - t0,
+            "out": str(out),
+        },
+        rows,
+    )
