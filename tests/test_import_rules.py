@@ -49,19 +49,23 @@ PROJECT = ("companion", "sitl_sim", "expert", "training", "tools")
 
 def _imports(folder: Path) -> list[tuple[str, int, str]]:
     """``(file, line, module)`` for every absolute import under ``folder`` (recursive)."""
+    return [i for path in sorted(folder.rglob("*.py")) for i in _imports_of(path)]
+
+
+def _imports_of(path: Path) -> list[tuple[str, int, str]]:
+    """``(file, line, module)`` for every absolute import in one file."""
     found = []
-    for path in sorted(folder.rglob("*.py")):
-        tree = ast.parse(path.read_text(), str(path))
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    raise AssertionError(f"{path}:{node.lineno}: relative import; use absolute")
-                names = [node.module or ""]
-            else:
-                continue
-            found += [(str(path.relative_to(REPO)), node.lineno, n) for n in names]
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                raise AssertionError(f"{path}:{node.lineno}: relative import; use absolute")
+            names = [node.module or ""]
+        else:
+            continue
+        found += [(str(path.relative_to(REPO)), node.lineno, n) for n in names]
     return found
 
 
@@ -112,3 +116,12 @@ def test_the_contract_needs_no_torch_and_no_other_companion_module():
         "companion.contract.messages",
         "companion.contract.policy",
     }
+
+
+@pytest.mark.parametrize(
+    "module", ["policy_net/config.py", "policy_net/geometry.py", "policy_net/estimator.py"]
+)
+def test_the_policy_geometry_and_estimator_need_no_torch(module):
+    """What an ONNX-only board runs between the two networks must not pull torch in."""
+    tops = {m.split(".")[0] for _, _, m in _imports_of(REPO / "companion" / module)}
+    assert "torch" not in tops

@@ -85,7 +85,7 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): CNN pad-bearing regressor + Kalman pad estimator + LSTM controller
-(`companion/policy_net.py`). Inputs: 128×128 mono8 downward camera (45° FOV), ATTITUDE, body
+(`companion/policy_net/`). Inputs: 128×128 mono8 downward camera (45° FOV), ATTITUDE, body
 rates, HIGHRES_IMU specific force, radar range. Output: `Command` (thrust_norm ∈ [0, 1], FRD body
 rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hardware.
 
