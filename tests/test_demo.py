@@ -24,7 +24,8 @@ from PIL import Image
 
 from companion.flightlog import read_log
 from tools.demo import MARKER, DemoConfig, DemoError, run
-from tools.logtool import log_info, plot_flights
+from tools.log_plots import plot_flights
+from tools.logtool import log_info
 from training.fly import REPO
 
 _ROW = re.compile(

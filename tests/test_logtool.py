@@ -21,9 +21,11 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.contract.topics import TOPIC_COMMAND, TOPIC_OBSERVATION
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from sitl_sim.env import LandingEnv
-from sitl_sim.mavlink_sitl import MavlinkSitl, SitlConfig
+from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.sitl_config import SitlConfig
 from tools.cli import main
-from tools.logtool import default_plot_path, log_info, plot_flight, plot_log
+from tools.log_plots import default_plot_path, plot_flight, plot_log
+from tools.logtool import log_info
 from tools.sitl_client import SitlClient
 from training.fly import FlyConfig, fly, free_udp_port
 from training.rollout import fly_episode, make_policy

@@ -52,7 +52,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_sitl(args: argparse.Namespace) -> int:
     import logging
 
-    from sitl_sim.mavlink_sitl import run_sitl, sitl_config_from_args
+    from sitl_sim.mavlink_sitl import run_sitl
+    from sitl_sim.sitl_config import sitl_config_from_args
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     return run_sitl(sitl_config_from_args(args))
@@ -195,7 +196,8 @@ def _cmd_relabel(args: argparse.Namespace) -> int:
 
 
 def _cmd_log(args: argparse.Namespace) -> int:
-    from tools.logtool import format_info, log_info, plot_flight
+    from tools.log_plots import plot_flight
+    from tools.logtool import format_info, log_info
 
     if args.what == "info":
         info = log_info(args.file)
@@ -359,7 +361,7 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true", help="machine-readable output")
     b.set_defaults(func=_cmd_bench)
 
-    from sitl_sim.mavlink_sitl import add_sitl_arguments
+    from sitl_sim.sitl_config import add_sitl_arguments
 
     st = sub.add_parser(
         "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"

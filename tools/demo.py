@@ -6,7 +6,7 @@ CNN+LSTM policy (``models/visland_vision.pt``: camera, radar, IMU — no ground 
 ``episodes`` landings in lockstep, and the SITL's own ground truth scores each touchdown. Then
 the demo prints one row per landing (failures included, with the criterion that failed), the
 summary and the companion's frame→setpoint latency, the MCAP flight logs of both processes,
-and one PNG of all the flights (:func:`tools.logtool.plot_flights`).
+and one PNG of all the flights (:func:`tools.log_plots.plot_flights`).
 
 The default seed is the evaluation seed (1 000 000, the one the model card's 300 evaluation
 episodes use, disjoint from every training seed): the demo flies the first episodes of that
@@ -31,7 +31,7 @@ from sitl_sim.metrics import (
     SUCCESS_MAX_TILT_DEG,
     SUCCESS_MAX_VERTICAL_SPEED_M_S,
 )
-from tools.logtool import plot_flights
+from tools.log_plots import plot_flights
 from training.fly import REPO, FlyConfig, fly
 
 __all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run"]

@@ -1,4 +1,4 @@
-"""``visland log info`` / ``visland log plot``: what is in an MCAP flight log, and a picture of it.
+"""``visland log info``: what is in an MCAP flight log, and where each plot panel reads from.
 
 Works on the three kinds of flight log (DESIGN.md "Flight logs"), telling them apart by topic:
 
@@ -10,9 +10,10 @@ Works on the three kinds of flight log (DESIGN.md "Flight logs"), telling them a
   ``/companion/command``, ``/mavlink/in/<NAME>`` as received (ODOMETRY = ground truth only for
   privileged flights), ``/companion/summary``; no ground-truth channel.
 
-Each plot panel takes the best source the log has (ground truth before measurements, the pilot's
-command before the autopilot's before the raw SET_ATTITUDE_TARGET; :data:`SOURCES`) and says which
-it used in its title; a panel with no source says what is missing instead of drawing nothing.
+Each plot panel (:mod:`tools.log_plots`) takes the best source the log has (ground truth before
+measurements, the pilot's command before the autopilot's before the raw SET_ATTITUDE_TARGET;
+:data:`SOURCES`) and says which it used in its title; a panel with no source says what is
+missing instead of drawing nothing.
 Logs are read with :func:`companion.flightlog.read_log`, so a truncated (crashed) log shows its
 readable prefix and is reported as truncated.
 """
@@ -33,7 +34,6 @@ from companion.contract.topics import (
     TOPIC_COMPANION_OBSERVATION,
     TOPIC_COMPANION_PREFIX,
     TOPIC_COMPANION_SUMMARY,
-    TOPIC_EVENTS,
     TOPIC_GROUNDTRUTH,
     TOPIC_MAVLINK_IN,
     TOPIC_MAVLINK_OUT,
@@ -45,29 +45,24 @@ from sitl_sim.dynamics import euler_from_quat
 
 __all__ = [
     "PANELS",
+    "PANEL_WIDTH",
+    "RESULT_TOPICS",
     "SOURCES",
-    "FlightsPlotReport",
-    "PlotReport",
     "PlotSources",
-    "default_plot_path",
+    "fmt_value",
     "format_info",
+    "last_result",
     "log_info",
-    "plot_flight",
-    "plot_flights",
-    "plot_log",
+    "log_kind",
     "plot_sources",
+    "verdict",
 ]
 
 
 PANELS = ("position", "altitude", "attitude", "command")
 """The plot's panels: top view, altitude vs time, attitude vs time, commands vs time."""
 
-_PAD_HALF_M = 2.0  # the pad is a 4 m square (sitl_sim.scene)
-_CROSS_HALF_M, _CROSS_HALF_W_M = 1.6, 0.3  # red cross arms 3.2 m x 0.6 m
 _UINT16_MAX = 65_535
-_MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed", "flight_start", "state")
-"""Event kinds drawn as vertical lines on the time plots (the SITL autopilot's mode/arming
-story; the companion's state machine)."""
 
 Getter = Callable[[dict[str, Any]], Any]
 
@@ -122,8 +117,8 @@ SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
 }
 """Per panel, the topics it can draw, best first: ``(topic, message -> values, label)``."""
 
-_WIDTH = {"position": 3, "altitude": 1, "attitude": 3, "command": 4}
-_RESULT_TOPICS = (TOPIC_RESULT, TOPIC_COMPANION_SUMMARY)
+PANEL_WIDTH = {"position": 3, "altitude": 1, "attitude": 3, "command": 4}
+RESULT_TOPICS = (TOPIC_RESULT, TOPIC_COMPANION_SUMMARY)
 
 
 @dataclass(frozen=True)
@@ -139,7 +134,7 @@ class PlotSources:
     missing: list[str] = field(default_factory=list)
 
 
-def _kind(topics: set[str]) -> str:
+def log_kind(topics: set[str]) -> str:
     if any(t.startswith(TOPIC_COMPANION_PREFIX) for t in topics):
         return "companion"
     if TOPIC_AUTOPILOT_COMMAND in topics or any(t.startswith(TOPIC_MAVLINK_OUT) for t in topics):
@@ -189,7 +184,7 @@ def log_info(path: str | Path) -> dict[str, Any]:
     return {
         "path": str(path),
         "size_bytes": path.stat().st_size,
-        "kind": _kind(set(topics)),
+        "kind": log_kind(set(topics)),
         "truncated": log.truncated,
         "error": log.error,
         "messages": sum(v["count"] for v in topics.values()),
@@ -199,7 +194,7 @@ def log_info(path: str | Path) -> dict[str, Any]:
         "topics": topics,
         "metadata": {name: sorted(values) for name, values in log.metadata.items()},
         "episode": log.metadata.get("episode"),
-        "result": _last_result(log),
+        "result": last_result(log),
         "plot_sources": sources.sources,
         "plot_missing": sources.missing,
     }
@@ -234,7 +229,7 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"  result (companion summary): {result['result']} ({reason})")
     else:
         shown = ("landed", "success", "landing_error_m", "touchdown_vertical_speed_m_s", "tilt_deg")
-        parts = [f"{k} {_fmt(result[k])}" for k in shown if k in result]
+        parts = [f"{k} {fmt_value(result[k])}" for k in shown if k in result]
         if result.get("aborted"):
             parts.insert(0, "ABORTED")
         lines.append(f"  result: {', '.join(parts)}")
@@ -243,428 +238,25 @@ def format_info(info: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _fmt(value: Any) -> str:
+def fmt_value(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.3f}"
     return "n/a" if value is None else str(value)
 
 
-# --------------------------------------------------------------------------- series
-
-
-def _array(msgs: list[dict[str, Any]], get: Callable[[dict[str, Any]], Any], width: int):
-    """``(times (N,), values (N, width))`` with null/missing values as NaN."""
-    times = np.array([float(m["time_s"]) for m in msgs], dtype=float)
-    values = np.full((len(msgs), width), np.nan)
-    for i, m in enumerate(msgs):
-        try:
-            v = get(m)
-        except (KeyError, TypeError, IndexError):
-            continue
-        if v is None:
-            continue
-        row = np.asarray(v, dtype=float).reshape(-1)
-        if row.size == width:
-            values[i] = row
-    return times, values
-
-
-def _series(log: FlightLog, panel: str, topic: str) -> tuple[np.ndarray, np.ndarray, str]:
-    """``(times (N,), values (N, width), label)`` of ``topic`` as :data:`SOURCES` reads it."""
-    get, label = next((g, lab) for t, g, lab in SOURCES[panel] if t == topic)
-    times, values = _array(log.topic(topic), get, _WIDTH[panel])
-    return times, values, label
-
-
-def _events(log: FlightLog) -> list[tuple[float, str]]:
-    return [
-        (float(e["time_s"]), str(e.get("text", e["kind"])))
-        for e in log.topic(TOPIC_EVENTS)
-        if e.get("kind") in _MARKED_EVENTS and "time_s" in e
-    ]
-
-
-# --------------------------------------------------------------------------- plot
-
-
-def default_plot_path(path: str | Path) -> Path:
-    """``<dir>/<name without .mcap/.part>.png``."""
-    path = Path(path)
-    name = path.name
-    for suffix in (".part", ".mcap"):
-        name = name.removesuffix(suffix)
-    return path.with_name(name + ".png")
-
-
-def _draw_pad(ax) -> None:
-    """The pad (4 m green square) and its red cross at the origin of a top view (east, north)."""
-    from matplotlib.patches import Rectangle
-
-    ax.add_patch(Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35))
-    for w, h in ((_CROSS_HALF_M, _CROSS_HALF_W_M), (_CROSS_HALF_W_M, _CROSS_HALF_M)):
-        ax.add_patch(Rectangle((-w, -h), 2 * w, 2 * h, color="tab:red", alpha=0.5))
-
-
-def _missing(ax, text: str) -> None:
-    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, wrap=True)
-    ax.set_xticks([])
-    ax.set_yticks([])
-
-
-def _mark_events(ax, events: list[tuple[float, str]], label: bool = False) -> None:
-    for t, text in events:
-        ax.axvline(t, color="0.6", linestyle=":", linewidth=0.8)
-        if label:
-            ax.text(
-                t,
-                0.98,
-                f" {text}",
-                transform=ax.get_xaxis_transform(),
-                rotation=90,
-                va="top",
-                fontsize=6,
-                color="0.4",
-            )
-
-
-def _last_result(log: FlightLog) -> dict[str, Any] | None:
+def last_result(log: FlightLog) -> dict[str, Any] | None:
     """The episode's ``/episode/result``, else the companion's ``/companion/summary``."""
-    for topic in _RESULT_TOPICS:
+    for topic in RESULT_TOPICS:
         msgs = log.topic(topic)
         if msgs:
             return msgs[-1]
     return None
 
 
-def _title(log: FlightLog, kind: str) -> str:
-    head = f"{log.path.name} — {kind} log"
-    if log.truncated:
-        head += " (TRUNCATED: readable prefix only)"
-    r = _last_result(log)
-    if r is None:
-        return head + "\nno episode result"
-    if isinstance(r.get("result"), str):  # the companion's own account
-        return f"{head}\ncompanion: {r['result']} ({r.get('reason') or 'no reason given'})"
-    speed = r.get("touchdown_vertical_speed_m_s")
-    return (
-        f"{head}\n{_verdict(r)}: landing error {_fmt(r.get('landing_error_m'))} m, "
-        f"vertical speed {_fmt(speed)} m/s, tilt {_fmt(r.get('tilt_deg'))} deg"
-    )
-
-
-def _verdict(r: dict[str, Any]) -> str:
+def verdict(r: dict[str, Any]) -> str:
     """One word or phrase for an ``/episode/result``."""
     if r.get("aborted"):
         return "aborted"
     if not r.get("landed"):
         return "timeout"
     return "success" if r.get("success") else "landed, not a success"
-
-
-@dataclass(frozen=True)
-class PlotReport:
-    """What :func:`plot_flight` drew.
-
-    Attributes:
-        out: the PNG written.
-        kind: sitl | rollout | companion | unknown.
-        sources: panel -> topic drawn (None: panel left empty, see ``missing``).
-        missing: one line per empty panel, naming the topics it looked for.
-        truncated: the log was cut (crash); the plot shows its readable prefix.
-        error: why reading stopped early, if it did.
-    """
-
-    out: Path
-    kind: str
-    sources: dict[str, str | None]
-    missing: list[str]
-    truncated: bool
-    error: str | None
-
-
-def plot_log(path: str | Path, out: str | Path | None = None) -> Path:
-    """Draw one flight log to a PNG and return its path (see :func:`plot_flight`)."""
-    return plot_flight(path, out).out
-
-
-def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
-    """Draw one flight log to a PNG (default :func:`default_plot_path`) and say what it drew.
-
-    Panels: top view (north/east) around the pad; altitude vs time; roll/pitch/yaw vs time;
-    thrust_norm and body-rate commands vs time. A panel without data says which topics it
-    looked for (see :func:`plot_sources`).
-
-    Raises:
-        FlightLogError: the file is missing or not an MCAP file.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, never a window (CI, SSH, a companion computer)
-    import matplotlib.pyplot as plt
-
-    wanted = {t for rows in SOURCES.values() for t, _, _ in rows}
-    wanted |= {*_RESULT_TOPICS, TOPIC_EVENTS}
-    log = read_log(path, topics=wanted)
-    kind = _kind(set(log.schemas))  # every channel, read or not
-    src = plot_sources(log)
-    events = _events(log)
-    out_path = Path(out) if out is not None else default_plot_path(path)
-
-    fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
-    (ax_top, ax_alt), (ax_att, ax_cmd) = axes
-    try:
-        # Top view: east to the right, north up, the pad and its cross at the origin.
-        topic = src.sources["position"]
-        if topic is None:
-            _missing(ax_top, "no position\n" + _missing_line(src, "position"))
-        else:
-            _, pos, _ = _series(log, "position", topic)
-            _draw_pad(ax_top)
-            ax_top.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
-            ax_top.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
-            ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
-            span = max(3.0, float(np.nanmax(np.abs(pos[:, :2]))) * 1.15)
-            ax_top.set_xlim(-span, span)
-            ax_top.set_ylim(-span, span)
-            ax_top.set_aspect("equal")
-            ax_top.legend(loc="upper right", fontsize=8)
-            ax_top.grid(alpha=0.3)
-        ax_top.set_title(f"top view ({topic or 'missing'})", fontsize=10)
-        ax_top.set_xlabel("east (m)")
-        ax_top.set_ylabel("north (m)")
-
-        topic = src.sources["altitude"]
-        if topic is None:
-            _missing(ax_alt, "no altitude or range\n" + _missing_line(src, "altitude"))
-        else:
-            t, alt, label = _series(log, "altitude", topic)
-            ax_alt.plot(t, alt[:, 0], color="tab:blue", label=label)
-            radar = next(
-                (
-                    t
-                    for t, _, lab in SOURCES["altitude"]
-                    if lab.startswith("radar") and log.topic(t)
-                ),
-                None,
-            )
-            if radar is not None and radar != topic:  # the measurement beside the truth
-                t2, rng, label2 = _series(log, "altitude", radar)
-                ax_alt.plot(t2, rng[:, 0], color="tab:orange", linewidth=0.8, label=label2)
-            ax_alt.legend(fontsize=8)
-            ax_alt.grid(alpha=0.3)
-            _mark_events(ax_alt, events, label=True)
-        ax_alt.set_title(f"altitude ({topic or 'missing'})", fontsize=10)
-        ax_alt.set_xlabel("time (s)")
-        ax_alt.set_ylabel("m")
-
-        topic = src.sources["attitude"]
-        if topic is None:
-            _missing(ax_att, "no attitude\n" + _missing_line(src, "attitude"))
-        else:
-            t, att, label = _series(log, "attitude", topic)
-            for k, name in enumerate(("roll", "pitch", "yaw")):
-                ax_att.plot(t, np.degrees(att[:, k]), label=name)
-            ax_att.legend(fontsize=8)
-            ax_att.grid(alpha=0.3)
-            _mark_events(ax_att, events)
-        ax_att.set_title(f"attitude ({topic or 'missing'})", fontsize=10)
-        ax_att.set_xlabel("time (s)")
-        ax_att.set_ylabel("deg")
-
-        topic = src.sources["command"]
-        if topic is None:
-            _missing(ax_cmd, "no commands\n" + _missing_line(src, "command"))
-        else:
-            t, cmd, label = _series(log, "command", topic)
-            thrust, rates = cmd[:, 0], cmd[:, 1:]
-            ax_cmd.step(t, thrust, where="post", color="k", label=f"thrust_norm ({label})")
-            ax_cmd.set_ylabel("thrust_norm")
-            ax_cmd.set_ylim(-0.02, 1.02)
-            ax_rate = ax_cmd.twinx()
-            for k, name in enumerate(("p (roll rate)", "q (pitch rate)", "r (yaw rate)")):
-                ax_rate.step(t, rates[:, k], where="post", linewidth=0.9, label=name)
-            ax_rate.set_ylabel("body rate (rad/s, FRD)")
-            handles = ax_cmd.get_legend_handles_labels()
-            rate_handles = ax_rate.get_legend_handles_labels()
-            ax_cmd.legend(handles[0] + rate_handles[0], handles[1] + rate_handles[1], fontsize=8)
-            ax_cmd.grid(alpha=0.3)
-            _mark_events(ax_cmd, events)
-        ax_cmd.set_title(f"commands ({topic or 'missing'})", fontsize=10)
-        ax_cmd.set_xlabel("time (s)")
-
-        fig.suptitle(_title(log, kind), fontsize=11)
-        fig.tight_layout()
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out_path, dpi=100)
-    finally:
-        plt.close(fig)
-    return PlotReport(out_path, kind, src.sources, src.missing, log.truncated, log.error)
-
-
-def _missing_line(src: PlotSources, panel: str) -> str:
-    line = next(m for m in src.missing if m.startswith(panel + ":"))
-    return line.split(": ", 1)[1]
-
-
-# --------------------------------------------------------------------------- several flights
-
-_FLIGHT_START_EVENTS = ("flight", "flight_start")
-"""Event kinds that mark the start of the flight proper (SITL: OFFBOARD/LAND took over;
-companion: the policy took over); the multi-flight plot's clock starts there."""
-_ZOOM_HALF_M = 3.0  # the touchdown panel: the pad (+-2 m) and a margin
-_SUCCESS_RADIUS_M = 1.0  # sitl_sim.metrics.SUCCESS_MAX_ERROR_M (logtool reads logs, not sitl_sim)
-
-
-@dataclass(frozen=True)
-class FlightsPlotReport:
-    """What :func:`plot_flights` drew.
-
-    Attributes:
-        out: the PNG written.
-        drawn: the logs drawn (those with a position source), in the order given.
-        skipped: ``"<path>: why"`` for each log left out of the picture.
-        outside_zoom: logs whose touchdown point lies outside the touchdown panel.
-    """
-
-    out: Path
-    drawn: list[Path]
-    skipped: list[str]
-    outside_zoom: list[Path]
-
-
-def _flight_start_s(log: FlightLog, first_sample_s: float) -> float:
-    starts = [
-        float(e["time_s"])
-        for e in log.topic(TOPIC_EVENTS)
-        if e.get("kind") in _FLIGHT_START_EVENTS and "time_s" in e
-    ]
-    return min(starts) if starts else first_sample_s
-
-
-def _flight_label(path: Path, log: FlightLog, label: str | None) -> str:
-    r = _last_result(log)
-    head = label if label is not None else path.name.removesuffix(".mcap")
-    if r is None or isinstance(r.get("result"), str):
-        return f"{head}: no episode result"
-    return f"{head}: {_verdict(r)}, error {_fmt(r.get('landing_error_m'))} m"
-
-
-def plot_flights(
-    paths: list[str | Path],
-    out: str | Path,
-    title: str | None = None,
-    labels: list[str] | None = None,
-) -> FlightsPlotReport:
-    """Draw several flights of one run overlaid in one PNG and say what it drew.
-
-    Panels: top view (north/east) of every path around the pad; the touchdown area (the pad,
-    the 1 m success circle, each flight's end point); altitude vs time since each flight's
-    start (the ``flight``/``flight_start`` event: the HOLD before it is left out). Each flight
-    keeps one colour, its legend entry gives its result (:func:`_verdict`) and landing error.
-    Position and altitude take the best source the log has (:data:`SOURCES`); a log with no
-    position source is skipped and named in the report.
-
-    Args:
-        paths: flight logs (SITL or rollout logs carry ground truth; a vision companion's
-            log has none and is skipped).
-        out: the PNG to write (its folder is created).
-        title: the figure title (default: how many flights succeeded).
-        labels: one legend name per path (default: the file name).
-
-    Raises:
-        ValueError: no paths, or ``labels`` of another length.
-        FlightLogError: a file is missing or not an MCAP file.
-    """
-    if not paths:
-        raise ValueError("plot_flights: no flight logs given")
-    if labels is not None and len(labels) != len(paths):
-        raise ValueError(f"plot_flights: {len(labels)} labels for {len(paths)} logs")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle
-
-    wanted = {t for panel in ("position", "altitude") for t, _, _ in SOURCES[panel]}
-    wanted |= {*_RESULT_TOPICS, TOPIC_EVENTS}
-    out_path = Path(out)
-    drawn: list[Path] = []
-    skipped: list[str] = []
-    outside: list[Path] = []
-    successes = 0
-    fig, (ax_top, ax_zoom, ax_alt) = plt.subplots(
-        1, 3, figsize=(18, 6.2), gridspec_kw={"width_ratios": [1, 1, 1.35]}
-    )
-    try:
-        _draw_pad(ax_top)
-        _draw_pad(ax_zoom)
-        ax_zoom.add_patch(
-            Circle((0, 0), _SUCCESS_RADIUS_M, fill=False, linestyle="--", color="k", lw=1)
-        )
-        span = 3.0
-        colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-        for k, path in enumerate(Path(p) for p in paths):
-            log = read_log(path, topics=wanted)
-            src = plot_sources(log)
-            if src.sources["position"] is None:
-                skipped.append(f"{path}: {_missing_line(src, 'position')}")
-                continue
-            colour = colours[len(drawn) % len(colours)]
-            label = _flight_label(path, log, labels[k] if labels is not None else None)
-            r = _last_result(log)
-            successes += bool(r and r.get("success"))
-            t, pos, _ = _series(log, "position", src.sources["position"])
-            t0 = _flight_start_s(log, float(t[0]))
-            keep = t >= t0 - 1e-9
-            if keep.any():
-                t, pos = t[keep], pos[keep]
-            ax_top.plot(pos[:, 1], pos[:, 0], color=colour, linewidth=1.3, label=label)
-            ax_top.plot(pos[0, 1], pos[0, 0], "o", color=colour)
-            ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color=colour, markersize=9)
-            span = max(span, float(np.nanmax(np.abs(pos[:, :2]))) * 1.1)
-            ax_zoom.plot(pos[:, 1], pos[:, 0], color=colour, linewidth=1.0, alpha=0.6)
-            ax_zoom.plot(pos[-1, 1], pos[-1, 0], "x", color=colour, markersize=11, mew=2.5)
-            if np.nanmax(np.abs(pos[-1, :2])) > _ZOOM_HALF_M:
-                outside.append(path)
-            alt_topic = src.sources["altitude"]
-            if alt_topic is not None:
-                ta, alt, _ = _series(log, "altitude", alt_topic)
-                sel = ta >= t0 - 1e-9
-                ax_alt.plot(ta[sel] - t0, alt[sel, 0], color=colour, label=label)
-            drawn.append(path)
-
-        ax_top.set_xlim(-span, span)
-        ax_top.set_ylim(-span, span)
-        ax_top.set_aspect("equal")
-        ax_top.set_title("top view: o start, x touchdown (ground truth)", fontsize=10)
-        ax_top.set_xlabel("east (m)")
-        ax_top.set_ylabel("north (m)")
-        ax_top.grid(alpha=0.3)
-        ax_top.legend(loc="upper left", fontsize=8)
-
-        ax_zoom.set_xlim(-_ZOOM_HALF_M, _ZOOM_HALF_M)
-        ax_zoom.set_ylim(-_ZOOM_HALF_M, _ZOOM_HALF_M)
-        ax_zoom.set_aspect("equal")
-        zoom_title = "touchdown: pad (4 m), dashed = 1 m success radius"
-        if outside:
-            zoom_title += f"\n{len(outside)} touchdown(s) outside this view"
-        ax_zoom.set_title(zoom_title, fontsize=10)
-        ax_zoom.set_xlabel("east (m)")
-        ax_zoom.set_ylabel("north (m)")
-        ax_zoom.grid(alpha=0.3)
-
-        ax_alt.set_title("altitude since the flight started", fontsize=10)
-        ax_alt.set_xlabel("time since flight start (s)")
-        ax_alt.set_ylabel("altitude above ground (m)")
-        ax_alt.grid(alpha=0.3)
-        if ax_alt.get_legend_handles_labels()[0]:
-            ax_alt.legend(fontsize=8)
-
-        default = f"{len(drawn)} flights: {successes} successful landings"
-        fig.suptitle(title if title is not None else default, fontsize=12)
-        fig.tight_layout()
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out_path, dpi=100)
-    finally:
-        plt.close(fig)
-    return FlightsPlotReport(out_path, drawn, skipped, outside)
