@@ -37,10 +37,10 @@ from sitl_sim.autopilot import (
     mode_from_custom,
     setpoint_from_target,
 )
-from sitl_sim.mavlink_sitl import (
-    MavlinkSitl,
+from sitl_sim.mavlink_endpoint import SitlPortInUseError
+from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.sitl_config import (
     SitlConfig,
-    SitlPortInUseError,
     add_sitl_arguments,
     signing_key_bytes,
     sitl_config_from_args,

@@ -1,0 +1,353 @@
+"""What the SITL subscribes to: the ``handle_<message>`` handlers and the COMMAND_LONG /
+COMMAND_INT command handlers, with their dispatch tables (:data:`SUBSCRIBES`,
+:data:`COMMANDS`) listed here, PX4-style; :data:`~sitl_sim.mavlink_messages.PUBLISHES` lists
+what it sends.
+
+:class:`MessageHandlers` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`: it reads
+and changes the SITL's ``config``, ``endpoint``, ``autopilot``, ``params``, ``clock``,
+``_wait`` (the lockstep frame), ``_rx_endpoint`` (the link being read), ``_endpoints``,
+``_streams`` and ``_builders``, and answers through its ``_send``, ``_statustext``, ``_event``,
+``_announce_events`` and ``_on_ground``.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl_sim.autopilot import (
+    FORCE_DISARM_MAGIC,
+    FlightMode,
+    MavResult,
+    SetpointRejected,
+    mode_from_custom,
+    setpoint_from_target,
+)
+from sitl_sim.params import WRITABLE, param_table, param_value_msg, with_param
+
+if TYPE_CHECKING:
+    from sitl_sim.autopilot import Autopilot, AutopilotParams
+    from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint
+    from sitl_sim.simulator import Simulator
+    from sitl_sim.sitl_clock import SimClock
+    from sitl_sim.sitl_config import SitlConfig
+
+__all__ = ["COMMANDS", "SUBSCRIBES", "MessageHandlers"]
+
+SUBSCRIBES = (
+    "HEARTBEAT",
+    "SET_ATTITUDE_TARGET",
+    "COMMAND_LONG",
+    "COMMAND_INT",
+    "SET_MODE",
+    "PARAM_REQUEST_LIST",
+    "PARAM_REQUEST_READ",
+    "PARAM_SET",
+    "TIMESYNC",
+    "PING",
+    "MISSION_REQUEST_LIST",
+    "SETUP_SIGNING",
+)
+"""Messages this autopilot acts on (each has a ``handle_<name>`` method); others are counted."""
+
+COMMANDS = {
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: "_command_arm_disarm",
+    mavlink.MAV_CMD_DO_SET_MODE: "_command_do_set_mode",
+    mavlink.MAV_CMD_NAV_LAND: "_command_nav_land",
+    mavlink.MAV_CMD_REQUEST_MESSAGE: "_command_request_message",
+    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: "_command_set_message_interval",
+    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: "_command_get_message_interval",
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: "_command_autopilot_capabilities",
+    mavlink.MAV_CMD_GET_HOME_POSITION: "_command_get_home_position",
+}
+"""Commands (COMMAND_LONG or COMMAND_INT) this autopilot runs -> their handler method; any other
+is acknowledged MAV_RESULT_UNSUPPORTED."""
+
+CommandHandler = Callable[[tuple[float, ...], list[Any]], MavResult]
+
+
+def _thrust_body(msg: Any) -> tuple[float, float, float] | None:
+    """SET_ATTITUDE_TARGET.thrust_body, an extension pymavlink 2.4.50 does not decode: read it
+    from payload bytes 39..50 (zeros when truncated on the wire)."""
+    buf = msg.get_msgbuf()
+    if buf[0] != mavlink.PROTOCOL_MARKER_V2:
+        return None
+    payload = bytes(buf[10 : 10 + buf[1]]).ljust(51, b"\x00")
+    return struct.unpack("<3f", payload[39:51])
+
+
+class MessageHandlers:
+    """The ``handle_<message>`` and ``_command_<command>`` methods."""
+
+    config: SitlConfig
+    endpoint: MavlinkEndpoint
+    autopilot: Autopilot
+    params: AutopilotParams
+    sim: Simulator
+    clock: SimClock
+
+    def _init_dispatch(self) -> None:
+        """Bind :data:`SUBSCRIBES` and :data:`COMMANDS` to this SITL's methods."""
+        self._handlers: dict[str, Callable[[Any, Inbound], None]] = {
+            name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES
+        }
+        self._commands: dict[int, CommandHandler] = {
+            command: getattr(self, method) for command, method in COMMANDS.items()
+        }
+
+    # ------------------------------------------------------------------ helpers
+
+    def _for_us(self, target_system: int, target_component: int | None = None) -> bool:
+        ep = self.endpoint
+        ok = target_system in (0, ep.sysid) and (
+            target_component is None or target_component in (0, ep.compid)
+        )
+        if not ok:
+            self._rx_endpoint.stats.rx_wrong_target += 1
+        return ok
+
+    def _ack(self, command: int, result: MavResult, msg: Any) -> None:
+        self._send(
+            self.endpoint.mav.command_ack_encode(
+                command,
+                int(result),
+                0,
+                0,
+                msg.get_srcSystem(),  # MAVSDK drops ACKs addressed to someone else
+                msg.get_srcComponent(),
+            )
+        )
+
+    def _param_table(self) -> list[tuple[str, float, int]]:
+        return param_table(self.params, self.endpoint.sysid)
+
+    def _send_param(self, index: int) -> None:
+        self._send(param_value_msg(self.endpoint.mav, self._param_table(), index))
+
+    # ------------------------------------------------------------------ message handlers
+
+    def handle_heartbeat(self, msg: Any, inbound: Inbound) -> None:
+        """A client's heartbeat: nothing to do (the endpoint already remembers the peer)."""
+
+    def handle_set_attitude_target(self, msg: Any, inbound: Inbound) -> None:
+        """Setpoint (see :func:`~sitl_sim.autopilot.setpoint_from_target`); answers a frame in
+        lockstep."""
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        prev = self.autopilot.setpoint
+        try:
+            sp = setpoint_from_target(
+                msg.type_mask,
+                msg.q,
+                (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate),
+                msg.thrust,
+                _thrust_body(msg),
+                self.clock.time_s,
+                prev.thrust_norm if prev is not None else None,
+            )
+        except SetpointRejected as exc:
+            self._rx_endpoint.stats.rx_rejected_setpoints += 1
+            self._event("setpoint_rejected", str(exc))
+            return
+        self.autopilot.on_setpoint(sp)
+        wait = self._wait
+        # Lockstep is paced by the offboard link alone: a ground station's setpoint flies (as
+        # in PX4, offboard setpoints are accepted from any link) but never answers a frame.
+        if (
+            wait is not None
+            and inbound.link == self.endpoint.name
+            and wait.answers(msg.time_boot_ms, self.config.lockstep_require_stamp)
+        ):
+            wait.answered = True
+
+    def handle_command_long(self, msg: Any, inbound: Inbound) -> None:
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        params = (
+            msg.param1,
+            msg.param2,
+            msg.param3,
+            msg.param4,
+            msg.param5,
+            msg.param6,
+            msg.param7,
+        )
+        self._run_command(msg.command, params, msg)
+
+    def handle_command_int(self, msg: Any, inbound: Inbound) -> None:
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
+        self._run_command(msg.command, params, msg)
+
+    def handle_set_mode(self, msg: Any, inbound: Inbound) -> None:
+        """Legacy SET_MODE (no ACK, as PX4): custom_mode split into main/sub."""
+        if not self._for_us(msg.target_system):
+            return
+        main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
+        result = self.autopilot.request_mode(mode_from_custom(main, sub), self.clock.time_s)
+        self._event("set_mode", f"SET_MODE main {main} sub {sub}: {result.name}")
+
+    def handle_param_request_list(self, msg: Any, inbound: Inbound) -> None:
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        for index in range(len(self._param_table())):
+            self._send_param(index)
+
+    def handle_param_request_read(self, msg: Any, inbound: Inbound) -> None:
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        table = self._param_table()
+        if 0 <= msg.param_index < len(table):
+            self._send_param(msg.param_index)
+            return
+        names = [row[0] for row in table]
+        if msg.param_id in names:
+            self._send_param(names.index(msg.param_id))
+        # unknown parameter: PX4 stays silent (the client times out)
+
+    def handle_param_set(self, msg: Any, inbound: Inbound) -> None:
+        """COM_OF_LOSS_T and COM_DISARM_LAND are writable; any other PARAM_SET is answered with
+        the unchanged value (the protocol's way of saying no)."""
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        names = [row[0] for row in self._param_table()]
+        if msg.param_id not in names:
+            return
+        if msg.param_id in WRITABLE:
+            try:
+                self.params = with_param(self.params, msg.param_id, msg.param_value)
+                self.autopilot.params = self.params
+            except ValueError as exc:
+                self._event("param_rejected", str(exc))
+        self._send_param(names.index(msg.param_id))
+
+    def handle_timesync(self, msg: Any, inbound: Inbound) -> None:
+        """Answer requests (tc1 = 0) with the sim clock in ns; our own requests: none."""
+        if msg.tc1 == 0:
+            self._send(self.endpoint.mav.timesync_encode(self.clock.time_us * 1000, msg.ts1))
+
+    def handle_ping(self, msg: Any, inbound: Inbound) -> None:
+        """MAVSDK pings PX4 autopilots: echo requests (targets 0/0) back to the sender."""
+        if msg.target_system == 0 and msg.target_component == 0:
+            self._send(
+                self.endpoint.mav.ping_encode(
+                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
+                )
+            )
+
+    def handle_setup_signing(self, msg: Any, inbound: Inbound) -> None:
+        """MAVLink 2 signing key (PX4 v1.17 rules, mavlink_notes.md section 12): accepted on any
+        link while no key is set; once signing is on, only a *signed* SETUP_SIGNING (the
+        endpoint drops unsigned ones) changes the key, and an all-zero key turns signing off;
+        refused while armed. Applies to every link at once. The protocol has no reply: the
+        outcome is a STATUSTEXT (and an event in the flight log; the key never is)."""
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        if self.autopilot.armed:
+            self._statustext(4, "SETUP_SIGNING refused: armed")
+            return
+        key = bytes(msg.secret_key)
+        new_key = None if key == bytes(32) else key
+        for endpoint in self._endpoints:
+            endpoint.set_signing_key(new_key, int(msg.initial_timestamp))
+        # A signed reply tells the requester the key took (or, unsigned, that it is off).
+        self._statustext(6, "Signing on" if new_key is not None else "Signing off")
+
+    def handle_mission_request_list(self, msg: Any, inbound: Inbound) -> None:
+        if not self._for_us(msg.target_system, msg.target_component):
+            return
+        self._send(
+            self.endpoint.mav.mission_count_encode(
+                msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
+            )
+        )
+
+    # ------------------------------------------------------------------ commands
+
+    def _run_command(self, command: int, params: tuple[float, ...], msg: Any) -> None:
+        handler = self._commands.get(command)
+        follow_up: list[Any] = []
+        if handler is None:
+            result = MavResult.UNSUPPORTED
+        else:
+            result = handler(params, follow_up)
+        self._ack(command, result, msg)
+        for reply in follow_up:
+            self._send(reply)
+        self._event("command", f"command {command} {list(params)}: {result.name}")
+        self._announce_events()
+
+    def _in_air(self) -> bool:
+        return not self._on_ground(self.sim.ground_truth())
+
+    def _command_arm_disarm(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        if not math.isfinite(p[0]):
+            return MavResult.DENIED
+        return self.autopilot.request_arm(
+            round(p[0]) == 1, force=p[1] == FORCE_DISARM_MAGIC, in_air=self._in_air()
+        )
+
+    def _command_do_set_mode(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        if not all(math.isfinite(v) for v in p[:3]):
+            return MavResult.DENIED
+        if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return MavResult.DENIED  # PX4 modes are custom modes
+        return self.autopilot.request_mode(
+            mode_from_custom(int(p[1]), int(p[2])), self.clock.time_s
+        )
+
+    def _command_nav_land(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        return self.autopilot.request_mode(FlightMode.LAND, self.clock.time_s)
+
+    def _command_request_message(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        if not math.isfinite(p[0]):
+            return MavResult.DENIED
+        builder = self._builders.get(int(p[0]))
+        if builder is None:
+            return MavResult.UNSUPPORTED
+        follow_up.append(builder())
+        return MavResult.ACCEPTED
+
+    def _command_set_message_interval(
+        self, p: tuple[float, ...], follow_up: list[Any]
+    ) -> MavResult:
+        if not (math.isfinite(p[0]) and math.isfinite(p[1])):
+            return MavResult.DENIED
+        stream = self._streams.get(int(p[0]))
+        if stream is None:
+            return MavResult.UNSUPPORTED
+        interval = int(p[1])
+        if stream.name == "ODOMETRY" and not self.config.groundtruth and interval >= 0:
+            return MavResult.DENIED  # ground truth only with --groundtruth
+        if interval == 0:
+            interval = stream.default_interval_us
+        elif interval < 0:
+            interval = -1
+        stream.set_interval(interval, self.clock.rate_hz)
+        return MavResult.ACCEPTED
+
+    def _command_get_message_interval(
+        self, p: tuple[float, ...], follow_up: list[Any]
+    ) -> MavResult:
+        stream = self._streams.get(int(p[0])) if math.isfinite(p[0]) else None
+        if stream is None:
+            return MavResult.UNSUPPORTED
+        follow_up.append(
+            self.endpoint.mav.message_interval_encode(stream.msg_id, stream.interval_us)
+        )
+        return MavResult.ACCEPTED
+
+    def _command_autopilot_capabilities(
+        self, p: tuple[float, ...], follow_up: list[Any]
+    ) -> MavResult:
+        follow_up.append(self._build_autopilot_version())
+        return MavResult.ACCEPTED
+
+    def _command_get_home_position(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        follow_up.append(self._build_home_position())
+        return MavResult.ACCEPTED

@@ -1,0 +1,353 @@
+"""What the SITL publishes: the MAVLink message builders (HEARTBEAT, SYS_STATUS, ... ODOMETRY),
+the stream table and its SET_MESSAGE_INTERVAL schedule, and the once-per-tick sensor sample the
+streams read from.
+
+:class:`MessageBuilders` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`: it reads the
+SITL's ``config``, ``endpoint`` (the codec), ``autopilot``, ``sim``, ``sim_cfg``, ``clock``,
+``lockstep_timeouts``, and its ``_send``, ``_on_ground`` and ``_total_stats``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl_sim.autopilot import FlightMode, base_mode, custom_mode
+from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.simulator import GroundTruth, Simulator
+
+if TYPE_CHECKING:
+    from sitl_sim.autopilot import Autopilot
+    from sitl_sim.config import SimConfig
+    from sitl_sim.mavlink_endpoint import MavlinkEndpoint
+    from sitl_sim.sitl_clock import SimClock
+    from sitl_sim.sitl_config import SitlConfig
+
+__all__ = ["ON_REQUEST", "PUBLISHES", "MessageBuilders", "Stream", "TickSample"]
+
+PUBLISHES = (
+    "HEARTBEAT",
+    "SYS_STATUS",
+    "SYSTEM_TIME",
+    "EXTENDED_SYS_STATE",
+    "ATTITUDE",
+    "ATTITUDE_QUATERNION",
+    "HIGHRES_IMU",
+    "DISTANCE_SENSOR",
+    "ODOMETRY",
+    "ATTITUDE_TARGET",
+    "COMMAND_ACK",
+    "PARAM_VALUE",
+    "STATUSTEXT",
+    "TIMESYNC",
+    "PING",
+    "AUTOPILOT_VERSION",
+    "HOME_POSITION",
+    "MESSAGE_INTERVAL",
+    "MISSION_COUNT",
+)
+"""Messages this autopilot sends (streams at :class:`SitlConfig` rates, or on request)."""
+
+ON_REQUEST = ("AUTOPILOT_VERSION", "HOME_POSITION")
+"""Messages built only on request (MAV_CMD_REQUEST_MESSAGE), beside every stream's."""
+
+_MAV_TYPE_QUADROTOR = mavlink.MAV_TYPE_QUADROTOR
+_MAV_AUTOPILOT_PX4 = mavlink.MAV_AUTOPILOT_PX4
+_UINT16_MAX = 65_535
+_CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+)
+_SENSORS = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_LASER_POSITION
+    | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+    | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+    | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    | mavlink.MAV_SYS_STATUS_GEOFENCE  # MAVProxy reports "fence breach" without it
+)
+
+
+@dataclass
+class Stream:
+    """A periodic message: sent when ``(tick - phase) % period_ticks == 0``."""
+
+    name: str
+    msg_id: int
+    default_interval_us: int  # -1 = off by default
+    interval_us: int = -1
+    period_ticks: int = 0
+
+    def set_interval(self, interval_us: int, rate_hz: int) -> None:
+        self.interval_us = interval_us
+        # Rounded to whole physics steps (4 ms at 250 Hz): the loop's time quantum.
+        self.period_ticks = 0 if interval_us < 0 else max(1, round(interval_us * 1e-6 * rate_hz))
+
+
+def _stream_table(cfg: SitlConfig) -> list[tuple[str, int]]:
+    """Every stream and its default interval in µs (-1: off until SET_MESSAGE_INTERVAL)."""
+
+    def us(hz: float) -> int:
+        return round(1e6 / hz)
+
+    return [
+        ("HEARTBEAT", us(1.0)),
+        ("SYS_STATUS", us(1.0)),
+        ("SYSTEM_TIME", us(1.0)),
+        ("EXTENDED_SYS_STATE", us(5.0)),
+        ("ATTITUDE", us(cfg.attitude_rate_hz)),
+        ("ATTITUDE_QUATERNION", us(cfg.attitude_rate_hz)),
+        ("HIGHRES_IMU", us(cfg.imu_rate_hz)),
+        ("DISTANCE_SENSOR", us(cfg.distance_rate_hz)),
+        ("ODOMETRY", us(cfg.groundtruth_rate_hz) if cfg.groundtruth else -1),
+        ("ATTITUDE_TARGET", -1),
+    ]
+
+
+class TickSample:
+    """Sensor readings of one tick, each sensor read at most once (their RNG streams then do
+    not depend on which streams happen to be due together)."""
+
+    def __init__(self, sim: Simulator, planet_g: float) -> None:
+        self._sim = sim
+        self._g = planet_g
+
+    @functools.cached_property
+    def truth(self) -> GroundTruth:
+        return self._sim.ground_truth()
+
+    @functools.cached_property
+    def attitude(self):  # AttitudeReading
+        gt = self.truth
+        return self._sim.attitude_sensor.read(gt.time_s, gt.quat_wxyz, gt.rate_frd_rad_s)
+
+    @functools.cached_property
+    def imu(self):  # ImuReading
+        gt = self.truth
+        return self._sim.imu.read(
+            gt.time_s, gt.quat_wxyz, gt.accel_ned_m_s2, gt.rate_frd_rad_s, self._g
+        )
+
+    @functools.cached_property
+    def range_m(self) -> float:
+        gt = self.truth
+        return self._sim.radar.read(gt.pos_ned_m, gt.quat_wxyz)
+
+
+class MessageBuilders:
+    """The ``_build_<message>`` methods, the streams that send them, and the tick's sample."""
+
+    config: SitlConfig
+    endpoint: MavlinkEndpoint
+    autopilot: Autopilot
+    sim: Simulator
+    sim_cfg: SimConfig
+    clock: SimClock
+    lockstep_timeouts: int
+
+    def _init_streams(self) -> None:
+        """The stream table at its default rates, the builders by message id, no sample yet."""
+        self._streams: dict[int, Stream] = {}
+        for name, default in _stream_table(self.config):
+            msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+            stream = Stream(name, msg_id, default)
+            stream.set_interval(default, self.clock.rate_hz)
+            self._streams[msg_id] = stream
+        names = [s.name for s in self._streams.values()] + list(ON_REQUEST)
+        self._builders: dict[int, Callable[[], Any]] = {
+            getattr(mavlink, f"MAVLINK_MSG_ID_{name}"): getattr(self, f"_build_{name.lower()}")
+            for name in names
+        }
+        self._sample: TickSample | None = None
+        self._sample_tick = -1
+        self._streamed: dict[str, tuple[float, Any]] = {}
+        """The latest attitude / IMU / range reading sent (flight time, reading): the
+        observation a client has at the next frame, logged as ``/observation``."""
+
+    def _reset_samples(self) -> None:
+        """The simulator was reset: nothing sampled or streamed since."""
+        self._sample = None
+        self._streamed.clear()
+
+    def _sample_now(self) -> TickSample:
+        tick = self.clock.tick
+        if self._sample is None or self._sample_tick != tick:
+            self._sample = TickSample(self.sim, self.sim_cfg.planet.gravity_m_s2)
+            self._sample_tick = tick
+        return self._sample
+
+    def _streamed_reading(self, kind: str) -> Any:
+        sample = self._sample_now()
+        reading = getattr(sample, kind)
+        self._streamed[kind] = (sample.truth.time_s, reading)
+        return reading
+
+    def _emit_streams(self) -> None:
+        phase = self.clock.phase
+        for stream in self._streams.values():
+            if stream.period_ticks and phase % stream.period_ticks == 0:
+                self._send(self._builders[stream.msg_id]())
+
+    def _build_heartbeat(self) -> Any:
+        ap = self.autopilot
+        return self.endpoint.mav.heartbeat_encode(
+            _MAV_TYPE_QUADROTOR,
+            _MAV_AUTOPILOT_PX4,
+            base_mode(ap.mode, ap.armed),
+            custom_mode(ap.mode),
+            mavlink.MAV_STATE_ACTIVE if ap.armed else mavlink.MAV_STATE_STANDBY,
+        )
+
+    def _build_sys_status(self) -> Any:
+        st = self._total_stats()  # the system's counters: every link
+        return self.endpoint.mav.sys_status_encode(
+            _SENSORS,
+            _SENSORS,
+            _SENSORS,
+            0,
+            _UINT16_MAX,  # no battery model
+            -1,
+            -1,
+            st.drop_rate_comm_centi_percent,
+            min(st.errors_comm, _UINT16_MAX),
+            min(st.rx_unsigned_rejected + st.rx_bad_signature, _UINT16_MAX),  # errors_count1
+            min(st.rx_wrong_target, _UINT16_MAX),  # errors_count2
+            min(self.lockstep_timeouts, _UINT16_MAX),  # errors_count3
+            min(st.rx_unknown_msgid, _UINT16_MAX),  # errors_count4
+        )
+
+    def _build_system_time(self) -> Any:
+        # time_unix_usec 0 = unknown: there is no wall-clock date in a simulation.
+        return self.endpoint.mav.system_time_encode(0, self.clock.time_boot_ms)
+
+    def _landed_state(self) -> int:
+        if self._on_ground(self._sample_now().truth):
+            return mavlink.MAV_LANDED_STATE_ON_GROUND
+        if self.autopilot.mode is FlightMode.LAND:
+            return mavlink.MAV_LANDED_STATE_LANDING
+        return mavlink.MAV_LANDED_STATE_IN_AIR
+
+    def _build_extended_sys_state(self) -> Any:
+        return self.endpoint.mav.extended_sys_state_encode(
+            mavlink.MAV_VTOL_STATE_UNDEFINED, self._landed_state()
+        )
+
+    def _build_attitude(self) -> Any:
+        att = self._streamed_reading("attitude")
+        r = att.attitude_rad
+        w = att.rate_frd_rad_s
+        return self.endpoint.mav.attitude_encode(
+            self.clock.time_boot_ms, r[0], r[1], r[2], w[0], w[1], w[2]
+        )
+
+    def _build_attitude_quaternion(self) -> Any:
+        att = self._streamed_reading("attitude")
+        q = quat_from_euler(*att.attitude_rad)
+        w = att.rate_frd_rad_s
+        return self.endpoint.mav.attitude_quaternion_encode(
+            self.clock.time_boot_ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2]
+        )
+
+    def _build_highres_imu(self) -> Any:
+        imu = self._streamed_reading("imu")
+        a, g = imu.accel_frd_m_s2, imu.gyro_frd_rad_s
+        return self.endpoint.mav.highres_imu_encode(
+            self.clock.time_us,
+            a[0],
+            a[1],
+            a[2],
+            g[0],
+            g[1],
+            g[2],
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0b111111,  # fields_updated: accel x/y/z, gyro x/y/z
+        )
+
+    def _build_distance_sensor(self) -> Any:
+        rng = self._streamed_reading("range_m")
+        max_cm = round(self.sim_cfg.radar.max_range_m * 100)
+        if math.isfinite(rng):
+            current, quality = min(round(rng * 100), _UINT16_MAX - 1), 100
+        else:
+            current, quality = _UINT16_MAX, 1  # no return: UINT16_MAX and quality 1 = invalid
+        return self.endpoint.mav.distance_sensor_encode(
+            self.clock.time_boot_ms,
+            0,
+            min(max_cm, _UINT16_MAX - 1),
+            current,
+            mavlink.MAV_DISTANCE_SENSOR_RADAR,
+            0,
+            mavlink.MAV_SENSOR_ROTATION_PITCH_270,
+            255,  # covariance unknown
+            signal_quality=quality,
+        )
+
+    def _build_odometry(self) -> Any:
+        """Ground truth: pose in LOCAL_NED (pad centre origin); velocity and rates in BODY_FRD
+        (ODOMETRY's velocity is in ``child_frame_id``)."""
+        gt = self._sample_now().truth
+        vel_body = quat_to_rotation(gt.quat_wxyz).T @ gt.vel_ned_m_s
+        p, q, w = gt.pos_ned_m, gt.quat_wxyz, gt.rate_frd_rad_s
+        nan21 = [math.nan] + [0.0] * 20  # covariance unknown (first element NaN, per spec)
+        return self.endpoint.mav.odometry_encode(
+            self.clock.time_us,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_BODY_FRD,
+            p[0],
+            p[1],
+            p[2],
+            [float(v) for v in q],
+            vel_body[0],
+            vel_body[1],
+            vel_body[2],
+            w[0],
+            w[1],
+            w[2],
+            nan21,
+            nan21,
+            0,
+            mavlink.MAV_ESTIMATOR_TYPE_MOCAP,
+            100,
+        )
+
+    def _build_attitude_target(self) -> Any:
+        sp = self.autopilot.setpoint
+        if sp is None:
+            q, rates, thrust, mask = [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0, 128
+        else:
+            q = [1.0, 0.0, 0.0, 0.0] if sp.attitude_quat_wxyz is None else sp.attitude_quat_wxyz
+            rates, thrust, mask = sp.rate_frd_rad_s, sp.thrust_norm, sp.type_mask
+        return self.endpoint.mav.attitude_target_encode(
+            self.clock.time_boot_ms,
+            mask,
+            [float(v) for v in q],
+            rates[0],
+            rates[1],
+            rates[2],
+            thrust,
+        )
+
+    def _build_autopilot_version(self) -> Any:
+        return self.endpoint.mav.autopilot_version_encode(
+            _CAPABILITIES, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0
+        )
+
+    def _build_home_position(self) -> Any:
+        # Home = the pad centre, the local origin; there is no GPS, so lat/lon/alt are 0.
+        return self.endpoint.mav.home_position_encode(
+            0, 0, 0, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self.clock.time_us
+        )
