@@ -122,7 +122,9 @@ def test_a_file_plays_at_its_recorded_speed_and_the_config_opens_it(video):
     wall = time.monotonic() - t0
     assert [f.frame_id for f in frames] == list(range(0, 30, 3))
     gaps = np.diff([f.time_s for f in frames])
-    assert 0.85 <= wall <= 3.0, wall
+    # recorded speed: not faster than 30 frames at 30 fps; the upper bound only catches a hang
+    # (a loaded 2-core CI machine may start the reader late, never early)
+    assert 0.85 <= wall <= 10.0, wall
     assert np.all(np.abs(gaps - 0.1) < 0.05), gaps
 
 
