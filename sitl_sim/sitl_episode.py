@@ -5,8 +5,9 @@ here.
 
 :class:`EpisodeLifecycle` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`: it reads
 and changes the SITL's ``config``, ``sim``, ``autopilot``, ``clock``, ``results`` and its
-episode state (``_episode``, ``_flying``, ``_done``, ``_land_cmd``, ``_wait``), and announces
-through its ``_statustext`` and ``_send_heartbeat``.
+episode state (``_episode``, ``_flying``, ``_done``, ``_land_cmd``, ``_wait``), reads the
+streamed readings (``_streamed``) and link counters, and announces through its ``_statustext``
+and ``_send_heartbeat``.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from sitl_sim.scenario import InitialState
 
 if TYPE_CHECKING:
     from sitl_sim.autopilot import AutopilotParams
+    from sitl_sim.config import SimConfig, VehicleConfig
     from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint, RxError
     from sitl_sim.scenario import InitialStateSampler, Scenario
     from sitl_sim.simulator import Simulator
@@ -86,6 +88,8 @@ class EpisodeLifecycle:
     """Episode start / flight start / end checks / finish, and the flight-log records."""
 
     config: SitlConfig
+    sim_cfg: SimConfig
+    vehicle: VehicleConfig
     sim: Simulator
     autopilot: Autopilot
     params: AutopilotParams
