@@ -118,7 +118,8 @@ def test_an_aborted_sitl_episode_is_flown_again(tmp_path):
 def test_pipeline_dagger_round_flies_the_learner_through_sitl_and_companion(low_scenario, tmp_path):
     """A tiny run: expert flights (in process), BC, one DAgger round whose learner rollouts are
     SITL + companion processes; their SITL logs are relabelled and trained on."""
-    from training.pipeline import PROFILES, Profile, run_pipeline
+    from training.pipeline import Profile, run_pipeline
+    from training.profiles import PROFILES
 
     tiny = Profile(
         **{

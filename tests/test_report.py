@@ -15,16 +15,15 @@ import pytest
 from companion.policy_net import load_networks, save_checkpoint, untrained_policy
 from sitl_sim.config import load_sim
 from sitl_sim.env import LandingEnv
-from training.pipeline import PROFILES, Run
-from training.report import (
-    PAPER_RUNTIME_S,
-    PAPER_TABLE3,
-    ROWS,
-    TARGETS,
-    ReportConfig,
-    write_report,
-)
+from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
+from training.profiles import PROFILES
+from training.report import ReportConfig, load_metrics, write_report
+from training.report_markdown import TARGETS
+from training.report_metrics import ROWS
 from training.rollout import fly_episode, make_policy
+from training.run_folder import Run
+from training.stages import eval as eval_stage
+from training.stages.records import BcRecord, DaggerRecord, ValidationScore, VisionRecord
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "models" / "visland_vision.pt"
@@ -65,7 +64,7 @@ def test_per_episode_records_where_the_landing_error_was_measured(low_scenario):
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, low_scenario) -> Path:
-    """A run folder whose eval stage is the pipeline's own (``Run.stage_eval``), 2 episodes a
+    """A run folder whose eval stage is the pipeline's own (``training.stages.eval``), 2 episodes a
     row on the low scenario. Checkpoints: BC = an untrained privileged LSTM, DAgger = the
     shipped policy's controller on ground truth (it *is* the paper run's DAgger controller),
     vision = the shipped vision policy. About 15 s."""
@@ -80,9 +79,24 @@ def tiny_run(tmp_path_factory, low_scenario) -> Path:
         priv = dataclasses.replace(cfg, kind="privileged")
         save_checkpoint(ck / "dagger.pt", priv, control, None, {"from": str(SHIPPED), **meta})
         shutil.copyfile(SHIPPED, ck / "vision.pt")
-        for stage in ("bc", "dagger", "vision"):
-            run.finish(stage, {"checkpoint": str(ck / f"{stage}.pt")})
-        run.stage_eval()
+        fit = {"steps": 0, "final_loss": None, "seconds": 0.0, "buffer_episodes": 0}
+        picked = {
+            "checkpoint": str(ck / "dagger.pt"),
+            "selected": str(ck / "dagger.pt"),
+            "validation": (ValidationScore(str(ck / "dagger.pt"), 0.0, 0.0, 1.0, 0.0),),
+        }
+        run.finish(BcRecord("bc", run.commit, str(ck / "bc.pt"), **fit, buffer_steps=0))
+        run.finish(DaggerRecord("dagger", run.commit, rounds=0, **picked))
+        run.finish(
+            VisionRecord(
+                "vision",
+                run.commit,
+                fits=(),
+                rollouts=None,
+                **{**picked, "checkpoint": str(ck / "vision.pt")},
+            )
+        )
+        eval_stage.run(run)
         (root / "scalars.jsonl").write_text(
             "".join(
                 json.dumps({"name": f"controller/{s}/loss", "value": 1.0 / (k + 1), "step": k})
@@ -153,7 +167,7 @@ def test_report_from_a_small_real_run(tiny_run, tmp_path):
     assert "125 ± 25 ms" in md and "13.2 ± 1.4 ms" in md
 
     # where we stand: computed from the rows
-    met = [tgt.met(metrics["rows"]) for tgt in TARGETS]
+    met = [tgt.met(load_metrics(tiny_run).rows) for tgt in TARGETS]
     assert res.targets_met == tuple(met)
     assert f"**{sum(met)} of {len(TARGETS)} targets met.**" in md
 
@@ -242,12 +256,3 @@ def test_bad_runs_are_clear_errors_with_exit_2(tiny_run, tmp_path, capsys, damag
     err = capsys.readouterr().err
     assert err.startswith("visland report: error: ") and re.search(expect, err), err
     assert not out.exists()
-
-
-def test_paper_numbers_agree_with_the_model_card():
-    """The model card (training.ship) quotes the same paper Table 3 means."""
-    from training.ship import PAPER_TABLE3 as CARD
-
-    assert {k: v["mean"] for k, v in CARD.items()} == {
-        k: v["mean"] for k, v in PAPER_TABLE3.items()
-    }

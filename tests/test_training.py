@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -393,7 +394,8 @@ def test_redo_reruns_a_stage_and_drops_the_later_records(tmp_path):
     """`visland train STAGE --redo` and a run folder made before a profile key existed."""
     import json
 
-    from training.pipeline import PROFILES, PipelineError, run_pipeline
+    from training.pipeline import PipelineError, run_pipeline
+    from training.profiles import PROFILES
 
     run = tmp_path / "run"
     (run / "stages").mkdir(parents=True)
@@ -421,9 +423,14 @@ def test_redo_reruns_a_stage_and_drops_the_later_records(tmp_path):
 def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
     """Privileged validation cannot tell BC and DAgger controllers apart (millimetres for
     all), so each one that landed every flight becomes a vision candidate."""
-    import json
+    from training.profiles import PROFILES
+    from training.run_folder import Run
+    from training.stages.records import DaggerRecord, ValidationScore
+    from training.stages.vision import privileged_controllers
 
-    from training.pipeline import PROFILES, Run
+    def finish_dagger(scores: list[ValidationScore]) -> None:
+        first = scores[0].checkpoint
+        run.finish(DaggerRecord("dagger", run.commit, 2, first, first, tuple(scores)))
 
     run = Run(tmp_path / "run", PROFILES["quick"], progress=False, say=lambda _: None)
     try:
@@ -433,22 +440,16 @@ def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
             path = save_checkpoint(
                 run.root / "checkpoints" / f"{name}.pt", net.config, net.control, None, {}
             )
-            records.append({"checkpoint": str(path), "success_rate": success})
-        (run.root / "stages" / "dagger.json").write_text(
-            json.dumps({"checkpoint": records[0]["checkpoint"], "validation": records})
-        )
+            records.append(ValidationScore(str(path), 0.0, 0.0, success, 0.0))
+        finish_dagger(records)
         cfg = run.net_config("vision")
-        got = run._privileged_controllers(cfg)
+        got = privileged_controllers(run, cfg)
         assert [name for name, _ in got] == ["bc", "dagger_r1"]
-        _, r1, _, _ = load_networks(records[2]["checkpoint"])
+        _, r1, _, _ = load_networks(records[2].checkpoint)
         for a, b in zip(got[1][1].state_dict().values(), r1.state_dict().values(), strict=True):
             assert torch.equal(a, b)
         # none landed: all of them (validation decides with the camera)
-        for rec in records:
-            rec["success_rate"] = 0.0
-        (run.root / "stages" / "dagger.json").write_text(
-            json.dumps({"checkpoint": records[0]["checkpoint"], "validation": records})
-        )
-        assert len(run._privileged_controllers(cfg)) == 3
+        finish_dagger([dataclasses.replace(rec, success_rate=0.0) for rec in records])
+        assert len(privileged_controllers(run, cfg)) == 3
     finally:
         run.close()

@@ -13,7 +13,7 @@ def _profile(args: argparse.Namespace):
     """The named profile, with ``--rollouts`` when given."""
     from dataclasses import replace
 
-    from training.pipeline import PROFILES
+    from training.profiles import PROFILES
 
     prof = PROFILES[args.profile]
     return replace(prof, rollouts=args.rollouts) if args.rollouts else prof
@@ -89,7 +89,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def register_training(sub: argparse._SubParsersAction) -> None:
-    from training.pipeline import PROFILES, ROLLOUT_TRANSPORTS, STAGES
+    from training.pipeline import STAGES
+    from training.profiles import PROFILES, ROLLOUT_TRANSPORTS
 
     rollouts_help = (
         "how DAgger learner rollouts fly (default: the profile's, mavlink = SITL + companion "

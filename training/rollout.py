@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import os
-import subprocess
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -26,38 +25,16 @@ from sitl_sim.flight_record import (
     write_episode_start,
 )
 from sitl_sim.metrics import EpisodeResult
+from training.provenance import git_commit
 
 __all__ = [
     "EpisodeOutcome",
     "RolloutSpec",
     "fly_episode",
-    "git_commit",
     "log_name",
     "make_policy",
     "run_episodes",
 ]
-
-
-def git_commit() -> str:
-    """The repository's HEAD commit, ``+dirty`` when tracked files differ from it (the code
-    that ran is then not that commit); ``unknown`` outside a git checkout."""
-
-    def git(*args: str) -> str:
-        return subprocess.run(
-            ["git", *args],
-            capture_output=True,
-            text=True,
-            timeout=5,
-            cwd=Path(__file__).resolve().parent,
-            check=True,
-        ).stdout.strip()
-
-    try:
-        head = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--untracked-files=no")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return f"{head}+dirty" if dirty else head
 
 
 def make_policy(name: str, env: LandingEnv):

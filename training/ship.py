@@ -13,16 +13,10 @@ from typing import Any
 
 from companion.files import sha256_file
 from companion.policy_net import load_policy
+from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
 from training.report import rollouts_text
 
-__all__ = ["PAPER_TABLE3", "ship"]
-
-PAPER_TABLE3 = {
-    "bc": {"mean": 5.74, "label": "LSTM, behaviour cloning (privileged)"},
-    "dagger": {"mean": 0.70, "label": "LSTM, DAgger (privileged)"},
-    "vision": {"mean": 0.84, "label": "CNN + LSTM (vision)"},
-}
-"""Paper Table 3 mean landing errors (m); its MPC runs 0.125 s and its policy 0.0132 s a step."""
+__all__ = ["ship"]
 
 ROW_LABELS = {
     "expert": "MPC expert (privileged)",
@@ -81,6 +75,8 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
     n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
         p.numel() for p in policy.perception.parameters()
     )
+    paper_mpc_ms = 1000 * PAPER_RUNTIME_S["mpc_mean"]
+    paper_pol_ms = 1000 * PAPER_RUNTIME_S["policy_mean"]
     card = f"""# visland vision landing policy — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
@@ -126,7 +122,7 @@ reports means only.
 - a paper-style CNN-MLP + LSTM-MLP (our reconstruction, the paper gives no sizes): median
   {_fmt(pol_t.get("paper_style", {}).get("median_ms"))} ms;
 - our MPC expert: median {_fmt(mpc_t.get("median_ms"))} ms per solve
-  (`visland bench mpc`); paper: MPC 125 ms, policy 13.2 ms.
+  (`visland bench mpc`); paper: MPC {paper_mpc_ms:.0f} ms, policy {paper_pol_ms:.1f} ms.
 
 ## Limits
 

@@ -1,0 +1,28 @@
+"""Which code made a result: the one git helper for stage records, flight logs and reports."""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+
+__all__ = ["git_commit"]
+
+
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(
+        ["git", *args], capture_output=True, text=True, timeout=10, cwd=repo, check=True
+    ).stdout.strip()
+
+
+def git_commit(repo: str | Path | None = None, paths: Sequence[str] | None = None) -> str:
+    """HEAD of ``repo`` (default: the checkout holding this code), ``<sha>+dirty`` when tracked
+    files — under ``paths`` only, if given — differ from it (the code that ran is then not that
+    commit); ``unknown`` outside a git checkout."""
+    where = Path(repo) if repo is not None else Path(__file__).resolve().parent
+    try:
+        head = _git(where, "rev-parse", "HEAD")
+        dirty = _git(where, "status", "--porcelain", "--untracked-files=no", "--", *(paths or ()))
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}+dirty" if dirty else head

@@ -1,0 +1,171 @@
+"""One run folder's bookkeeping: its profile, stage records, scalars, progress bars and the
+metadata checkpoints carry.
+
+    profile.json         the profile and scenario the run was started with (checked on resume)
+    stages/<stage>.json  finished stages (typed records, ``training.stages.records``)
+    checkpoints/ flights/ labels/ cache/
+    tb/ scalars.jsonl    training scalars (TensorBoard and one JSON line each)
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+from companion.flightlog import jsonable
+from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.scenario import load_scenario
+from training.profiles import PipelineError, Profile
+from training.provenance import git_commit
+from training.record import RecordError
+from training.stages.records import StageRecord, record_type
+
+__all__ = ["Run"]
+
+S = TypeVar("S", bound=StageRecord)
+
+
+class Run:
+    """One run folder: stage records, checkpoints, flights, labels, scalars, metrics."""
+
+    def __init__(
+        self,
+        out: str | Path,
+        profile: Profile,
+        scenario: str | None = None,
+        progress: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> None:
+        self.root = Path(out)
+        self.profile = profile
+        self.scenario_path = scenario
+        self.progress = progress
+        self.say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        self.vehicle = load_vehicle()
+        self.sim = load_sim()
+        self.scenario = load_scenario(scenario) if scenario else load_scenario()
+        planet = self.scenario.planet if getattr(self.scenario, "planet", None) else None
+        self.planet = planet or self.sim.planet
+        self.commit = git_commit()
+        for sub in ("stages", "checkpoints", "flights", "labels", "cache"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self._check_profile()
+        self._tb = None
+        self._scalars = (self.root / "scalars.jsonl").open("a")
+
+    def _check_profile(self) -> None:
+        path = self.root / "profile.json"
+        mine = {"profile": self.profile.to_dict(), "scenario": self.scenario_path}
+        if path.exists():
+            theirs = json.loads(path.read_text())
+            added = sorted(set(mine["profile"]) - set(theirs.get("profile", {})))
+            if added and theirs.get("profile", {}).get("name") == self.profile.name:
+                # a run started before these profile keys existed: the stages it has done keep
+                # their records (and commits); stages run from now on use the new keys
+                theirs["profile"] = {**theirs["profile"], **{k: mine["profile"][k] for k in added}}
+                theirs.setdefault("upgraded", []).append({"commit": self.commit, "keys": added})
+                path.write_text(json.dumps(theirs, indent=2))
+            if {k: theirs.get(k) for k in mine} != mine:
+                prof = theirs.get("profile") or {}
+                keys = sorted(k for k in mine["profile"] if prof.get(k) != mine["profile"][k])
+                if theirs.get("scenario") != mine["scenario"]:
+                    keys.append("scenario")
+                raise PipelineError(
+                    f"{path}: this run was started with another profile/scenario "
+                    f"({prof.get('name')!r}; differs in {', '.join(keys)}); use a new --out "
+                    "folder"
+                )
+        else:
+            path.write_text(json.dumps(mine, indent=2))
+
+    def log(self, name: str, value: float, step: int) -> None:
+        if self._tb is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self._tb = SummaryWriter(str(self.root / "tb"))
+            except ImportError:  # tensorboard is a dependency; never fail a run over it
+                self._tb = False
+        if self._tb:
+            self._tb.add_scalar(name, value, step)
+        self._scalars.write(json.dumps({"name": name, "value": value, "step": step}) + "\n")
+
+    def close(self) -> None:
+        if self._tb:
+            self._tb.close()
+        self._scalars.close()
+
+    # ------------------------------------------------------------------ stage records
+
+    def record_path(self, stage: str) -> Path:
+        return self.root / "stages" / f"{stage}.json"
+
+    def done(self, stage: str) -> StageRecord | None:
+        """The record of a finished stage, None if it has not finished.
+
+        Raises:
+            PipelineError: the record is not the layout its stage writes (names the field).
+        """
+        path = self.record_path(stage)
+        if not path.exists():
+            return None
+        try:
+            data = json.loads(path.read_text())
+        except ValueError:
+            return None  # a half-written record: redo the stage
+        try:
+            return record_type(stage).from_dict(data, str(path))
+        except RecordError as exc:
+            raise PipelineError(
+                f"{exc} (the stage record of another version? rerun the stage: "
+                f"visland train {stage} --run {self.root} --redo)"
+            ) from None
+
+    def finish(self, record: S) -> S:
+        """Write ``stages/<record.stage>.json``; returns the record as it now reads from disk."""
+        data = jsonable(record.to_dict())
+        path = self.record_path(record.stage)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(data, indent=2))
+        tmp.replace(path)
+        return type(record).from_dict(data, str(path))
+
+    def need(self, stage: str, kind: type[S]) -> S:
+        """The record of ``stage``, which must have finished (:class:`PipelineError` if not)."""
+        rec = self.done(stage)
+        if rec is None:
+            raise PipelineError(
+                f"stage {stage!r} of {self.root} has not finished; run it first "
+                f"(visland train {stage} --run {self.root})"
+            )
+        assert isinstance(rec, kind), (stage, type(rec))
+        return rec
+
+    # ------------------------------------------------------------------ helpers for stages
+
+    def bar(self, total: int, desc: str) -> tqdm:
+        return tqdm(total=total, desc=desc, file=sys.stderr, disable=not self.progress)
+
+    def net_config(self, kind: str):
+        """The ``companion.policy_net.NetConfig`` of a ``privileged`` or ``vision`` policy."""
+        from training.train import net_config_for  # torch: only where a stage trains
+
+        return net_config_for(self.vehicle, self.sim, kind, self.planet)
+
+    def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:
+        """What a checkpoint of ``stage`` records about how it was made."""
+        return {
+            "stage": stage,
+            "profile": self.profile.name,
+            "run": str(self.root),
+            "git_commit": self.commit,
+            "scenario": self.scenario_path or "configs/scenario.toml",
+            "data": data,
+            "created_unix": time.time(),
+        }

@@ -1,0 +1,130 @@
+"""A run's flights: policy rollouts into ``flights/<folder>/`` (in process or through SITL +
+companion processes), their offline expert labels in ``labels/<folder>/`` and the training
+episodes loaded from both."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from training.dataset import Episode, load_episodes
+from training.profiles import PipelineError
+from training.rollout import RolloutSpec, completed_episode, log_name, run_episodes
+from training.run_folder import Run
+from training.stages.records import CollectRecord
+
+__all__ = ["episodes", "expert_pairs", "fly", "relabel"]
+
+
+def fly(
+    run: Run,
+    checkpoint: str,
+    seed: int,
+    count: int,
+    folder: str,
+    camera: bool,
+    transport: str | None = None,
+) -> list[Path]:
+    """Rollouts of episodes ``0..count-1`` of ``seed`` with their flight logs in
+    ``flights/<folder>/``; resumable (complete logs are not flown again).
+
+    ``transport`` (default: the profile's ``rollouts``): ``mavlink`` flies the policy
+    through ``visland sitl`` + ``visland companion`` processes (``training.fly.fly_many``,
+    lockstep, ``workers`` pairs) and returns the SITL's logs — the training record;
+    ``inprocess`` flies the gymnasium env in ``workers`` processes."""
+    transport = transport or run.profile.rollouts
+    flights = run.root / "flights" / folder
+    flights.mkdir(parents=True, exist_ok=True)
+    if transport == "mavlink":
+        from training.fly import sitl_log_name
+
+        paths = [flights / sitl_log_name(seed, i) for i in range(count)]
+    else:
+        paths = [flights / log_name(seed, i) for i in range(count)]
+    todo = [i for i, path in enumerate(paths) if not completed_episode(path)]
+    if not todo:
+        return paths
+    with run.bar(len(todo), f"fly {folder} ({transport})") as bar:
+        if transport == "mavlink":
+            _fly_mavlink(run, checkpoint, seed, todo, flights, camera, bar.update)
+        else:
+            spec = RolloutSpec(
+                policy=checkpoint,
+                seed=seed,
+                scenario=run.scenario_path,
+                render_camera=camera,
+                log_dir=str(flights),
+            )
+            run_episodes(spec, todo, run.profile.workers, on_done=lambda _: bar.update())
+    return paths
+
+
+def _fly_mavlink(
+    run: Run,
+    checkpoint: str,
+    seed: int,
+    todo: list[int],
+    flights: Path,
+    camera: bool,
+    progress: Callable[[int], Any],
+) -> None:
+    """SITL + companion pairs; a failed pair's episodes are flown once more, then a
+    PipelineError names what failed (the logs that finished stay: a rerun resumes)."""
+    from training.fly import FlyConfig, FlyError, fly_many, sitl_log_name
+
+    cfg = FlyConfig(
+        policy=checkpoint,
+        seed=seed,
+        scenario=run.scenario_path,
+        render=camera,
+        out=str(flights / "mavlink"),
+        sitl_log_dir=str(flights),
+        progress=False,
+    )
+    for attempt in (1, 2):
+        try:
+            fly_many(cfg, todo, instances=run.profile.workers, on_done=progress)
+            return
+        except FlyError as exc:
+            todo = [i for i in todo if not completed_episode(flights / sitl_log_name(seed, i))]
+            if attempt == 2:
+                raise PipelineError(
+                    f"{flights}: {len(todo)} SITL + companion rollouts failed twice "
+                    f"(rerun to resume): {exc}"
+                ) from None
+            run.say(f"fly: {exc}\nflying the {len(todo)} missing episodes again")
+
+
+def relabel(run: Run, logs: list[Path], folder: str) -> list[tuple[Path, Path]]:
+    """Offline expert labels for learner logs (``expert.relabel``, as `visland relabel`)."""
+    from expert.relabel import label_path
+    from expert.relabel import relabel as relabel_logs
+
+    out = run.root / "labels" / folder
+    todo = [p for p in logs if not label_path(p, out).exists()]
+    if todo:
+        t0 = time.perf_counter()
+        reports = relabel_logs(todo, out, workers=run.profile.workers)
+        bad = [r for r in reports if r.error]
+        for r in bad:
+            run.say(f"relabel: {r.error}")
+        run.say(f"relabelled {len(todo)} logs in {time.perf_counter() - t0:.0f} s")
+    return [(p, label_path(p, out)) for p in logs if label_path(p, out).exists()]
+
+
+def episodes(run: Run, pairs: list[tuple[Path, Path | None]], images: bool) -> list[Episode]:
+    """The training episodes of (log, labels) pairs; unreadable ones are skipped and said."""
+    eps, errors = load_episodes(pairs, with_images=images, cache_dir=run.root / "cache")
+    for e in errors:
+        run.say(f"skipped: {e}")
+    if not eps:
+        raise PipelineError(f"{run.root}: no usable episodes ({len(errors)} unreadable)")
+    return eps
+
+
+def expert_pairs(run: Run) -> list[tuple[Path, Path | None]]:
+    """The collect stage's expert flights (they carry their own commands: no labels)."""
+    rec = run.need("collect", CollectRecord)
+    return [(Path(p), None) for p in rec.logs]

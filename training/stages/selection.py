@@ -1,0 +1,69 @@
+"""Model selection: fly candidates on the validation seed (never the evaluation seed) and keep
+the best as ``checkpoints/<name>.pt``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from training.run_folder import Run
+from training.stages.records import ValidationScore
+
+__all__ = ["evaluate", "select", "validate"]
+
+
+def evaluate(
+    run: Run, policy: str, episodes: int, seed: int, camera: bool, progress: bool
+) -> dict[str, Any]:
+    """``training.evaluate.evaluate`` on this run's scenario and workers."""
+    from training.evaluate import EvalConfig
+    from training.evaluate import evaluate as evaluate_policy
+
+    return evaluate_policy(
+        EvalConfig(
+            policy=policy,
+            episodes=episodes,
+            seed=seed,
+            scenario=run.scenario_path,
+            workers=run.profile.workers,
+            render_camera=camera,
+            progress=progress,
+        )
+    )
+
+
+def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
+    """Fly the validation episodes; score = mean error + 10 m per failed episode."""
+    p = run.profile
+    rep = evaluate(run, checkpoint, p.validation_episodes, p.validation_seed, camera, False)
+    mean = rep["landing_error_m"]["mean"]
+    score = (mean if mean is not None else 100.0) + 10.0 * (1.0 - rep["success_rate"])
+    run.say(
+        f"validation {Path(checkpoint).name}: score {score:.3f} (mean error "
+        f"{mean if mean is not None else float('nan'):.3f} m, success "
+        f"{100 * rep['success_rate']:.0f} %)"
+    )
+    return ValidationScore(
+        checkpoint=checkpoint,
+        score=score,
+        mean_error_m=mean,
+        success_rate=rep["success_rate"],
+        touchdown_speed_mean_m_s=rep["touchdown_speed_m_s"]["mean"],
+    )
+
+
+def select(
+    run: Run, candidates: list[str], camera: bool, out: str
+) -> tuple[str, str, tuple[ValidationScore, ...]]:
+    """Copy the candidate with the best validation score to ``checkpoints/<out>.pt``; returns
+    (that file, the candidate chosen, every candidate's score)."""
+    from companion.policy_net import load_networks, save_checkpoint
+
+    scores = tuple(validate(run, c, camera=camera) for c in candidates)
+    best = min(scores, key=lambda r: r.score)
+    final = run.root / "checkpoints" / f"{out}.pt"
+    cfg, control, cnn, meta = load_networks(best.checkpoint)
+    save_checkpoint(
+        final, cfg, control, cnn, {**meta, "selected_from": [s.to_dict() for s in scores]}
+    )
+    return str(final), best.checkpoint, scores

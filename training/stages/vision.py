@@ -1,0 +1,130 @@
+"""Stage ``vision`` (paper 4.3, stage 3): CNN + estimator replace ground truth; the LSTM is
+fine-tuned on the expert's flights, then in DAgger rounds where the vision policy flies;
+validation with the camera picks among those and every privileged controller that landed:
+``checkpoints/vision.pt``."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from companion.policy_net import (
+    ControlLSTM,
+    LearnedPolicy,
+    NetConfig,
+    PerceptionCNN,
+    load_networks,
+    save_checkpoint,
+)
+from training.replay import ReplayBuffer
+from training.run_folder import Run
+from training.stages.fitting import fit_controller
+from training.stages.flights import episodes, expert_pairs, fly, relabel
+from training.stages.records import DaggerRecord, PerceptionRecord, VisionRecord
+from training.stages.selection import select
+from training.train import vision_episode
+
+__all__ = ["privileged_controllers", "run"]
+
+
+def _vision_policy(r: Run) -> tuple[NetConfig, ControlLSTM, PerceptionCNN]:
+    _, control, _, _ = load_networks(r.need("dagger", DaggerRecord).checkpoint)
+    cfg, _, cnn, _ = load_networks(r.need("perception", PerceptionRecord).checkpoint)
+    assert cnn is not None
+    fresh = ControlLSTM(cfg)
+    fresh.load_state_dict(control.state_dict())
+    return cfg, fresh, cnn
+
+
+def privileged_controllers(r: Run, cfg: NetConfig) -> list[tuple[str, ControlLSTM]]:
+    """The stage-1 checkpoints that landed every validation flight with ground truth
+    (all of them if none did), by file stem: the controllers a vision policy can start
+    from."""
+    dagger = r.need("dagger", DaggerRecord)
+    scores = [(s.checkpoint, s.success_rate) for s in dagger.validation] or [
+        (dagger.checkpoint, 1.0)
+    ]
+    good = [s for s in scores if (s[1] or 0.0) >= 1.0] or scores
+    out = []
+    for checkpoint, _ in good:
+        _, control, _, _ = load_networks(checkpoint)
+        fresh = ControlLSTM(cfg)
+        fresh.load_state_dict(control.state_dict())
+        out.append((Path(checkpoint).stem, fresh))
+    return out
+
+
+def run(r: Run) -> VisionRecord:
+    p = r.profile
+    cfg, control, cnn = _vision_policy(r)
+    policy = LearnedPolicy(cfg, control, cnn)
+    buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 50)
+    names: list[str] = []
+    t0 = time.perf_counter()
+    for ep in episodes(r, expert_pairs(r), images=True):
+        buf.add(vision_episode(policy, ep))
+        names.append(ep.name)
+    r.say(f"vision features of {len(names)} expert flights: {time.perf_counter() - t0:.0f} s")
+    fits = [
+        fit_controller(r, control, buf, p.vision_bc_steps, p.finetune_lr, "vision_bc", p.seed + 20)
+    ]
+    ckpt = save_checkpoint(
+        r.root / "checkpoints" / "vision_bc.pt",
+        cfg,
+        control,
+        cnn,
+        r.metadata("vision_bc", {"episodes": list(names), "fit": fits[-1].to_dict()}),
+    )
+    # Candidates 0..: each privileged controller that landed on validation (BC and every
+    # DAgger round), as it is, fed by CNN + estimator. Fine-tuning on the expert's flights
+    # alone shrinks the controller's gain on the (noisy) position estimate — the expert
+    # stays over the pad, so position noise looks uncorrelated with its commands
+    # (regression dilution). And privileged validation cannot tell them apart (millimetres
+    # for all), while with a noisy estimate a DAgger round's controller — trained on the
+    # learner's off-nominal states — can flare where the BC one hits the ground: vision
+    # validation decides.
+    priors = []
+    for name, prior_control in privileged_controllers(r, cfg):
+        priors.append(
+            str(
+                save_checkpoint(
+                    r.root / "checkpoints" / f"vision_prior_{name}.pt",
+                    cfg,
+                    prior_control,
+                    cnn,
+                    r.metadata("vision_prior", {"controller": name}),
+                )
+            )
+        )
+    candidates = [*priors, str(ckpt)]
+    for k in range(p.vision_rounds):
+        name = f"vision_r{k}"
+        logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
+        pairs = relabel(r, logs, name)
+        policy = LearnedPolicy(cfg, control, cnn)
+        for ep in episodes(r, pairs, images=True):
+            buf.add(vision_episode(policy, ep))
+            names.append(ep.name)
+        fits.append(
+            fit_controller(r, control, buf, p.vision_steps, p.finetune_lr, name, p.seed + 30 + k)
+        )
+        ckpt = save_checkpoint(
+            r.root / "checkpoints" / f"{name}.pt",
+            cfg,
+            control,
+            cnn,
+            r.metadata(name, {"episodes": list(names), "fit": fits[-1].to_dict()}),
+        )
+        candidates.append(str(ckpt))
+    final, selected, scores = select(r, candidates, camera=True, out="vision")
+    return r.finish(
+        VisionRecord(
+            stage="vision",
+            git_commit=r.commit,
+            fits=tuple(fits),
+            rollouts=p.rollouts if p.vision_rounds else None,
+            checkpoint=final,
+            selected=selected,
+            validation=scores,
+        )
+    )
