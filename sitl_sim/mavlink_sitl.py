@@ -65,6 +65,7 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth
 from companion.contract.camera_packet import encode_frame
+from companion.contract.signing import signing_key_bytes
 from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import SimError
@@ -79,7 +80,6 @@ from sitl_sim.sitl_clock import FrameWait, Pacer, SimClock
 from sitl_sim.sitl_config import (
     SitlConfig,
     add_sitl_arguments,
-    signing_key_bytes,
     sitl_config_from_args,
 )
 from sitl_sim.sitl_episode import Episode, EpisodeLifecycle

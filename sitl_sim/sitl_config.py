@@ -5,24 +5,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import math
-import string
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
+from companion.contract.signing import SigningKeyError, signing_key_bytes
+from companion.options import add_arguments, option, values_from_args
 from sitl_sim.mavlink_endpoint import SitlError
 
 __all__ = [
     "SitlConfig",
     "add_sitl_arguments",
-    "signing_key_bytes",
     "sitl_config_from_args",
 ]
-
-
-def _opt(default: Any, help: str, arg_type: type | None = None) -> Any:
-    return field(default=default, metadata={"help": help, "arg_type": arg_type})
 
 
 @dataclass(frozen=True)
@@ -32,55 +27,55 @@ class SitlConfig:
     Saved (key redacted) in every flight log's metadata.
     """
 
-    host: str = _opt("127.0.0.1", "address to bind the MAVLink port on (loopback by default)")
-    mavlink_port: int = _opt(14580, "local UDP port of the offboard link (PX4 SITL: 14580)")
-    remote_host: str = _opt("127.0.0.1", "where the offboard API listens")
-    remote_port: int = _opt(14540, "UDP port the offboard API listens on (PX4 SITL: 14540)")
-    gcs: bool = _opt(
+    host: str = option("127.0.0.1", "address to bind the MAVLink port on (loopback by default)")
+    mavlink_port: int = option(14580, "local UDP port of the offboard link (PX4 SITL: 14580)")
+    remote_host: str = option("127.0.0.1", "where the offboard API listens")
+    remote_port: int = option(14540, "UDP port the offboard API listens on (PX4 SITL: 14540)")
+    gcs: bool = option(
         True, "ground-station link (QGroundControl, MAVProxy) beside the offboard link"
     )
-    gcs_port: int = _opt(18570, "local UDP port of the ground-station link (PX4 SITL: 18570)")
-    gcs_remote_host: str = _opt("127.0.0.1", "where the ground station listens")
-    gcs_remote_port: int = _opt(14550, "UDP port the ground station listens on (QGC: 14550)")
-    camera_host: str = _opt("127.0.0.1", "where camera frames are sent")
-    camera_port: int = _opt(5600, "UDP port camera frames are sent to")
-    lockstep: bool = _opt(True, "lockstep (sim waits for the companion) vs real time")
-    lockstep_timeout_s: float = _opt(
+    gcs_port: int = option(18570, "local UDP port of the ground-station link (PX4 SITL: 18570)")
+    gcs_remote_host: str = option("127.0.0.1", "where the ground station listens")
+    gcs_remote_port: int = option(14550, "UDP port the ground station listens on (QGC: 14550)")
+    camera_host: str = option("127.0.0.1", "where camera frames are sent")
+    camera_port: int = option(5600, "UDP port camera frames are sent to")
+    lockstep: bool = option(True, "lockstep (sim waits for the companion) vs real time")
+    lockstep_timeout_s: float = option(
         0.5, "wall seconds to wait for the answer to one frame before going on without it"
     )
-    lockstep_require_stamp: bool = _opt(
+    lockstep_require_stamp: bool = option(
         True, "an answer must be stamped (time_boot_ms) at or after the frame's time"
     )
-    speed: float = _opt(1.0, "sim seconds per wall second when paced (real time, HOLD)")
-    episodes: int = _opt(1, "consecutive episodes to fly, then exit")
-    first_episode: int = _opt(
+    speed: float = option(1.0, "sim seconds per wall second when paced (real time, HOLD)")
+    episodes: int = option(1, "consecutive episodes to fly, then exit")
+    first_episode: int = option(
         0, "index of the first episode (parallel SITLs split one seed's episodes)"
     )
-    seed: int = _opt(0, "episode i starts at InitialStateSampler(scenario, seed).sample(i)")
-    scenario: str | None = _opt(None, "scenario TOML (default configs/scenario.toml)", str)
-    sim_config: str | None = _opt(None, "simulation TOML (default configs/sim.toml)", str)
-    vehicle_config: str | None = _opt(None, "vehicle TOML (default configs/vehicle.toml)", str)
-    episode_timeout_s: float | None = _opt(
+    seed: int = option(0, "episode i starts at InitialStateSampler(scenario, seed).sample(i)")
+    scenario: str | None = option(None, "scenario TOML (default configs/scenario.toml)", str)
+    sim_config: str | None = option(None, "simulation TOML (default configs/sim.toml)", str)
+    vehicle_config: str | None = option(None, "vehicle TOML (default configs/vehicle.toml)", str)
+    episode_timeout_s: float | None = option(
         None, "flight time after which an episode ends as a timeout (default: sim.toml)", float
     )
-    hold_timeout_s: float = _opt(
+    hold_timeout_s: float = option(
         120.0, "sim seconds in HOLD without a take-over before the episode is abandoned"
     )
-    groundtruth: bool = _opt(False, "publish ground truth as ODOMETRY (privileged clients)")
-    signing_key: str | None = _opt(
+    groundtruth: bool = option(False, "publish ground truth as ODOMETRY (privileged clients)")
+    signing_key: str | None = option(
         None, "MAVLink 2 signing: 64 hex digits, or a passphrase (key = SHA-256 of it)", str
     )
-    log_dir: str | None = _opt(
+    log_dir: str | None = option(
         "runs/sitl/flights", "folder for one MCAP flight log per episode (empty: no logs)", str
     )
-    render: bool = _opt(True, "render the pybullet camera (off: black frames, faster)")
-    noiseless: bool = _opt(False, "turn every sensor noise off")
-    start_armed: bool = _opt(True, "episodes start armed (the vehicle is flying)")
-    attitude_rate_hz: float = _opt(50.0, "ATTITUDE and ATTITUDE_QUATERNION rate")
-    imu_rate_hz: float = _opt(50.0, "HIGHRES_IMU rate")
-    distance_rate_hz: float = _opt(10.0, "DISTANCE_SENSOR rate")
-    groundtruth_rate_hz: float = _opt(50.0, "ODOMETRY rate with --groundtruth")
-    max_wall_s: float | None = _opt(None, "stop after this many wall seconds (safety net)", float)
+    render: bool = option(True, "render the pybullet camera (off: black frames, faster)")
+    noiseless: bool = option(False, "turn every sensor noise off")
+    start_armed: bool = option(True, "episodes start armed (the vehicle is flying)")
+    attitude_rate_hz: float = option(50.0, "ATTITUDE and ATTITUDE_QUATERNION rate")
+    imu_rate_hz: float = option(50.0, "HIGHRES_IMU rate")
+    distance_rate_hz: float = option(10.0, "DISTANCE_SENSOR rate")
+    groundtruth_rate_hz: float = option(50.0, "ODOMETRY rate with --groundtruth")
+    max_wall_s: float | None = option(None, "stop after this many wall seconds (safety net)", float)
 
     def __post_init__(self) -> None:
         for name in ("mavlink_port", "remote_port", "camera_port", "gcs_port", "gcs_remote_port"):
@@ -107,7 +102,10 @@ class SitlConfig:
         if self.episode_timeout_s is not None and not self.episode_timeout_s > 0:
             raise SitlError(f"episode_timeout_s = {self.episode_timeout_s}; expected > 0")
         if self.signing_key is not None:
-            signing_key_bytes(self.signing_key)  # validates
+            try:
+                signing_key_bytes(self.signing_key)  # validates
+            except SigningKeyError as exc:
+                raise SitlError(f"signing_key: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the signing key redacted."""
@@ -117,33 +115,13 @@ class SitlConfig:
         return d
 
 
-def signing_key_bytes(key: str) -> bytes:
-    """The 32-byte secret of ``--signing-key``: 64 hex digits as is, else SHA-256 of the text
-    (MAVProxy's ``signing key <passphrase>`` convention)."""
-    text = key.strip()
-    if not text:
-        raise SitlError("signing key is empty")
-    if len(text) == 64 and all(c in string.hexdigits for c in text):
-        return bytes.fromhex(text)
-    return hashlib.sha256(text.encode()).digest()
-
-
 def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
     """One ``--flag`` per :class:`SitlConfig` field, its help from the field's doc."""
-    for f in dataclasses.fields(SitlConfig):
-        flag = "--" + f.name.replace("_", "-")
-        help_text = f"{f.metadata['help']} (default: {f.default})"
-        if isinstance(f.default, bool):
-            parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=f.default, help=help_text
-            )
-        else:
-            arg_type = f.metadata.get("arg_type") or type(f.default)
-            parser.add_argument(flag, type=arg_type, default=f.default, help=help_text)
+    add_arguments(parser, SitlConfig)
 
 
 def sitl_config_from_args(args: argparse.Namespace) -> SitlConfig:
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(SitlConfig)}
-    if values["log_dir"] == "":
+    values = values_from_args(args, SitlConfig)
+    if values.get("log_dir") == "":
         values["log_dir"] = None
     return SitlConfig(**values)

@@ -24,12 +24,27 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth
 from companion.contract.topics import (
+    SCHEMA_AUTOPILOT_COMMAND,
+    SCHEMA_COMMAND,
+    SCHEMA_EPISODE_RESULT,
+    SCHEMA_EPISODE_SCENARIO,
+    SCHEMA_EVENT,
+    SCHEMA_GROUNDTRUTH,
+    SCHEMA_LINK_STATS,
+    SCHEMA_OBSERVATION,
+    SCHEMA_RX_ERROR,
+    TOPIC_AUTOPILOT_COMMAND,
     TOPIC_COMMAND,
     TOPIC_EVENTS,
     TOPIC_GROUNDTRUTH,
+    TOPIC_LINK_STATS,
+    TOPIC_MAVLINK_IN,
+    TOPIC_MAVLINK_OUT,
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
+    TOPIC_RX_ERRORS,
     TOPIC_SCENARIO,
+    mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter
 from sitl_sim.autopilot import Autopilot
@@ -47,22 +62,11 @@ if TYPE_CHECKING:
     from sitl_sim.sitl_config import SitlConfig
 
 __all__ = [
-    "TOPIC_AUTOPILOT_COMMAND",
-    "TOPIC_LINK_STATS",
-    "TOPIC_MAVLINK_IN",
-    "TOPIC_MAVLINK_OUT",
-    "TOPIC_RX_ERRORS",
     "Episode",
     "EpisodeLifecycle",
 ]
 
 log = logging.getLogger("visland.sitl")
-
-TOPIC_MAVLINK_IN = "/mavlink/in/"
-TOPIC_MAVLINK_OUT = "/mavlink/out/"
-TOPIC_RX_ERRORS = "/mavlink/rx_errors"
-TOPIC_LINK_STATS = "/mavlink/link_stats"
-TOPIC_AUTOPILOT_COMMAND = "/autopilot/command"
 
 
 @dataclass
@@ -132,7 +136,7 @@ class EpisodeLifecycle:
         self._episode = Episode(index, initial, seed_key, self.clock.tick, writer)
         self._log(
             TOPIC_SCENARIO,
-            "visland.EpisodeScenario",
+            SCHEMA_EPISODE_SCENARIO,
             {
                 "episode": index,
                 "seed": self.config.seed,
@@ -162,7 +166,7 @@ class EpisodeLifecycle:
             record["gcs_link_stats"] = self.gcs_endpoint.stats.to_dict()
         record["lockstep_timeouts"] = self.lockstep_timeouts
         if ep.writer is not None:
-            ep.writer.write(TOPIC_RESULT, "visland.EpisodeResult", self.clock.time_s, record)
+            ep.writer.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, self.clock.time_s, record)
             ep.writer.close()
         log.info("episode %d %s: %s", ep.index, "aborted" if aborted else "ended", record)
         if not aborted:
@@ -211,12 +215,12 @@ class EpisodeLifecycle:
             ep.writer.write(topic, schema, self.clock.time_s, body)
 
     def _event(self, kind: str, text: str) -> None:
-        self._log(TOPIC_EVENTS, "visland.Event", {"kind": kind, "text": text})
+        self._log(TOPIC_EVENTS, SCHEMA_EVENT, {"kind": kind, "text": text})
 
     def _log_rx_error(self, err: RxError, link: str) -> None:
         self._log(
             TOPIC_RX_ERRORS,
-            "visland.RxError",
+            SCHEMA_RX_ERROR,
             {
                 "kind": err.kind,
                 "reason": err.reason,
@@ -237,14 +241,14 @@ class EpisodeLifecycle:
             self._last_errors_logged = errors
             stats = {e.name: e.stats.to_dict() for e in self._endpoints}
             log.warning("MAVLink link errors so far: %s", stats)
-            self._log(TOPIC_LINK_STATS, "visland.LinkStats", stats)
+            self._log(TOPIC_LINK_STATS, SCHEMA_LINK_STATS, stats)
 
     def _log_inbound(self, inbound: Inbound) -> None:
         msg = inbound.msg
         name = msg.get_type()
         self._log(
             TOPIC_MAVLINK_IN + name,
-            "mavlink." + name,
+            mavlink_schema(name),
             {
                 **_jsonable_msg(msg),
                 "src_system": msg.get_srcSystem(),
@@ -257,14 +261,14 @@ class EpisodeLifecycle:
     def _log_outbound(self, msg: Any) -> None:
         if self._episode is not None and self._episode.writer is not None:
             name = msg.get_type()
-            self._log(TOPIC_MAVLINK_OUT + name, "mavlink." + name, _jsonable_msg(msg))
+            self._log(TOPIC_MAVLINK_OUT + name, mavlink_schema(name), _jsonable_msg(msg))
 
     def _log_commands(self, cmd: Command | None) -> None:
         """At a control period: what the autopilot flies, and in a control step the training
         record's ``/command``."""
         self._log(
             TOPIC_AUTOPILOT_COMMAND,
-            "visland.AutopilotCommand",
+            SCHEMA_AUTOPILOT_COMMAND,
             {
                 "flight_time_s": self.sim.time_s,
                 "mode": self.autopilot.mode.label,
@@ -278,7 +282,7 @@ class EpisodeLifecycle:
             # answer (the training record's /command, keyed like the in-process log)
             self._log(
                 TOPIC_COMMAND,
-                "visland.Command",
+                SCHEMA_COMMAND,
                 command_msg(cmd, self._frame_id - 1, "offboard"),
             )
 
@@ -293,7 +297,7 @@ class EpisodeLifecycle:
         ap = self.autopilot
         self._log(
             TOPIC_GROUNDTRUTH,
-            "visland.GroundTruth",
+            SCHEMA_GROUNDTRUTH,
             {
                 **groundtruth_msg(gt, frame_id),  # the same record as the in-process path
                 "flight_time_s": gt.time_s,
@@ -304,7 +308,7 @@ class EpisodeLifecycle:
         )
         obs = self._streamed_observation(frame_id, gt.time_s)
         if obs is not None and self._control_step():
-            self._log(TOPIC_OBSERVATION, "visland.Observation", obs)
+            self._log(TOPIC_OBSERVATION, SCHEMA_OBSERVATION, obs)
 
     def _streamed_observation(self, frame_id: int, image_time_s: float) -> dict[str, Any] | None:
         """What a client holds at this frame: the latest attitude, IMU and range readings this

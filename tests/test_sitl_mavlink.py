@@ -8,6 +8,7 @@ every wait has a timeout; each test gets its own ports. Most flights start 5-6 m
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import signal
@@ -24,6 +25,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.signing import signing_key_bytes
 from companion.flightlog import read_log
 from expert.cascade import CascadeLander
 from sitl_sim.autopilot import (
@@ -42,7 +44,6 @@ from sitl_sim.mavlink_sitl import MavlinkSitl
 from sitl_sim.sitl_config import (
     SitlConfig,
     add_sitl_arguments,
-    signing_key_bytes,
     sitl_config_from_args,
 )
 from tools.sitl_client import (
@@ -505,7 +506,10 @@ def _fuzz_datagrams(rng: np.random.Generator, mav) -> list[bytes]:
 
 
 def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
-    runner = start_sitl(groundtruth=True)
+    # 1 s lockstep wait (not the fixture's 0.1 s): a loaded machine may park the client thread
+    # for a while, but only a stalled SITL (the decoder's 20 ms time box failing under the flood)
+    # leaves a frame unanswered for a whole second
+    runner = start_sitl(groundtruth=True, lockstep_timeout_s=1.0)
     stop = threading.Event()
     sent = [0]
 
@@ -523,6 +527,11 @@ def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
     fuzzer = threading.Thread(target=fuzz, daemon=True)
     fuzzer.start()
     try:
+        # the flight starts under a fuzz already 2500 datagrams deep, however slowly a loaded
+        # machine runs the fuzzer thread
+        deadline = time.monotonic() + 60.0
+        while sent[0] < 2500 and time.monotonic() < deadline:
+            time.sleep(0.01)
         t0 = time.monotonic()
         _fly_cascade(client, runner)
         results = runner.finish(30.0)
@@ -537,7 +546,8 @@ def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
     assert stats.rx_rejected_setpoints > 10
     status = client.last["SYS_STATUS"]
     assert status.errors_comm > 0 and status.drop_rate_comm > 0
-    assert runner.sitl.lockstep_timeouts <= 2 and wall < 25.0
+    # the wall bound only catches a hang (the flight is ~10 s of sim time, flown in lockstep)
+    assert runner.sitl.lockstep_timeouts <= 2 and wall < 60.0
 
 
 def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_scenario, tmp_path):
@@ -685,12 +695,12 @@ def test_mavproxy_watches_and_commands_over_the_ground_station_link(start_sitl, 
     """MAVProxy, headless, on the GCS link: it detects a PX4 vehicle, shows its mode, and a
     DO_SET_MODE AUTO.LAND typed at its prompt lands it (ACK, mode, disarm all seen by MAVProxy).
 
-    MAVProxy's own dependencies pull opencv and vtk; its core needs only pymavlink and pyserial:
-    ``pip install --no-deps MAVProxy==1.8.75 pyserial``. (Its ``mode LAND`` command cannot set a
-    PX4 mode with pymavlink 2.4.50 — it hands mavutil the mode-map tuple — hence ``long``.)"""
-    pytest.importorskip(
-        "MAVProxy", reason="MAVProxy not installed (pip install --no-deps MAVProxy pyserial)"
-    )
+    MAVProxy's own dependencies pull opencv and vtk; its core needs only pymavlink and pyserial,
+    so ``make setup`` installs it with ``--no-deps`` (pyserial is in the ``dev`` extra). (Its
+    ``mode LAND`` command cannot set a PX4 mode with pymavlink 2.4.50 — it hands mavutil the
+    mode-map tuple — hence ``long``.)"""
+    if importlib.util.find_spec("MAVProxy") is None:  # make setup installs it (Makefile)
+        pytest.fail("MAVProxy is not installed: run `make setup` (pip install --no-deps MAVProxy)")
     runner = start_sitl()
     cmd = [
         sys.executable,
@@ -839,15 +849,20 @@ def test_rendered_flight_log_has_every_record(start_sitl, client):
 
 
 def test_real_time_mode_follows_the_wall_clock(start_sitl, client):
-    start_sitl(lockstep=False, speed=2.0)
+    runner = start_sitl(lockstep=False, speed=2.0)
     first = client.wait_for("SYSTEM_TIME", 5.0)
     t0 = time.monotonic()
     last = client.wait_for(
-        "SYSTEM_TIME", 5.0, lambda m: m.time_boot_ms >= first.time_boot_ms + 3000
+        "SYSTEM_TIME", 10.0, lambda m: m.time_boot_ms >= first.time_boot_ms + 6000
     )
     wall = time.monotonic() - t0
     sim = (last.time_boot_ms - first.time_boot_ms) / 1000
-    assert sim / wall == pytest.approx(2.0, rel=0.3)
+    # 3 s of wall time, so the two receipt times' scheduling delays (tens of ms on a loaded
+    # 2-core machine) stay far inside the 30 %; a SITL that could not keep up says so (it
+    # re-anchors its pacing after a 0.5 s overrun and counts it) and may then run slower.
+    assert sim / wall <= 2.0 * 1.3
+    if runner.sitl.pacing_overruns == 0:
+        assert sim / wall >= 2.0 * 0.7
 
 
 def test_a_stock_mavutil_client_sees_a_px4_vehicle(start_sitl, ports, monkeypatch):

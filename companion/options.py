@@ -1,0 +1,93 @@
+"""Typed options: one frozen dataclass per entry point whose fields are its ``--flags`` (and,
+for the companion, its TOML keys), each field's help becoming ``--help`` (as cleanrl's ``Args``
+and PX4's ``module.yaml``).
+
+A field is declared with :func:`option` (default, help, optional argparse type and choices);
+:func:`add_arguments` makes one ``--flag`` per field (underscores become dashes, booleans get
+``--flag/--no-flag``); :func:`values_from_args` reads them back; :func:`check_table` checks a TOML
+table against the same fields (unknown key, wrong type, value not among the choices), naming the
+file and key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from typing import Any
+
+__all__ = ["add_arguments", "check_table", "option", "values_from_args"]
+
+
+def option(
+    default: Any, help: str, arg_type: type | None = None, choices: tuple[Any, ...] | None = None
+) -> Any:
+    """A dataclass field that is also a command-line flag (``arg_type`` where the default's
+    type does not say it, e.g. ``None`` defaults)."""
+    return dataclasses.field(
+        default=default, metadata={"help": help, "arg_type": arg_type, "choices": choices}
+    )
+
+
+def _arg_type(f: dataclasses.Field) -> type:
+    return f.metadata.get("arg_type") or type(f.default)
+
+
+def add_arguments(
+    parser: argparse.ArgumentParser, cls: type, *, unset_is_none: bool = False
+) -> None:
+    """One ``--flag`` per field of the dataclass ``cls``; its help says the default.
+
+    ``unset_is_none``: a flag not given parses as ``None`` (so a config file may fill it in)
+    instead of the field's default.
+    """
+    for f in dataclasses.fields(cls):
+        flag = "--" + f.name.replace("_", "-")
+        help_text = f"{f.metadata['help']} (default: {f.default})"
+        default = None if unset_is_none else f.default
+        if isinstance(f.default, bool):
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=default, help=help_text
+            )
+        else:
+            parser.add_argument(
+                flag,
+                type=_arg_type(f),
+                default=default,
+                help=help_text,
+                choices=f.metadata.get("choices"),
+            )
+
+
+def values_from_args(args: argparse.Namespace, cls: type) -> dict[str, Any]:
+    """The parsed value of each field of ``cls`` that was given (``None``: not given, when the
+    flags were added with ``unset_is_none``)."""
+    values = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(cls)}
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def check_table(
+    table: dict[str, Any], cls: type, where: str, error: type[Exception]
+) -> dict[str, Any]:
+    """``table`` (a TOML table) checked against the fields of ``cls``: every key a field, every
+    value of the field's type (an integer is taken where a float is expected) and among its
+    choices. Returns the table with those integers made floats.
+
+    Raises:
+        error: naming ``where`` (e.g. ``"companion.toml: [companion]"``), the key, the expected
+            and the given value.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = dict(table)
+    for key, value in table.items():
+        f = fields.get(key)
+        if f is None:
+            raise error(f"{where} {key}: unknown key; known: {sorted(fields)}")
+        expected = _arg_type(f)
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            out[key] = float(value)
+        elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise error(f"{where} {key} = {value!r}; expected {expected.__name__}")
+        choices = f.metadata.get("choices")
+        if choices and value not in choices:
+            raise error(f"{where} {key} = {value!r}; expected one of {choices}")
+    return out
