@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.contract.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
 from companion.contract import Command
+from companion.contract.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
 
 __all__ = [
     "OFFBOARD_CUSTOM_MODE",

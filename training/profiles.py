@@ -6,10 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from training.record import Record
+from training.transport import Transport
 
 __all__ = ["PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Profile"]
 
-ROLLOUT_TRANSPORTS = ("mavlink", "inprocess")
+ROLLOUT_TRANSPORTS = (Transport.MAVLINK.value, Transport.INPROCESS.value)
+"""The values of the profile key ``rollouts`` (:class:`training.transport.Transport`)."""
 
 
 class PipelineError(ValueError):
@@ -52,7 +54,7 @@ class Profile(Record):
     burn_in_steps: int = 0
     workers: int = 2
     """Parallel in-process workers, or SITL + companion pairs for ``mavlink`` rollouts."""
-    rollouts: str = "mavlink"
+    rollouts: str = Transport.MAVLINK.value
     """How DAgger learner rollouts fly: ``mavlink`` (default) — the SITL and the companion as
     separate processes over UDP in lockstep, ``workers`` pairs side by side, the SITL's flight
     logs relabelled; ``inprocess`` — the gymnasium env in worker processes (faster, same

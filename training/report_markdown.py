@@ -13,6 +13,7 @@ from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3, PAPER_VISION_TERMINAL_
 from training.report_figures import Trace
 from training.report_metrics import ROWS, Provenance, short
 from training.stages.records import Metrics, Rows
+from training.transport import Transport
 
 __all__ = [
     "TARGETS",
@@ -241,13 +242,13 @@ def regenerate_eval(run: Path, metrics: Metrics) -> str:
 def rollouts_text(prof: dict[str, Any]) -> str:
     """How a run's DAgger learner rollouts flew (its profile's ``rollouts`` key)."""
     how = prof.get("rollouts")
-    if how == "mavlink":
+    if how == Transport.MAVLINK:
         return (
             "flown by the learner through `visland sitl` + `visland companion` processes over "
             f"MAVLink/UDP in lockstep ({prof.get('workers', 1)} pairs side by side; the SITL's "
             "logs relabelled)"
         )
-    if how == "inprocess":
+    if how == Transport.INPROCESS:
         return "flown in process (the gymnasium env)"
     return "flown in process (the run predates the profile's `rollouts` key)"
 

@@ -7,6 +7,7 @@ import time
 from training.run_folder import Run
 from training.stages.flights import fly
 from training.stages.records import CollectRecord
+from training.transport import Transport
 
 __all__ = ["run"]
 
@@ -15,7 +16,13 @@ def run(r: Run) -> CollectRecord:
     p = r.profile
     t0 = time.perf_counter()
     logs = fly(
-        r, "expert", p.collect_seed, p.collect_episodes, "expert", True, transport="inprocess"
+        r,
+        "expert",
+        p.collect_seed,
+        p.collect_episodes,
+        "expert",
+        True,
+        transport=Transport.INPROCESS,
     )
     return r.finish(
         CollectRecord(

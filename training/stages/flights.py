@@ -14,6 +14,7 @@ from training.profiles import PipelineError
 from training.rollout import RolloutSpec, completed_episode, log_name, run_episodes
 from training.run_folder import Run
 from training.stages.records import CollectRecord
+from training.transport import Transport
 
 __all__ = ["episodes", "expert_pairs", "fly", "relabel"]
 
@@ -37,7 +38,7 @@ def fly(
     transport = transport or run.profile.rollouts
     flights = run.root / "flights" / folder
     flights.mkdir(parents=True, exist_ok=True)
-    if transport == "mavlink":
+    if transport == Transport.MAVLINK:
         from training.fly import sitl_log_name
 
         paths = [flights / sitl_log_name(seed, i) for i in range(count)]
@@ -47,7 +48,7 @@ def fly(
     if not todo:
         return paths
     with run.bar(len(todo), f"fly {folder} ({transport})") as bar:
-        if transport == "mavlink":
+        if transport == Transport.MAVLINK:
             _fly_mavlink(run, checkpoint, seed, todo, flights, camera, bar.update)
         else:
             spec = RolloutSpec(
