@@ -29,6 +29,7 @@ from tools.logtool import (
     plot_sources,
     verdict,
 )
+from training.report_figures import draw_pad
 
 __all__ = [
     "FlightsPlotReport",
@@ -39,8 +40,6 @@ __all__ = [
     "plot_log",
 ]
 
-_PAD_HALF_M = 2.0  # the pad is a 4 m square (sitl_sim.scene)
-_CROSS_HALF_M, _CROSS_HALF_W_M = 1.6, 0.3  # red cross arms 3.2 m x 0.6 m
 _MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed", "flight_start", "state")
 """Event kinds drawn as vertical lines on the time plots (the SITL autopilot's mode/arming
 story; the companion's state machine)."""
@@ -91,15 +90,6 @@ def default_plot_path(path: str | Path) -> Path:
     for suffix in (".part", ".mcap"):
         name = name.removesuffix(suffix)
     return path.with_name(name + ".png")
-
-
-def _draw_pad(ax) -> None:
-    """The pad (4 m green square) and its red cross at the origin of a top view (east, north)."""
-    from matplotlib.patches import Rectangle
-
-    ax.add_patch(Rectangle((-_PAD_HALF_M, -_PAD_HALF_M), 4.0, 4.0, color="tab:green", alpha=0.35))
-    for w, h in ((_CROSS_HALF_M, _CROSS_HALF_W_M), (_CROSS_HALF_W_M, _CROSS_HALF_M)):
-        ax.add_patch(Rectangle((-w, -h), 2 * w, 2 * h, color="tab:red", alpha=0.5))
 
 
 def _missing(ax, text: str) -> None:
@@ -198,7 +188,7 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
             _missing(ax_top, "no position\n" + _missing_line(src, "position"))
         else:
             _, pos, _ = _series(log, "position", topic)
-            _draw_pad(ax_top)
+            draw_pad(ax_top, success_circle=False)
             ax_top.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
             ax_top.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
             ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
@@ -374,8 +364,8 @@ def plot_flights(
         1, 3, figsize=(18, 6.2), gridspec_kw={"width_ratios": [1, 1, 1.35]}
     )
     try:
-        _draw_pad(ax_top)
-        _draw_pad(ax_zoom)
+        draw_pad(ax_top, success_circle=False)
+        draw_pad(ax_zoom, success_circle=False)
         ax_zoom.add_patch(
             Circle((0, 0), SUCCESS_MAX_ERROR_M, fill=False, linestyle="--", color="k", lw=1)
         )

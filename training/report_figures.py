@@ -22,6 +22,7 @@ __all__ = [
     "SCATTER_VIEW_M",
     "Trace",
     "default_episodes",
+    "draw_pad",
     "fly_traces",
     "loss_series",
     "plot_hist",
@@ -235,9 +236,12 @@ def plot_inputs(traces: dict[str, Trace], title: str, path: Path, prov: Provenan
     return _save(fig, path, prov)
 
 
-def _draw_pad(ax: Any) -> None:
+def draw_pad(ax: Any, success_circle: bool = True) -> None:
+    """The pad (``sitl_sim.scene.PadGeometry``: green square, red cross) at the origin of a top
+    view (x east, y north), and the success radius as a dashed circle."""
     from matplotlib.patches import Circle, Rectangle
 
+    from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
     from sitl_sim.scene import PadGeometry
 
     pad = PadGeometry()
@@ -245,9 +249,8 @@ def _draw_pad(ax: Any) -> None:
     ax.add_patch(Rectangle((-s, -s), 2 * s, 2 * s, color=pad.green_rgb, alpha=0.35, zorder=0))
     ax.add_patch(Rectangle((-a, -w), 2 * a, 2 * w, color=pad.red_rgb, alpha=0.35, zorder=0))
     ax.add_patch(Rectangle((-w, -a), 2 * w, 2 * a, color=pad.red_rgb, alpha=0.35, zorder=0))
-    from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
-
-    ax.add_patch(Circle((0, 0), SUCCESS_MAX_ERROR_M, fill=False, linestyle="--", color="0.3"))
+    if success_circle:
+        ax.add_patch(Circle((0, 0), SUCCESS_MAX_ERROR_M, fill=False, linestyle="--", color="0.3"))
 
 
 def touchdowns(metrics: Metrics) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
@@ -267,7 +270,7 @@ def plot_scatter(metrics: Metrics, path: Path, prov: Provenance) -> Path:
     fig, axes = plt.subplots(2, 2, figsize=(10, 10))
     view = SCATTER_VIEW_M
     for ax, (row, (ne, ok, lacking)) in zip(axes.flat, touchdowns(metrics).items(), strict=True):
-        _draw_pad(ax)
+        draw_pad(ax)
         dist = np.hypot(ne[:, 0], ne[:, 1]) if len(ne) else np.zeros(0)
         inside = np.all(np.abs(ne) <= view, axis=1) if len(ne) else np.zeros(0, bool)
         for mask, color, label in ((ok, "tab:green", "success"), (~ok, "tab:red", "failure")):
