@@ -141,33 +141,21 @@ SCHEMAS: dict[str, str] = {
 }
 """Topic → schema name for every fixed topic (``/mavlink/*/<NAME>``: :func:`mavlink_schema`)."""
 
+_ROLLOUT_TOPICS = frozenset(
+    {
+        TOPIC_IMAGE,
+        TOPIC_OBSERVATION,
+        TOPIC_GROUNDTRUTH,
+        TOPIC_GROUNDTRUTH_POSE,
+        TOPIC_COMMAND,
+        TOPIC_SCENARIO,
+        TOPIC_RESULT,
+    }
+)
 LOG_KIND_TOPICS: dict[str, frozenset[str]] = {
-    "rollout": frozenset(
-        {
-            TOPIC_IMAGE,
-            TOPIC_OBSERVATION,
-            TOPIC_GROUNDTRUTH,
-            TOPIC_GROUNDTRUTH_POSE,
-            TOPIC_COMMAND,
-            TOPIC_SCENARIO,
-            TOPIC_RESULT,
-        }
-    ),
-    "sitl": frozenset(
-        {
-            TOPIC_IMAGE,
-            TOPIC_OBSERVATION,
-            TOPIC_GROUNDTRUTH,
-            TOPIC_GROUNDTRUTH_POSE,
-            TOPIC_COMMAND,
-            TOPIC_SCENARIO,
-            TOPIC_RESULT,
-            TOPIC_EVENTS,
-            TOPIC_AUTOPILOT_COMMAND,
-            TOPIC_RX_ERRORS,
-            TOPIC_LINK_STATS,
-        }
-    ),
+    "rollout": _ROLLOUT_TOPICS,
+    "sitl": _ROLLOUT_TOPICS
+    | {TOPIC_EVENTS, TOPIC_AUTOPILOT_COMMAND, TOPIC_RX_ERRORS, TOPIC_LINK_STATS},
     "companion": frozenset(
         {
             TOPIC_IMAGE,
