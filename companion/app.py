@@ -7,7 +7,10 @@ the state machine (:mod:`companion.offboard`). One MCAP log per flight
 the log; the process then prints a JSON report on stdout.
 
 Configuration: :class:`CompanionConfig` — defaults, then a TOML file (``--config``, table
-``[companion]``, e.g. ``configs/companion.toml``), then command-line flags.
+``[companion]``, e.g. ``configs/companion.toml``), then command-line flags. The flight and safety
+settings' defaults are those of :class:`~companion.offboard.OffboardConfig` and
+:class:`~companion.safety.SafetyConfig` (typed there, once); :meth:`CompanionConfig.offboard_config`
+and :meth:`CompanionConfig.safety_config` build them.
 ``--replay LOG`` runs a recorded log through the policy instead (shadow, no link) and reports
 how far the recomputed commands are from the recorded ones.
 """
@@ -30,6 +33,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from companion.camera import CameraError, check_intrinsics, open_camera
+from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
+from companion.offboard import FlightController, OffboardConfig
+from companion.runtime import PolicyRuntime
+from companion.safety import SafetyConfig, SafetyMonitor
+from companion.states import FlightResult, TouchdownAction
+from companion.telemetry import TelemetryStore
+
 __all__ = [
     "CompanionConfig",
     "CompanionError",
@@ -49,6 +60,12 @@ class CompanionError(ValueError):
 
 def _opt(default: Any, help: str, arg_type: type | None = None, choices=None) -> Any:
     return field(default=default, metadata={"help": help, "arg_type": arg_type, "choices": choices})
+
+
+_FLIGHT = {f.name: f.default for f in dataclasses.fields(OffboardConfig)}
+"""OffboardConfig's defaults: the flight fields below take theirs from here."""
+_SAFETY = {f.name: f.default for f in dataclasses.fields(SafetyConfig)}
+"""SafetyConfig's defaults (seconds, per-axis tuple): the safety fields below convert them."""
 
 
 @dataclass(frozen=True)
@@ -85,25 +102,44 @@ class CompanionConfig:
         choices=("torch", "onnx"),
     )
     torch_threads: int = _opt(1, "intra-op threads for the policy (torch or ONNX Runtime)")
-    shadow: bool = _opt(False, "compute and log every command; send no setpoint, no mode change")
-    arm: bool = _opt(False, "arm when disarmed (SITL demo only; on hardware the pilot arms)")
+    shadow: bool = _opt(
+        _FLIGHT["shadow"], "compute and log every command; send no setpoint, no mode change"
+    )
+    arm: bool = _opt(
+        _FLIGHT["arm"], "arm when disarmed (SITL demo only; on hardware the pilot arms)"
+    )
     flights: int = _opt(1, "flights to fly before exiting (0: until stopped)")
     signing_key: str | None = _opt(
         None, "MAVLink 2 signing key: 64 hex digits or a passphrase", str
     )
     sysid: int = _opt(0, "our MAVLink system id (0: the autopilot's)")
-    max_age_ms: float = _opt(300.0, "failsafe when camera or telemetry is older than this")
-    near_ground_m: float = _opt(10.0, "below this, no valid range = failsafe")
-    thrust_min: float = _opt(0.0, "thrust clamp, low")
-    thrust_max: float = _opt(1.0, "thrust clamp, high")
-    max_rate_rp_rad_s: float = _opt(3.5, "roll/pitch rate clamp")
-    max_rate_yaw_rad_s: float = _opt(1.5, "yaw rate clamp")
-    prestream_s: float = _opt(1.0, "neutral setpoints streamed before requesting OFFBOARD")
-    engage_min_range_m: float = _opt(1.0, "engage only above this radar range")
-    touchdown_range_m: float = _opt(0.15, "radar range at or below which the vehicle is down")
-    on_touchdown: str = _opt("disarm", "after touchdown", choices=("disarm", "hand_back"))
+    max_age_ms: float = _opt(
+        _SAFETY["max_age_s"] * 1000.0, "failsafe when camera or telemetry is older than this"
+    )
+    near_ground_m: float = _opt(_SAFETY["near_ground_m"], "below this, no valid range = failsafe")
+    thrust_min: float = _opt(_SAFETY["thrust_min"], "thrust clamp, low")
+    thrust_max: float = _opt(_SAFETY["thrust_max"], "thrust clamp, high")
+    max_rate_rp_rad_s: float = _opt(_SAFETY["max_rate_rad_s"][0], "roll/pitch rate clamp")
+    max_rate_yaw_rad_s: float = _opt(_SAFETY["max_rate_rad_s"][2], "yaw rate clamp")
+    prestream_s: float = _opt(
+        _FLIGHT["prestream_s"], "neutral setpoints streamed before requesting OFFBOARD"
+    )
+    engage_min_range_m: float = _opt(
+        _FLIGHT["engage_min_range_m"], "engage only above this radar range"
+    )
+    touchdown_range_m: float = _opt(
+        _FLIGHT["touchdown_range_m"], "radar range at or below which the vehicle is down"
+    )
+    on_touchdown: str = _opt(
+        _FLIGHT["on_touchdown"].value,
+        "after touchdown",
+        str,
+        choices=tuple(action.value for action in TouchdownAction),
+    )
     on_exit: str = _opt("land", "mode requested on SIGINT/SIGTERM", choices=("land", "hold"))
-    hover_thrust: float = _opt(0.5, "neutral thrust if the autopilot does not report it")
+    hover_thrust: float = _opt(
+        _FLIGHT["hover_thrust"], "neutral thrust if the autopilot does not report it"
+    )
     link_timeout_s: float = _opt(3.0, "no autopilot HEARTBEAT this long = link lost")
     log_dir: str | None = _opt("runs/companion/flights", "folder for one MCAP log per flight", str)
     max_wall_s: float | None = _opt(None, "exit after this many seconds (safety net)", float)
@@ -116,8 +152,6 @@ class CompanionConfig:
         if self.camera_rotate_deg % 90:
             raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
         if self.camera.startswith("opencv:"):
-            from companion.camera import CameraError, check_intrinsics
-
             try:
                 check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
             except CameraError as exc:
@@ -128,6 +162,40 @@ class CompanionConfig:
         if d["signing_key"] is not None:
             d["signing_key"] = "<set>"
         return d
+
+    def safety_config(self) -> SafetyConfig:
+        """The safety monitor's limits (milliseconds to seconds, per-axis rate clamp).
+
+        Raises:
+            companion.safety.SafetyError: a limit out of range.
+        """
+        return SafetyConfig(
+            max_age_s=self.max_age_ms / 1000.0,
+            near_ground_m=self.near_ground_m,
+            thrust_min=self.thrust_min,
+            thrust_max=self.thrust_max,
+            max_rate_rad_s=(
+                self.max_rate_rp_rad_s,
+                self.max_rate_rp_rad_s,
+                self.max_rate_yaw_rad_s,
+            ),
+        )
+
+    def offboard_config(self) -> OffboardConfig:
+        """The state machine's settings (those not set here keep OffboardConfig's defaults).
+
+        Raises:
+            ValueError: a setting out of range.
+        """
+        return OffboardConfig(
+            shadow=self.shadow,
+            arm=self.arm,
+            prestream_s=self.prestream_s,
+            engage_min_range_m=self.engage_min_range_m,
+            touchdown_range_m=self.touchdown_range_m,
+            on_touchdown=self.on_touchdown,  # OffboardConfig makes it a TouchdownAction
+            hover_thrust=self.hover_thrust,
+        )
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
@@ -200,8 +268,6 @@ def config_from_args(args: argparse.Namespace) -> CompanionConfig:
 
 
 def _open_camera(cfg: CompanionConfig):
-    from companion.camera import open_camera
-
     opts: dict[str, Any] = {}
     if cfg.camera.startswith("opencv:"):
         opts = {
@@ -221,11 +287,6 @@ class Companion:
 
     def __init__(self, cfg: CompanionConfig, policy: Any, policy_name: str) -> None:
         from companion.contract.signing import signing_key_bytes
-        from companion.link import PROFILES, MavlinkLink
-        from companion.offboard import OffboardConfig
-        from companion.runtime import PolicyRuntime
-        from companion.safety import SafetyConfig, SafetyMonitor
-        from companion.telemetry import TelemetryStore
 
         self.cfg = cfg
         self.runtime = PolicyRuntime(policy, policy_name)
@@ -233,28 +294,8 @@ class Companion:
             log.warning(
                 "policy %s is privileged: it needs ODOMETRY ground truth (SITL only)", policy_name
             )
-        self.safety = SafetyMonitor(
-            SafetyConfig(
-                max_age_s=cfg.max_age_ms / 1000.0,
-                near_ground_m=cfg.near_ground_m,
-                thrust_min=cfg.thrust_min,
-                thrust_max=cfg.thrust_max,
-                max_rate_rad_s=(
-                    cfg.max_rate_rp_rad_s,
-                    cfg.max_rate_rp_rad_s,
-                    cfg.max_rate_yaw_rad_s,
-                ),
-            )
-        )
-        self.flight_cfg = OffboardConfig(
-            shadow=cfg.shadow,
-            arm=cfg.arm,
-            prestream_s=cfg.prestream_s,
-            engage_min_range_m=cfg.engage_min_range_m,
-            touchdown_range_m=cfg.touchdown_range_m,
-            on_touchdown=cfg.on_touchdown,
-            hover_thrust=cfg.hover_thrust,
-        )
+        self.safety = SafetyMonitor(cfg.safety_config())
+        self.flight_cfg = cfg.offboard_config()
         error = self.runtime.warm_up()
         if error is not None:
             raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
@@ -275,6 +316,7 @@ class Companion:
         self._stop = threading.Event()
         self._stop_reason = ""
         self.flight = None
+        self.flight_log = None
         self.outcomes: list[dict[str, Any]] = []
         self.link_events: list[str] = []
         self._clock: Callable[[], float] = time.monotonic
@@ -290,7 +332,7 @@ class Companion:
         self.store.update(msg, rx_s)
         flight = self.flight
         if flight is not None:
-            flight.log.message(msg, rx_s)
+            self.flight_log.message(msg, rx_s)
             flight.on_message(msg, rx_s)
 
     def _pump(self, timeout_s: float) -> None:
@@ -301,8 +343,6 @@ class Companion:
         self._link_events()
 
     def _request_streams(self) -> None:
-        from companion.link import mavlink
-
         link = self.link
         for msg_id, hz in (
             (mavlink.MAVLINK_MSG_ID_ATTITUDE, 50.0),
@@ -326,7 +366,6 @@ class Companion:
                 self.flight.on_link_event(ev.kind, ev.text)
 
     def _new_flight(self, index: int):
-        from companion.offboard import FlightController
         from companion.record import CompanionLog
 
         stamp = time.strftime("%Y%m%d_%H%M%S")
@@ -345,7 +384,7 @@ class Companion:
             "flight": {"index": index, "shadow": self.cfg.shadow},
             "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
         }
-        flog = CompanionLog(path, meta, self._clock)
+        flog = self.flight_log = CompanionLog(path, meta, self._clock)
         return FlightController(
             self.flight_cfg,
             self.link,
@@ -360,14 +399,14 @@ class Companion:
         )
 
     def _close_flight(self) -> None:
-        flight = self.flight
+        flight, flog = self.flight, self.flight_log
         if flight is None:
             return
-        self.flight = None
+        self.flight = self.flight_log = None
         out = flight.outcome.to_dict()
         out["link"] = dataclasses.asdict(self.link.counters)
         out["clamped"] = self.safety.clamped
-        flight.log.close(summary=out)
+        flog.close(summary=out)
         self.outcomes.append(out)
         print(
             f"visland companion: flight {flight.outcome.index} {flight.outcome.result}: "
@@ -401,7 +440,7 @@ class Companion:
                 flight = self.flight
                 if frames and flight is not None:
                     for frame in frames[:-1]:  # answer the newest; older ones are logged only
-                        flight.log.frame(frame)
+                        self.flight_log.frame(frame)
                     flight.on_frame(frames[-1])
                 if flight is not None:
                     flight.on_tick()
@@ -452,7 +491,6 @@ def run(cfg: CompanionConfig, policy: Any, policy_name: str) -> dict[str, Any]:
 def replay(path: Path, policy: Any, policy_name: str) -> dict[str, Any]:
     """Shadow replay of a recorded companion log (see :func:`companion.record.replay_log`)."""
     from companion.record import replay_log
-    from companion.runtime import PolicyRuntime
 
     return replay_log(path, PolicyRuntime(policy, policy_name)).to_dict()
 
@@ -465,9 +503,6 @@ def run_from_args(
     """Run (or ``--replay``) from parsed :func:`add_arguments` flags; prints the JSON report.
     ``resolve_policy(name, cfg)`` turns ``--policy`` into a policy object; the default loads a
     checkpoint (``tools/`` adds ``expert`` and ``cascade``)."""
-    from companion.camera import CameraError
-    from companion.link import LinkError
-
     try:
         cfg = config_from_args(args)
         if not cfg.policy:
@@ -488,7 +523,7 @@ def run_from_args(
     print(json.dumps(report, indent=2, default=_json_default))
     if args.replay is not None:
         return 0 if not report["errors"] else 1
-    failed = [f for f in report["flights"] if f["result"] == "engage_failed"]
+    failed = [f for f in report["flights"] if f["result"] == FlightResult.ENGAGE_FAILED]
     return 1 if failed else 0
 
 

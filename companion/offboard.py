@@ -1,4 +1,4 @@
-"""The offboard state machine of one flight, and the observation assembly.
+"""The offboard state machine of one flight.
 
 ::
 
@@ -18,33 +18,36 @@ SITL demo); on hardware the pilot arms.
 stamp (``time_boot_ms``); a SITL frame (autopilot clock) stamped at or before the moment the
 OFFBOARD ACK arrived was rendered before the switch and gets the neutral setpoint, so the
 policy's first step is the first frame of the flight — as in the in-process rollout.
+
+**What it records.** The controller writes its flight log through :class:`FlightRecorder` (the
+few calls it makes); :class:`companion.record.CompanionLog` is the one the process gives it, so
+this module does not depend on the log format and the log (and its replay) does not depend on
+this module. Its states, results and failsafes are the typed ones of :mod:`companion.states`.
 """
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.contract import Observation
 from companion.link import MavlinkLink, mavlink
-from companion.record import CompanionLog
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyMonitor, TouchdownDetector
-from companion.telemetry import TelemetryStore
+from companion.states import Failsafe, FailsafeReason, FlightResult, FlightState, TouchdownAction
+from companion.telemetry import TelemetryStore, assemble_observation
 
 __all__ = [
     "FlightController",
     "FlightOutcome",
-    "FlightState",
+    "FlightRecorder",
     "OffboardConfig",
-    "assemble_observation",
 ]
 
 log = logging.getLogger("visland.companion")
@@ -52,16 +55,11 @@ log = logging.getLogger("visland.companion")
 _ZERO3 = np.zeros(3)
 _MAV_RESULT_ACCEPTED = 0
 _MAV_RESULT_IN_PROGRESS = 5
-
-
-class FlightState(enum.Enum):
-    WAITING = "waiting"
-    PRESTREAM = "prestream"
-    ENGAGING = "engaging"
-    FLYING = "flying"
-    TOUCHDOWN = "touchdown"
-    FAILSAFE = "failsafe"
-    DONE = "done"
+_ENGAGE_ATTEMPTS = 3
+"""OFFBOARD refused or unanswered this many times = ``engage_failed``."""
+_TOUCHDOWN_DISARM_WAIT_S = 5.0
+_FAILSAFE_MODE_WAIT_S = 3.0
+_LAND_REREQUEST_S = 1.5
 
 
 @dataclass(frozen=True)
@@ -78,7 +76,8 @@ class OffboardConfig:
             = failsafe.
         engage_min_range_m: engage only above this range (never take over on the ground).
         touchdown_range_m: range at or below which (with a quiet gyro) the vehicle is down.
-        on_touchdown: ``disarm`` or ``hand_back`` (switch to the hold mode) after touchdown.
+        on_touchdown: ``disarm`` or ``hand_back`` (switch to the hold mode) after touchdown;
+            the string is taken and kept as a :class:`~companion.states.TouchdownAction`.
         hover_thrust: neutral thrust when the autopilot does not report its hover thrust.
         sync_timeout_s: wait at most this long for the telemetry stamped at a SITL frame's time.
         param_timeout_s: wait this long for the hover-thrust parameter before the fallback.
@@ -91,14 +90,18 @@ class OffboardConfig:
     engage_timeout_s: float = 3.0
     engage_min_range_m: float = 1.0
     touchdown_range_m: float = 0.15
-    on_touchdown: str = "disarm"
+    on_touchdown: TouchdownAction = TouchdownAction.DISARM
     hover_thrust: float = 0.5
     sync_timeout_s: float = 0.02
     param_timeout_s: float = 3.0
 
     def __post_init__(self) -> None:
-        if self.on_touchdown not in ("disarm", "hand_back"):
-            raise ValueError(f"on_touchdown = {self.on_touchdown!r}; expected disarm or hand_back")
+        try:
+            object.__setattr__(self, "on_touchdown", TouchdownAction(self.on_touchdown))
+        except ValueError:
+            raise ValueError(
+                f"on_touchdown = {self.on_touchdown!r}; expected disarm or hand_back"
+            ) from None
         if not self.prestream_s >= 1.0:
             raise ValueError(f"prestream_s = {self.prestream_s}; expected >= 1.0 (PX4 rule)")
         if not 2.0 < self.prestream_rate_hz <= 100.0:
@@ -112,40 +115,49 @@ class FlightOutcome:
     """How one flight of the companion ended."""
 
     index: int
-    result: str = "incomplete"
-    """``landed``, ``failsafe``, ``handed_back``, ``engage_failed``, ``aborted``, ``shadow``."""
+    result: FlightResult = FlightResult.INCOMPLETE
     reason: str = ""
     policy_commands: int = 0
     neutral_setpoints: int = 0
-    failsafe_reason: str | None = None
+    failsafe: Failsafe | None = None
     log_path: str | None = None
     events: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        """The report and log summary: plain strings (``failsafe_reason`` is the failsafe's
+        text, e.g. ``camera_stale: newest frame 309 ms old (> 300)``)."""
+        return {
+            "index": self.index,
+            "result": self.result.value,
+            "reason": self.reason,
+            "policy_commands": self.policy_commands,
+            "neutral_setpoints": self.neutral_setpoints,
+            "failsafe_reason": None if self.failsafe is None else str(self.failsafe),
+            "log_path": self.log_path,
+            "events": list(self.events),
+        }
 
 
-def assemble_observation(frame: ReceivedFrame, store: TelemetryStore) -> Observation:
-    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU.
+class FlightRecorder(Protocol):
+    """What the controller writes to its flight log (:class:`companion.record.CompanionLog`).
 
-    Raises:
-        ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
-    """
-    att, imu, rng = store.attitude, store.imu, store.range
-    if att is None or imu is None or rng is None:
-        raise ValueError("observation: attitude, IMU and range samples are all needed")
-    return Observation(
-        image=frame.image,
-        image_time_s=frame.time_s,
-        attitude_rad=att.attitude_rad,
-        rate_frd_rad_s=att.rate_frd_rad_s,
-        attitude_time_s=att.time_s,
-        range_m=rng.range_m,
-        range_time_s=rng.time_s,
-        accel_frd_m_s2=imu.accel_frd_m_s2,
-        imu_time_s=imu.time_s,
-        frame_id=frame.frame_id,
-    )
+    While ``deferring`` is set, writes are queued and :meth:`flush_pending` writes them after
+    the setpoint has left (logging never adds to the latency)."""
+
+    path: Path
+    deferring: bool
+
+    def frame(self, frame: ReceivedFrame) -> None: ...
+
+    def observation(self, t: float, body: dict[str, Any]) -> None: ...
+
+    def command(self, t: float, body: dict[str, Any]) -> None: ...
+
+    def event(self, t: float, kind: str, text: str, **extra: Any) -> None: ...
+
+    def flight_start(self, t: float, text: str, shadow: bool) -> None: ...
+
+    def flush_pending(self) -> None: ...
 
 
 def _frame_ms(frame: ReceivedFrame) -> int:
@@ -162,7 +174,7 @@ class FlightController:
         camera_clock: ``autopilot`` (SITL frames) or ``companion`` (a local camera).
         runtime: the policy runtime.
         safety: the safety monitor.
-        log: this flight's companion log.
+        log: this flight's log (a :class:`FlightRecorder`).
         pump: ``pump(timeout_s)`` receives MAVLink for up to ``timeout_s`` (frame sync).
         clock: the companion's monotonic clock.
         index: flight number.
@@ -176,7 +188,7 @@ class FlightController:
         camera_clock: str,
         runtime: PolicyRuntime,
         safety: SafetyMonitor,
-        log: CompanionLog,
+        log: FlightRecorder,
         pump: Callable[[float], None],
         clock: Callable[[], float],
         index: int = 0,
@@ -225,7 +237,7 @@ class FlightController:
         self.state = state
         self._entered_s = self._clock()
 
-    def _finish(self, result: str, reason: str) -> None:
+    def _finish(self, result: FlightResult, reason: str) -> None:
         if self.done:
             return
         self.outcome.result = result
@@ -340,8 +352,11 @@ class FlightController:
             elif result != _MAV_RESULT_IN_PROGRESS:
                 self._engage_attempts += 1
                 self._event("offboard_refused", f"DO_SET_MODE result {result}")
-                if self._engage_attempts >= 3:
-                    self._finish("engage_failed", f"OFFBOARD refused {self._engage_attempts} times")
+                if self._engage_attempts >= _ENGAGE_ATTEMPTS:
+                    self._finish(
+                        FlightResult.ENGAGE_FAILED,
+                        f"OFFBOARD refused {self._engage_attempts} times",
+                    )
                 else:
                     self._enter(FlightState.PRESTREAM, "retry after a refusal")
         elif self.state is FlightState.FAILSAFE and result == _MAV_RESULT_ACCEPTED:
@@ -361,48 +376,53 @@ class FlightController:
             self._start_flight("OFFBOARD confirmed in the HEARTBEAT")
         elif state is FlightState.FLYING and not self.cfg.shadow:
             if not armed:
-                self._finish("handed_back", "disarmed in flight by the autopilot or the pilot")
+                self._finish(
+                    FlightResult.HANDED_BACK, "disarmed in flight by the autopilot or the pilot"
+                )
             elif not profile.is_offboard(mode):
                 self._finish(
-                    "handed_back", f"mode changed to {profile.mode_name(mode)} (not by us)"
+                    FlightResult.HANDED_BACK,
+                    f"mode changed to {profile.mode_name(mode)} (not by us)",
                 )
         elif state is FlightState.FLYING and self.cfg.shadow and not armed:
-            self._finish("shadow", "disarmed")
+            self._finish(FlightResult.SHADOW, "disarmed")
         elif state is FlightState.TOUCHDOWN:
             if not armed:
-                self._finish("landed", "disarmed on the ground")
-            elif self.cfg.on_touchdown == "hand_back" and not profile.is_offboard(mode):
-                self._finish("landed", f"handed back in {profile.mode_name(mode)}")
+                self._finish(FlightResult.LANDED, "disarmed on the ground")
+            elif self.cfg.on_touchdown is TouchdownAction.HAND_BACK and not profile.is_offboard(
+                mode
+            ):
+                self._finish(FlightResult.LANDED, f"handed back in {profile.mode_name(mode)}")
         elif state is FlightState.FAILSAFE:
             if profile.is_land(mode):
                 self._land_confirmed = True
+            failsafe = self.outcome.failsafe
             if not armed:
-                self._finish("failsafe", f"{self.outcome.failsafe_reason}; landed and disarmed")
+                self._finish(FlightResult.FAILSAFE, f"{failsafe}; landed and disarmed")
             elif self._land_confirmed and not profile.is_land(mode):
                 self._finish(
-                    "failsafe",
-                    f"{self.outcome.failsafe_reason}; then {profile.mode_name(mode)} (pilot?)",
+                    FlightResult.FAILSAFE, f"{failsafe}; then {profile.mode_name(mode)} (pilot?)"
                 )
             elif (
                 not profile.is_land(mode)
                 and not profile.is_offboard(mode)
-                and (self._clock() - self._entered_s > 3.0)
+                and (self._clock() - self._entered_s > _FAILSAFE_MODE_WAIT_S)
             ):
                 self._finish(
-                    "failsafe",
-                    f"{self.outcome.failsafe_reason}; autopilot in {profile.mode_name(mode)}",
+                    FlightResult.FAILSAFE,
+                    f"{failsafe}; autopilot in {profile.mode_name(mode)}",
                 )
 
     def _start_flight(self, text: str) -> None:
         self.runtime.reset()
         self._flight_start_rx = self._clock()
         self._enter(FlightState.FLYING, text)
-        self.log.event(self._clock(), "flight_start", text, shadow=self.cfg.shadow)
+        self.log.flight_start(self._clock(), text, shadow=self.cfg.shadow)
 
     def on_link_event(self, kind: str, text: str) -> None:
         self._event("link_" + kind, text)
         if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
-            self._finish("aborted", "the autopilot restarted during the flight")
+            self._finish(FlightResult.ABORTED, "the autopilot restarted during the flight")
 
     # ------------------------------------------------------------------ frames
 
@@ -483,15 +503,15 @@ class FlightController:
         t_in = self._clock()
         self._sync(frame)
         now = self._clock()
-        reason = self.safety.check(now, self.store, frame.rx_s, self.runtime.privileged)
-        if reason is not None:
-            self._failsafe(reason)
+        failsafe = self.safety.check(now, self.store, frame.rx_s, self.runtime.privileged)
+        if failsafe is not None:
+            self._failsafe(failsafe)
             return
         obs = assemble_observation(frame, self.store)
         gt = self.store.odometry if self.runtime.privileged else None
         result = self.runtime.step(obs, gt)
         if result.command is None:
-            self._failsafe(f"policy_error: {result.error}")
+            self._failsafe(Failsafe(FailsafeReason.POLICY_ERROR, str(result.error)))
             return
         raw = result.command
         cmd, clamped = self.safety.clamp(raw)
@@ -540,21 +560,21 @@ class FlightController:
 
     def _on_touchdown(self) -> None:
         if self.cfg.shadow:
-            self._finish("shadow", "touchdown")
+            self._finish(FlightResult.SHADOW, "touchdown")
             return
         self._enter(FlightState.TOUCHDOWN, "touchdown (range + IMU): zero thrust")
-        if self.cfg.on_touchdown == "disarm":
+        if self.cfg.on_touchdown is TouchdownAction.DISARM:
             self.link.arm(False)
         else:
             self.link.request_mode(self.link.profile.hold, armed=True)
 
-    def _failsafe(self, reason: str) -> None:
-        self.outcome.failsafe_reason = reason
+    def _failsafe(self, failsafe: Failsafe) -> None:
+        self.outcome.failsafe = failsafe
         if self.cfg.shadow:
-            self._event("failsafe_shadow", f"would request LAND: {reason}")
-            self._finish("shadow", f"failsafe (shadow): {reason}")
+            self._event("failsafe_shadow", f"would request LAND: {failsafe}")
+            self._finish(FlightResult.SHADOW, f"failsafe (shadow): {failsafe}")
             return
-        self._enter(FlightState.FAILSAFE, f"{reason}: LAND requested, setpoints stopped")
+        self._enter(FlightState.FAILSAFE, f"{failsafe}: LAND requested, setpoints stopped")
         self._request_land()
 
     def _request_land(self) -> None:
@@ -593,24 +613,34 @@ class FlightController:
                 self._prestream(now)
             if now - self._entered_s > self.cfg.engage_timeout_s:
                 if self._mode_acked:
-                    self._failsafe("offboard_unconfirmed: ACK but no OFFBOARD in the HEARTBEAT")
+                    self._failsafe(
+                        Failsafe(
+                            FailsafeReason.OFFBOARD_UNCONFIRMED,
+                            "ACK but no OFFBOARD in the HEARTBEAT",
+                        )
+                    )
                 else:
                     self._engage_attempts += 1
-                    if self._engage_attempts >= 3:
-                        self._finish("engage_failed", "no answer to DO_SET_MODE OFFBOARD")
+                    if self._engage_attempts >= _ENGAGE_ATTEMPTS:
+                        self._finish(
+                            FlightResult.ENGAGE_FAILED, "no answer to DO_SET_MODE OFFBOARD"
+                        )
                     else:
                         self._enter(FlightState.PRESTREAM, "no ACK for OFFBOARD: retry")
         elif state is FlightState.FLYING:
-            reason = self.safety.check(
+            failsafe = self.safety.check(
                 now, self.store, self._last_frame_rx, self.runtime.privileged
             )
-            if reason is not None:
-                self._failsafe(reason)
+            if failsafe is not None:
+                self._failsafe(failsafe)
         elif state is FlightState.TOUCHDOWN:
-            if now - self._entered_s > 5.0:
-                self._finish("landed", "touchdown; no disarm seen within 5 s")
+            if now - self._entered_s > _TOUCHDOWN_DISARM_WAIT_S:
+                self._finish(
+                    FlightResult.LANDED,
+                    f"touchdown; no disarm seen within {_TOUCHDOWN_DISARM_WAIT_S:g} s",
+                )
         elif state is FlightState.FAILSAFE:
-            if not self._land_confirmed and now - self._last_mode_req_s > 1.5:
+            if not self._land_confirmed and now - self._last_mode_req_s > _LAND_REREQUEST_S:
                 self._request_land()
 
     def _prestream(self, now: float) -> None:
@@ -645,4 +675,4 @@ class FlightController:
             target = profile.land if mode == "land" else profile.hold
             self.link.request_mode(target, armed=self._armed())
             self._event("hand_back", f"{reason}: {mode.upper()} requested, setpoints stopped")
-        self._finish("aborted", reason)
+        self._finish(FlightResult.ABORTED, reason)

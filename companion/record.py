@@ -11,12 +11,16 @@ file was opened; every record also has ``time_s`` on that clock):
 * ``/companion/command`` — every command computed: the policy's raw output, what was (or in
   shadow mode would have been) sent after the clamps, ``sent``, and the latency from frame
   receipt to the setpoint leaving the socket (``latency_ms``) and the policy's share of it;
-* ``/events`` — state-machine transitions, link events, failsafes;
+* ``/events`` — state-machine transitions, link events, failsafes; ``flight_start`` marks where
+  the policy's state was reset (:meth:`CompanionLog.flight_start`; the replay resets there too);
 * ``/companion/summary`` — the flight's counters, last.
 
 Writes are queued while a frame is being answered and written after the setpoint is sent
 (:meth:`CompanionLog.flush_pending`), so logging never adds to the latency; the queue keeps
 receipt order, which is what makes a log replayable (:func:`replay_log`).
+
+:class:`CompanionLog` is what the flight controller writes through
+(:class:`companion.offboard.FlightRecorder`); this module does not import the controller.
 """
 
 from __future__ import annotations
@@ -33,9 +37,10 @@ import numpy as np
 from companion.camera import ReceivedFrame
 from companion.contract.topics import TOPIC_EVENTS, TOPIC_IMAGE
 from companion.flightlog import FlightLogWriter, read_log
-from companion.telemetry import TelemetryStore
+from companion.telemetry import TelemetryStore, assemble_observation
 
 __all__ = [
+    "EVENT_FLIGHT_START",
     "TOPIC_COMMAND",
     "TOPIC_OBSERVATION",
     "TOPIC_SUMMARY",
@@ -49,6 +54,8 @@ TOPIC_MAVLINK_IN = "/mavlink/in/"
 TOPIC_OBSERVATION = "/companion/observation"
 TOPIC_COMMAND = "/companion/command"
 TOPIC_SUMMARY = "/companion/summary"
+EVENT_FLIGHT_START = "flight_start"
+"""The ``/events`` kind written when the policy takes over (its state reset)."""
 
 
 def _jsonable_msg(msg: Any) -> dict[str, Any]:
@@ -133,6 +140,10 @@ class CompanionLog:
 
     def event(self, t: float, kind: str, text: str, **extra: Any) -> None:
         self._put(TOPIC_EVENTS, "visland.Event", t, {"kind": kind, "text": text, **extra})
+
+    def flight_start(self, t: float, text: str, shadow: bool) -> None:
+        """The policy takes over (state reset): where :func:`replay_log` resets it too."""
+        self.event(t, EVENT_FLIGHT_START, text, shadow=shadow)
 
     def close(self, summary: dict[str, Any] | None = None) -> None:
         self.flush_pending()
@@ -230,8 +241,6 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
     (a :class:`~companion.runtime.PolicyRuntime`), and compare each policy command with the one
     recorded (raw policy output, before the clamps).
     """
-    from companion.offboard import assemble_observation
-
     path = Path(path)
     report = ReplayReport(log=str(path))
     store = TelemetryStore()
@@ -249,7 +258,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
             )
             fid = int(msg["frame_number"])
             frames = {fid: ReceivedFrame(fid, float(msg["capture_time_s"]), img, msg["rx_s"])}
-        elif topic == TOPIC_EVENTS and msg.get("kind") == "flight_start":
+        elif topic == TOPIC_EVENTS and msg.get("kind") == EVENT_FLIGHT_START:
             runtime.reset()
         elif topic == TOPIC_COMMAND and msg.get("policy"):
             fid = int(msg["frame_id"])

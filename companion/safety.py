@@ -1,7 +1,7 @@
 """The safety monitor: when to stop flying the policy, and the limits on what it may command.
 
-Failsafe reasons (each ends the policy's control: the companion requests LAND and stops sending
-setpoints, so the autopilot flies the landing itself):
+Failsafe reasons (:class:`~companion.states.FailsafeReason`; each ends the policy's control: the
+companion requests LAND and stops sending setpoints, so the autopilot flies the landing itself):
 
 * ``camera_stale`` / ``telemetry_stale`` — the newest frame, ATTITUDE, HIGHRES_IMU or
   DISTANCE_SENSOR (and ODOMETRY for a privileged policy) was received more than ``max_age_s``
@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.contract import Command
+from companion.link import mavlink
+from companion.states import Failsafe, FailsafeReason
 from companion.telemetry import TelemetryStore
 
 __all__ = ["SafetyConfig", "SafetyError", "SafetyMonitor", "TouchdownDetector"]
@@ -78,27 +80,32 @@ class SafetyMonitor:
         store: TelemetryStore,
         last_frame_rx_s: float | None,
         need_odometry: bool,
-    ) -> str | None:
-        """The failsafe reason, or None when the inputs are fresh and sane."""
+    ) -> Failsafe | None:
+        """The failsafe, or None when the inputs are fresh and sane."""
         max_age = self.config.max_age_s
         frame_age = math.inf if last_frame_rx_s is None else now_s - last_frame_rx_s
         if frame_age > max_age:
-            return (
-                f"camera_stale: newest frame {frame_age * 1e3:.0f} ms old (> {max_age * 1e3:.0f})"
+            return Failsafe(
+                FailsafeReason.CAMERA_STALE,
+                f"newest frame {frame_age * 1e3:.0f} ms old (> {max_age * 1e3:.0f})",
             )
         names = ("attitude", "imu", "range") + (("odometry",) if need_odometry else ())
         age, worst = store.max_age_s(names, now_s)
         if age > max_age:
-            return f"telemetry_stale: {worst} {age * 1e3:.0f} ms old (> {max_age * 1e3:.0f})"
+            return Failsafe(
+                FailsafeReason.TELEMETRY_STALE,
+                f"{worst} {age * 1e3:.0f} ms old (> {max_age * 1e3:.0f})",
+            )
         last_valid = store.last_valid_range
         if (
             last_valid is not None
             and last_valid.range_m < self.config.near_ground_m
             and now_s - last_valid.rx_s > max_age
         ):
-            return (
-                f"range_invalid: no valid range for {(now_s - last_valid.rx_s) * 1e3:.0f} ms at "
-                f"{last_valid.range_m:.1f} m"
+            return Failsafe(
+                FailsafeReason.RANGE_INVALID,
+                f"no valid range for {(now_s - last_valid.rx_s) * 1e3:.0f} ms at "
+                f"{last_valid.range_m:.1f} m",
             )
         return None
 
@@ -151,7 +158,7 @@ class TouchdownDetector:
         landed = store.landed
         if landed is not None and landed.rx_s >= since_rx_s and landed.rx_s != self._landed_rx:
             self._landed_rx = landed.rx_s
-            if landed.landed_state != 1:
+            if landed.landed_state != mavlink.MAV_LANDED_STATE_ON_GROUND:
                 self._on_ground_since = None
             elif self._on_ground_since is None:
                 self._on_ground_since = landed.rx_s

@@ -6,6 +6,10 @@ is.
 One ``handle_<message>`` method per message (``SUBSCRIBES`` lists them); anything else is
 ignored. Malformed values (non-finite attitude, a range outside the sensor's limits) never raise:
 the sample is marked invalid or dropped and counted.
+
+:func:`assemble_observation` makes the policy's :class:`~companion.contract.Observation` from a
+camera frame and the newest samples: in flight (:mod:`companion.offboard`) and in a log's replay
+(:mod:`companion.record`) alike.
 """
 
 from __future__ import annotations
@@ -16,6 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.camera import ReceivedFrame
+from companion.contract import Observation
+
 __all__ = [
     "SUBSCRIBES",
     "AttitudeSample",
@@ -25,6 +32,7 @@ __all__ = [
     "OdometrySample",
     "RangeSample",
     "TelemetryStore",
+    "assemble_observation",
     "odometry_from_msg",
 ]
 
@@ -254,3 +262,26 @@ class TelemetryStore:
         """The stalest of ``names`` and its age."""
         worst = max(names, key=lambda n: self.age_s(n, now_s))
         return self.age_s(worst, now_s), worst
+
+
+def assemble_observation(frame: ReceivedFrame, store: TelemetryStore) -> Observation:
+    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU.
+
+    Raises:
+        ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
+    """
+    att, imu, rng = store.attitude, store.imu, store.range
+    if att is None or imu is None or rng is None:
+        raise ValueError("observation: attitude, IMU and range samples are all needed")
+    return Observation(
+        image=frame.image,
+        image_time_s=frame.time_s,
+        attitude_rad=att.attitude_rad,
+        rate_frd_rad_s=att.rate_frd_rad_s,
+        attitude_time_s=att.time_s,
+        range_m=rng.range_m,
+        range_time_s=rng.time_s,
+        accel_frd_m_s2=imu.accel_frd_m_s2,
+        imu_time_s=imu.time_s,
+        frame_id=frame.frame_id,
+    )

@@ -4,6 +4,12 @@ companion as separate processes (lockstep, loopback, free ports per test).
 Every subprocess is stopped by PID in a fixture's teardown, even when the test fails; every
 wait has a timeout. The flights start 5-6 m above the pad (rendering off: the expert is
 privileged and flies on ODOMETRY), so each card takes seconds.
+
+Real processes on a shared machine can be descheduled for a few hundred milliseconds, so no card
+depends on wall-clock luck: cards about something other than staleness give the companion a
+staleness limit far above a scheduler's hiccup (:data:`_RELAXED_MAX_AGE`), the stale-camera card
+checks only what a late loop pass cannot break, and the exact thresholds (299 ms: flying, 301 ms:
+failsafe) are asserted at fake times in ``tests/test_flight_controller.py``.
 """
 
 from __future__ import annotations
@@ -29,14 +35,21 @@ from companion.contract import Command, Observation
 from companion.contract.camera_packet import encode_frame
 from companion.contract.topics import TOPIC_COMPANION_COMMAND
 from companion.flightlog import read_log
-from companion.link import ARDUPILOT, PX4, LinkError, parse_connection
+from companion.link import ARDUPILOT, PX4, LinkError, mavlink, parse_connection
+from companion.offboard import OffboardConfig
 from companion.record import latency_stats, replay_log
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
+from companion.states import FailsafeReason
 from companion.telemetry import TelemetryStore, odometry_from_msg
 from training.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
+
+_RELAXED_MAX_AGE = ("--max-age-ms", "3000")
+"""For cards that test something other than staleness: the default 300 ms camera/telemetry limit
+was crossed (309 ms) by a real process on a loaded 2-core machine, and that failsafe is not what
+these cards are about (it is tested at fake times in tests/test_flight_controller.py)."""
 
 
 class _Msg(SimpleNamespace):
@@ -102,7 +115,7 @@ def test_udp_camera_source_assembles_frames_and_counts_bad_packets():
             tx.sendto(b"VLCMgarbage", ("127.0.0.1", port))
             tx.sendto(encode_frame(np.zeros((64, 64), np.uint8), 8, 0)[0], ("127.0.0.1", port))
         frames = []
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 10.0  # a bound for a stuck test only: it ends on arrival
         while time.monotonic() < deadline and (not frames or cam.bad_size == 0):
             frames += cam.poll()
             time.sleep(0.01)
@@ -230,9 +243,13 @@ def test_safety_monitor_stale_inputs_blind_ground_and_clamps():
     ):
         store.update(_Msg(name=name, **fields), 100.0)
     assert mon.check(100.1, store, 100.05, need_odometry=False) is None
-    assert mon.check(100.1, store, 99.7, False).startswith("camera_stale")
-    assert mon.check(100.5, store, 100.45, False).startswith("telemetry_stale")
-    assert "odometry" in mon.check(100.1, store, 100.05, need_odometry=True)
+    assert mon.check(100.1, store, 99.7, False).reason is FailsafeReason.CAMERA_STALE
+    stale = mon.check(100.5, store, 100.45, False)
+    assert stale.reason is FailsafeReason.TELEMETRY_STALE
+    assert str(stale) == "telemetry_stale: attitude 500 ms old (> 300)"
+    no_odometry = mon.check(100.1, store, 100.05, need_odometry=True)
+    assert no_odometry.reason is FailsafeReason.TELEMETRY_STALE
+    assert no_odometry.detail.startswith("odometry inf ms old")
     # near the ground the radar goes invalid: blind after max_age
     store.update(
         _Msg(
@@ -248,7 +265,7 @@ def test_safety_monitor_stale_inputs_blind_ground_and_clamps():
     )
     store.attitude = dataclasses.replace(store.attitude, rx_s=100.35)
     store.imu = dataclasses.replace(store.imu, rx_s=100.35)
-    assert mon.check(100.4, store, 100.38, False).startswith("range_invalid")
+    assert mon.check(100.4, store, 100.38, False).reason is FailsafeReason.RANGE_INVALID
     cmd, clipped = mon.clamp(Command(thrust_norm=0.5, rate_frd_rad_s=[2.0, -0.2, -3.0]))
     assert clipped and cmd.rate_frd_rad_s.tolist() == [1.0, -0.2, -0.5] and mon.clamped == 1
     with pytest.raises(ValueError, match="thrust clamp"):
@@ -296,9 +313,10 @@ def test_touchdown_needs_a_still_low_range_not_just_a_low_one():
     assert [rng(3000 + 100 * k, c) for k, c in enumerate([2, 0, 4, 1, 3, 2, 0, 1, 2])][-1]
     # the autopilot's land detector alone is enough
     det2 = TouchdownDetector()
-    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=1), 5.0)
+    on_ground = mavlink.MAV_LANDED_STATE_ON_GROUND
+    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.0)
     assert not det2.update(store, since_rx_s=4.0)  # once is not enough (1 cm above counts)
-    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=1), 5.2)
+    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.2)
     assert det2.update(store, since_rx_s=4.0) and not TouchdownDetector().update(store, 6.0)
 
 
@@ -329,7 +347,7 @@ def test_runtime_turns_policy_failures_into_errors_not_exceptions():
     assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 1.0
     rt.reset()
     assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 0.0
-    with pytest.raises(TypeError, match="not a companion.contract.Policy"):
+    with pytest.raises(TypeError, match=r"not a companion\.contract\.Policy"):
         PolicyRuntime(object(), "nothing")
 
 
@@ -355,6 +373,14 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
     with pytest.raises(CompanionError, match="expected one of"):
         load_toml(bad)
     assert CompanionConfig(**load_toml(REPO / "configs" / "companion.toml")).autopilot == "px4"
+    # the flight and safety defaults are OffboardConfig's and SafetyConfig's (typed once)
+    assert CompanionConfig().offboard_config() == OffboardConfig()
+    assert CompanionConfig().safety_config() == SafetyConfig()
+    tight = CompanionConfig(max_age_ms=120.0, max_rate_yaw_rad_s=0.5, on_touchdown="hand_back")
+    assert tight.safety_config().max_age_s == 0.12
+    assert tight.safety_config().max_rate_rad_s == (3.5, 3.5, 0.5)
+    with pytest.raises(ValueError, match="on_touchdown = 'land'; expected disarm or hand_back"):
+        CompanionConfig(on_touchdown="land").offboard_config()
 
 
 # --------------------------------------------------------------------------- flight cards
@@ -462,7 +488,9 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     procs, ports, low_scenario, tmp_path
 ):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
-    comp = procs.start("companion", _companion_args(ports.remote, ports.camera, comp_dir))
+    comp = procs.start(
+        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+    )
     sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir))
     assert sitl.wait(60) == 0, procs.text("sitl")
     assert comp.wait(20) == 0, procs.text("companion")  # --flights 1: it exits after landing
@@ -479,7 +507,11 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     cmds = [m for m in flight.topic(TOPIC_COMPANION_COMMAND) if m["policy"]]
     assert len(cmds) > 50 and all(m["sent"] for m in cmds)
     lat = latency_stats([log_path])
-    assert lat["commands"] == len(cmds) and lat["median_ms"] < 20.0
+    # Frame receipt -> setpoint sent, the policy's compute inside it. Not a speed test (a busy
+    # machine stretches it; tools/bench_companion.py measures it): the answer must only come
+    # before the next frame (100 ms) and include the policy's own time.
+    assert lat["commands"] == len(cmds) and 0.0 < lat["median_ms"] < 100.0
+    assert all(m["latency_ms"] >= m["compute_ms"] for m in cmds)
     # shadow replay: the same telemetry and frames, in receipt order, give the same commands
     from training.companion_process import resolve_policy
 
@@ -491,7 +523,9 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
 def test_card_companion_killed_mid_descent_sitl_failsafe_lands_it(procs, ports, tmp_path):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     scenario = REPO / "configs" / "scenario.toml"  # 75-100 m: time to kill it mid-descent
-    comp = procs.start("companion", _companion_args(ports.remote, ports.camera, comp_dir))
+    comp = procs.start(  # the SITL's failsafe must be the one that lands it, not the companion's
+        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+    )
     sitl = procs.start(
         "sitl", _sitl_args(ports, str(scenario), sitl_dir, "--lockstep-timeout-s", "0.05")
     )
@@ -561,12 +595,16 @@ def test_card_camera_stream_stopped_companion_requests_land_within_the_stale_lim
     flight = read_log(log_path)
     summary = flight.topic("/companion/summary")[-1]
     assert summary["result"] == "failsafe"
-    assert summary["failsafe_reason"].startswith("camera_stale")
+    reason, _, detail = summary["failsafe_reason"].partition(": ")
+    assert FailsafeReason(reason) is FailsafeReason.CAMERA_STALE and "newest frame" in detail
     last_frame_rx = max(m["rx_s"] for m in flight.topic("/camera/image"))
     t_fs = next(e["time_s"] for e in flight.topic("/events") if "LAND requested" in e["text"])
     t0 = min(m["rx_s"] - m["time_s"] for m in flight.topic("/camera/image"))  # log clock
     waited = t_fs - (last_frame_rx - t0)
-    assert 0.3 <= waited <= 0.3 + 0.1, waited  # the limit, plus at most a loop pass or two
+    # Never before the 300 ms limit. After it, a loaded machine may delay the loop pass that
+    # notices, so the bound here is only "well before the SITL's own offboard-loss failsafe"
+    # (10 frames x 0.5 s lockstep timeout); the exact 299/301 ms edge is tested at fake times.
+    assert 0.3 <= waited <= 0.3 + 2.0, waited
     sitl_flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
     texts = [e["text"] for e in sitl_flight.topic("/events")]
     assert any(
@@ -581,7 +619,12 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
     comp = procs.start(
         "companion",
         _companion_args(
-            ports.remote, ports.camera, tmp_path / "companion", "--link-timeout-s", "1.0"
+            ports.remote,
+            ports.camera,
+            tmp_path / "companion",
+            "--link-timeout-s",
+            "1.0",
+            *_RELAXED_MAX_AGE,
         ),
     )
     first = procs.start("sitl1", _sitl_args(ports, low_scenario, tmp_path / "sitl1"))
@@ -602,7 +645,9 @@ def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
     from training.fly import FlyConfig, fly
 
     kw = dict(policy="expert", episodes=3, seed=5, scenario=low_scenario)
-    over_udp = fly(FlyConfig(**kw, out=str(tmp_path / "fly"), progress=False))
+    over_udp = fly(
+        FlyConfig(**kw, out=str(tmp_path / "fly"), progress=False, companion_args=_RELAXED_MAX_AGE)
+    )
     here = evaluate(EvalConfig(**kw, render_camera=False, progress=False))
     assert over_udp["transport"] == "mavlink" and over_udp["episodes"] == 3
     assert over_udp["success_rate"] == here["success_rate"] == 1.0
@@ -614,7 +659,8 @@ def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
 def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_scenario, tmp_path):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(
-        "companion", _companion_args(ports.remote, ports.camera, comp_dir, "--shadow")
+        "companion",
+        _companion_args(ports.remote, ports.camera, comp_dir, "--shadow", *_RELAXED_MAX_AGE),
     )
     sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir, "--hold-timeout-s", "3"))
     procs.wait_text("companion", r"-> flying: shadow", 30.0)
@@ -637,7 +683,9 @@ def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_
 
 def test_card_sigterm_in_flight_hands_back_with_land_and_closes_the_log(procs, ports, tmp_path):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
-    comp = procs.start("companion", _companion_args(ports.remote, ports.camera, comp_dir))
+    comp = procs.start(  # SIGTERM must be what ends the flight (aborted), not a staleness failsafe
+        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+    )
     sitl = procs.start("sitl", _sitl_args(ports, str(REPO / "configs" / "scenario.toml"), sitl_dir))
     procs.wait_text("companion", r"-> flying", 30.0)
     time.sleep(0.3)
@@ -672,6 +720,7 @@ def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_
             scenario=low_scenario,
             out=str(tmp_path / "run"),
             progress=False,
+            companion_args=_RELAXED_MAX_AGE,
         )
     )
     assert report["episodes"] == 1 and report["latency_ms"]["commands"] > 10
