@@ -29,13 +29,15 @@ import threading
 import time
 import tomllib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
 from companion.offboard import FlightController, OffboardConfig
+from companion.options import option
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor
 from companion.states import FlightResult, TouchdownAction
@@ -58,10 +60,6 @@ class CompanionError(ValueError):
     """A configuration or start-up error (names the file/field and the expected value)."""
 
 
-def _opt(default: Any, help: str, arg_type: type | None = None, choices=None) -> Any:
-    return field(default=default, metadata={"help": help, "arg_type": arg_type, "choices": choices})
-
-
 _FLIGHT = {f.name: f.default for f in dataclasses.fields(OffboardConfig)}
 """OffboardConfig's defaults: the flight fields below take theirs from here."""
 _SAFETY = {f.name: f.default for f in dataclasses.fields(SafetyConfig)}
@@ -72,77 +70,81 @@ _SAFETY = {f.name: f.default for f in dataclasses.fields(SafetyConfig)}
 class CompanionConfig:
     """Everything ``visland companion`` takes; each field is a ``--flag`` and a TOML key."""
 
-    connect: str = _opt(
+    connect: str = option(
         "udpin:127.0.0.1:14540",
         "MAVLink connection: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyX or "
         "serial:/dev/ttyX:BAUD",
     )
-    baud: int = _opt(921_600, "serial baud rate")
-    autopilot: str = _opt("px4", "autopilot profile", choices=("px4", "ardupilot"))
-    camera: str = _opt(
+    baud: int = option(921_600, "serial baud rate")
+    autopilot: str = option("px4", "autopilot profile", choices=("px4", "ardupilot"))
+    camera: str = option(
         "udp:127.0.0.1:5600", "camera: udp:HOST:PORT (SITL), opencv:DEVICE|FILE|PIPELINE, mcap:LOG"
     )
-    camera_fx_px: float | None = _opt(None, "real camera: focal length fx in pixels", float)
-    camera_hfov_deg: float | None = _opt(None, "real camera: horizontal FOV (no intrinsics)", float)
-    camera_cx_px: float | None = _opt(
+    camera_fx_px: float | None = option(None, "real camera: focal length fx in pixels", float)
+    camera_hfov_deg: float | None = option(
+        None, "real camera: horizontal FOV (no intrinsics)", float
+    )
+    camera_cx_px: float | None = option(
         None, "real camera: principal point cx (default: centre)", float
     )
-    camera_cy_px: float | None = _opt(
+    camera_cy_px: float | None = option(
         None, "real camera: principal point cy (default: centre)", float
     )
-    camera_rotate_deg: int = _opt(0, "real camera: rotation (CCW) so image top = body forward")
-    camera_rate_hz: float = _opt(
+    camera_rotate_deg: int = option(0, "real camera: rotation (CCW) so image top = body forward")
+    camera_rate_hz: float = option(
         10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
     )
-    policy: str = _opt("", "policy checkpoint (visland companion also takes expert | cascade)")
-    runtime: str = _opt(
+    policy: str = option("", "policy checkpoint (visland companion also takes expert | cascade)")
+    runtime: str = option(
         "torch",
         "learned policy backend: torch, or onnx (ONNX Runtime on the visland export-onnx "
         "graphs beside the checkpoint; pip install 'visland[onnx]')",
         choices=("torch", "onnx"),
     )
-    torch_threads: int = _opt(1, "intra-op threads for the policy (torch or ONNX Runtime)")
-    shadow: bool = _opt(
+    torch_threads: int = option(1, "intra-op threads for the policy (torch or ONNX Runtime)")
+    shadow: bool = option(
         _FLIGHT["shadow"], "compute and log every command; send no setpoint, no mode change"
     )
-    arm: bool = _opt(
+    arm: bool = option(
         _FLIGHT["arm"], "arm when disarmed (SITL demo only; on hardware the pilot arms)"
     )
-    flights: int = _opt(1, "flights to fly before exiting (0: until stopped)")
-    signing_key: str | None = _opt(
+    flights: int = option(1, "flights to fly before exiting (0: until stopped)")
+    signing_key: str | None = option(
         None, "MAVLink 2 signing key: 64 hex digits or a passphrase", str
     )
-    sysid: int = _opt(0, "our MAVLink system id (0: the autopilot's)")
-    max_age_ms: float = _opt(
+    sysid: int = option(0, "our MAVLink system id (0: the autopilot's)")
+    max_age_ms: float = option(
         _SAFETY["max_age_s"] * 1000.0, "failsafe when camera or telemetry is older than this"
     )
-    near_ground_m: float = _opt(_SAFETY["near_ground_m"], "below this, no valid range = failsafe")
-    thrust_min: float = _opt(_SAFETY["thrust_min"], "thrust clamp, low")
-    thrust_max: float = _opt(_SAFETY["thrust_max"], "thrust clamp, high")
-    max_rate_rp_rad_s: float = _opt(_SAFETY["max_rate_rad_s"][0], "roll/pitch rate clamp")
-    max_rate_yaw_rad_s: float = _opt(_SAFETY["max_rate_rad_s"][2], "yaw rate clamp")
-    prestream_s: float = _opt(
+    near_ground_m: float = option(_SAFETY["near_ground_m"], "below this, no valid range = failsafe")
+    thrust_min: float = option(_SAFETY["thrust_min"], "thrust clamp, low")
+    thrust_max: float = option(_SAFETY["thrust_max"], "thrust clamp, high")
+    max_rate_rp_rad_s: float = option(_SAFETY["max_rate_rad_s"][0], "roll/pitch rate clamp")
+    max_rate_yaw_rad_s: float = option(_SAFETY["max_rate_rad_s"][2], "yaw rate clamp")
+    prestream_s: float = option(
         _FLIGHT["prestream_s"], "neutral setpoints streamed before requesting OFFBOARD"
     )
-    engage_min_range_m: float = _opt(
+    engage_min_range_m: float = option(
         _FLIGHT["engage_min_range_m"], "engage only above this radar range"
     )
-    touchdown_range_m: float = _opt(
+    touchdown_range_m: float = option(
         _FLIGHT["touchdown_range_m"], "radar range at or below which the vehicle is down"
     )
-    on_touchdown: str = _opt(
+    on_touchdown: str = option(
         _FLIGHT["on_touchdown"].value,
         "after touchdown",
         str,
         choices=tuple(action.value for action in TouchdownAction),
     )
-    on_exit: str = _opt("land", "mode requested on SIGINT/SIGTERM", choices=("land", "hold"))
-    hover_thrust: float = _opt(
+    on_exit: str = option("land", "mode requested on SIGINT/SIGTERM", choices=("land", "hold"))
+    hover_thrust: float = option(
         _FLIGHT["hover_thrust"], "neutral thrust if the autopilot does not report it"
     )
-    link_timeout_s: float = _opt(3.0, "no autopilot HEARTBEAT this long = link lost")
-    log_dir: str | None = _opt("runs/companion/flights", "folder for one MCAP log per flight", str)
-    max_wall_s: float | None = _opt(None, "exit after this many seconds (safety net)", float)
+    link_timeout_s: float = option(3.0, "no autopilot HEARTBEAT this long = link lost")
+    log_dir: str | None = option(
+        "runs/companion/flights", "folder for one MCAP log per flight", str
+    )
+    max_wall_s: float | None = option(None, "exit after this many seconds (safety net)", float)
 
     def __post_init__(self) -> None:
         if self.flights < 0:
@@ -210,24 +212,7 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     table = data.get("companion")
     if not isinstance(table, dict):
         raise CompanionError(f"{path}: expected a [companion] table")
-    names = {f.name: f for f in dataclasses.fields(CompanionConfig)}
-    for key, value in table.items():
-        f = names.get(key)
-        if f is None:
-            raise CompanionError(f"{path}: [companion] {key}: unknown key; known: {sorted(names)}")
-        expected = f.metadata.get("arg_type") or type(f.default)
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            table[key] = float(value)
-        elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise CompanionError(
-                f"{path}: [companion] {key} = {value!r}; expected {expected.__name__}"
-            )
-        choices = f.metadata.get("choices")
-        if choices and value not in choices:
-            raise CompanionError(
-                f"{path}: [companion] {key} = {value!r}; expected one of {choices}"
-            )
-    return table
+    return options.check_table(table, CompanionConfig, f"{path}: [companion]", CompanionError)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -237,28 +222,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--replay", type=Path, default=None, help="replay a companion log in shadow mode"
     )
     parser.add_argument("--json", action="store_true", help="(accepted; the report is JSON)")
-    for f in dataclasses.fields(CompanionConfig):
-        flag = "--" + f.name.replace("_", "-")
-        help_text = f"{f.metadata['help']} (default: {f.default})"
-        if isinstance(f.default, bool):
-            parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=None, help=help_text
-            )
-        else:
-            arg_type = f.metadata.get("arg_type") or type(f.default)
-            parser.add_argument(
-                flag, type=arg_type, default=None, help=help_text, choices=f.metadata["choices"]
-            )
+    options.add_arguments(parser, CompanionConfig, unset_is_none=True)  # None: not given
 
 
 def config_from_args(args: argparse.Namespace) -> CompanionConfig:
     values: dict[str, Any] = {}
     if args.config is not None:
         values.update(load_toml(args.config))
-    for f in dataclasses.fields(CompanionConfig):
-        v = getattr(args, f.name, None)
-        if v is not None:
-            values[f.name] = v
+    values.update(options.values_from_args(args, CompanionConfig))
     if values.get("log_dir") == "":
         values["log_dir"] = None
     return CompanionConfig(**values)
