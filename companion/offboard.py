@@ -53,8 +53,6 @@ __all__ = [
 log = logging.getLogger("visland.companion")
 
 _ZERO3 = np.zeros(3)
-_MAV_RESULT_ACCEPTED = 0
-_MAV_RESULT_IN_PROGRESS = 5
 _ENGAGE_ATTEMPTS = 3
 """OFFBOARD refused or unanswered this many times = ``engage_failed``."""
 _TOUCHDOWN_DISARM_WAIT_S = 5.0
@@ -345,11 +343,11 @@ class FlightController:
 
     def _on_mode_ack(self, result: int) -> None:
         if self.state is FlightState.ENGAGING and not self._mode_acked:
-            if result == _MAV_RESULT_ACCEPTED:
+            if result == mavlink.MAV_RESULT_ACCEPTED:
                 self._mode_acked = True
                 self._mode_change_ap_s = self.store.latest_time_s
                 self._event("offboard_ack", "OFFBOARD accepted")
-            elif result != _MAV_RESULT_IN_PROGRESS:
+            elif result != mavlink.MAV_RESULT_IN_PROGRESS:
                 self._engage_attempts += 1
                 self._event("offboard_refused", f"DO_SET_MODE result {result}")
                 if self._engage_attempts >= _ENGAGE_ATTEMPTS:
@@ -359,7 +357,7 @@ class FlightController:
                     )
                 else:
                     self._enter(FlightState.PRESTREAM, "retry after a refusal")
-        elif self.state is FlightState.FAILSAFE and result == _MAV_RESULT_ACCEPTED:
+        elif self.state is FlightState.FAILSAFE and result == mavlink.MAV_RESULT_ACCEPTED:
             self._land_confirmed = True
 
     def _on_heartbeat(self) -> None:
