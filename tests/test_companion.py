@@ -52,6 +52,11 @@ _RELAXED_MAX_AGE = ("--max-age-ms", "3000")
 was crossed (309 ms) by a real process on a loaded 2-core machine, and that failsafe is not what
 these cards are about (it is tested at fake times in tests/test_flight_controller.py)."""
 
+_PATIENT_LOCKSTEP = ("--lockstep-timeout-s", "5")
+"""For cards that compare flights: the SITL goes on without the companion's answer to a frame
+after 0.5 s of wall time by default, which a descheduled companion could reach and which would
+change the flight; these cards wait for every answer (a dead companion is another card)."""
+
 
 class _Msg(SimpleNamespace):
     """A stand-in for a decoded pymavlink message (its fields and get_type())."""
@@ -492,7 +497,7 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     comp = procs.start(
         "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
     )
-    sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir))
+    sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir, *_PATIENT_LOCKSTEP))
     assert sitl.wait(60) == 0, procs.text("sitl")
     assert comp.wait(20) == 0, procs.text("companion")  # --flights 1: it exits after landing
     res = _result(sitl_dir / "sitl_seed0_ep0000.mcap")
@@ -657,7 +662,13 @@ def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
 
     kw = dict(policy="expert", episodes=3, seed=5, scenario=low_scenario)
     over_udp = fly(
-        FlyConfig(**kw, out=str(tmp_path / "fly"), progress=False, companion_args=_RELAXED_MAX_AGE)
+        FlyConfig(
+            **kw,
+            out=str(tmp_path / "fly"),
+            progress=False,
+            companion_args=_RELAXED_MAX_AGE,
+            sitl_args=_PATIENT_LOCKSTEP,
+        )
     )
     here = evaluate(EvalConfig(**kw, render_camera=False, progress=False))
     assert over_udp["transport"] == "mavlink" and over_udp["episodes"] == 3
