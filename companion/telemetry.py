@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.contract import Observation
+from companion.contract import GroundTruth, Observation
 
 __all__ = [
     "SUBSCRIBES",
@@ -109,18 +109,12 @@ class LandedSample:
 
 
 @dataclass(frozen=True)
-class OdometrySample:
-    """ODOMETRY as ground truth (the SITL publishes it only with ``--groundtruth``).
+class OdometrySample(GroundTruth):
+    """ODOMETRY as ground truth (the SITL publishes it only with ``--groundtruth``): a
+    :class:`companion.contract.GroundTruth` (NED position, NED velocity, attitude quaternion
+    body FRD -> NED, FRD body rates, time; no acceleration or rotor thrusts) that also knows when
+    it was received, for the staleness check."""
 
-    Duck-typed like ``sitl_sim.simulator.GroundTruth`` for privileged policies: NED position,
-    NED velocity, attitude quaternion (body FRD -> NED), FRD body rates, time.
-    """
-
-    pos_ned_m: np.ndarray
-    vel_ned_m_s: np.ndarray
-    quat_wxyz: np.ndarray
-    rate_frd_rad_s: np.ndarray
-    time_s: float
     rx_s: float = 0.0
 
 
@@ -154,7 +148,14 @@ def odometry_from_msg(msg: Any, rx_s: float = 0.0) -> OdometrySample | None:
         vel = _rotation(q) @ vel
     elif msg.child_frame_id != _MAV_FRAME_LOCAL_NED:
         return None
-    return OdometrySample(pos, vel, q, rates, msg.time_usec * 1e-6, rx_s)
+    return OdometrySample(
+        time_s=msg.time_usec * 1e-6,
+        pos_ned_m=pos,
+        vel_ned_m_s=vel,
+        quat_wxyz=q,
+        rate_frd_rad_s=rates,
+        rx_s=rx_s,
+    )
 
 
 @dataclass

@@ -32,7 +32,13 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
     "companion/contract": (("companion.contract",), {"numpy", "pymavlink"}),
     "companion": (("companion",), COMPANION_THIRD_PARTY),
     "sitl_sim": (
-        ("sitl_sim", "companion.contract", "companion.flightlog", "companion.files"),
+        (
+            "sitl_sim",
+            "companion.contract",
+            "companion.flightlog",
+            "companion.files",
+            "companion.options",
+        ),
         {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL"},
     ),
     "expert": (

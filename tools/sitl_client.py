@@ -12,21 +12,18 @@ import socket
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import Command
 from companion.contract.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
+from companion.telemetry import OdometrySample, odometry_from_msg
 
 __all__ = [
     "OFFBOARD_CUSTOM_MODE",
     "ClientTimeout",
-    "GroundTruthMsg",
     "SitlClient",
-    "odometry_truth",
 ]
 
 OFFBOARD_CUSTOM_MODE = 6 << 16
@@ -36,35 +33,6 @@ HOLD_CUSTOM_MODE = (4 << 16) | (3 << 24)
 
 class ClientTimeout(TimeoutError):
     """A wait of the scripted client ran out (names what it waited for)."""
-
-
-@dataclass(frozen=True)
-class GroundTruthMsg:
-    """ODOMETRY decoded to NED: time (us), position, NED velocity, attitude quaternion."""
-
-    time_us: int
-    pos_ned_m: np.ndarray
-    vel_ned_m_s: np.ndarray
-    quat_wxyz: np.ndarray
-
-
-def odometry_truth(msg: Any) -> GroundTruthMsg:
-    """ODOMETRY (LOCAL_NED pose, BODY_FRD velocity) -> NED velocity."""
-    q = np.array(msg.q, dtype=float)
-    w, x, y, z = q
-    rot = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    return GroundTruthMsg(
-        time_us=int(msg.time_usec),
-        pos_ned_m=np.array([msg.x, msg.y, msg.z]),
-        vel_ned_m_s=rot @ np.array([msg.vx, msg.vy, msg.vz]),
-        quat_wxyz=q,
-    )
 
 
 class SitlClient:
@@ -251,14 +219,18 @@ class SitlClient:
                 self.frames_received += 1
                 return frame
 
-    def truth_at(self, time_us: int, timeout_s: float = 1.0) -> GroundTruthMsg:
-        """The ODOMETRY (needs ``--groundtruth``) stamped at ``time_us`` or later."""
+    def truth_at(self, time_us: int, timeout_s: float = 1.0) -> OdometrySample:
+        """The ODOMETRY (needs ``--groundtruth``) stamped at ``time_us`` or later, decoded as
+        the companion decodes it (``companion.telemetry.odometry_from_msg``)."""
         deadline = time.monotonic() + timeout_s
         while True:
             self.poll()
             msg = self.last.get("ODOMETRY")
             if msg is not None and msg.time_usec >= time_us:
-                return odometry_truth(msg)
+                truth = odometry_from_msg(msg)
+                if truth is None:
+                    raise ValueError(f"ODOMETRY at {msg.time_usec} us is not usable: {msg}")
+                return truth
             left = deadline - time.monotonic()
             if left <= 0:
                 raise ClientTimeout(f"no ODOMETRY at or after {time_us} us")

@@ -6,8 +6,7 @@ baseline) into policy objects built from the same vehicle/sim configs as the SIT
 them to :func:`companion.app.main`. Any other ``--policy`` is a learned checkpoint
 (``untrained`` / ``untrained-privileged``: a randomly initialised network of the shipped size,
 for latency benchmarks). Both privileged pilots read the companion's ODOMETRY record
-(duck-typed like ``sitl_sim.simulator.GroundTruth``), so the SITL must run with
-``--groundtruth``.
+(a ``companion.contract.GroundTruth``), so the SITL must run with ``--groundtruth``.
 """
 
 from __future__ import annotations

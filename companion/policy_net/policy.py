@@ -32,9 +32,9 @@ class PolicyState:
 class LearnedPolicy:
     """A trained policy: ``initial_state()`` / ``act(observation, groundtruth, state)``.
 
-    ``groundtruth`` is read only by privileged policies, duck-typed (any object with numpy
-    ``pos_ned_m`` and ``vel_ned_m_s``), so the simulator's GroundTruth and the companion's
-    ODOMETRY record both fit. Vision policies ignore it (pass ``None`` on hardware).
+    ``groundtruth`` (a :class:`companion.contract.GroundTruth`: the simulator's, or the
+    companion's ODOMETRY record) is read only by privileged policies. Vision policies ignore it
+    (pass ``None`` on hardware).
     """
 
     config: NetConfig
