@@ -8,7 +8,7 @@ the log; the process then prints a JSON report on stdout.
 
 Configuration: :class:`CompanionConfig` — defaults, then a TOML file (``--config``, table
 ``[companion]``, e.g. ``configs/companion.toml``), then command-line flags. The flight and safety
-settings' defaults are those of :class:`~companion.offboard.OffboardConfig` and
+settings' defaults are those of :class:`~companion.flight.OffboardConfig` and
 :class:`~companion.safety.SafetyConfig` (typed there, once); :meth:`CompanionConfig.offboard_config`
 and :meth:`CompanionConfig.safety_config` build them.
 ``--replay LOG`` runs a recorded log through the policy instead (shadow, no link) and reports
@@ -35,8 +35,9 @@ from typing import Any
 
 from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
+from companion.flight import OffboardConfig
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
-from companion.offboard import FlightController, OffboardConfig
+from companion.offboard import FlightController
 from companion.options import option
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor

@@ -20,7 +20,7 @@ Writes are queued while a frame is being answered and written after the setpoint
 receipt order, which is what makes a log replayable (:func:`replay_log`).
 
 :class:`CompanionLog` is what the flight controller writes through
-(:class:`companion.offboard.FlightRecorder`); this module does not import the controller.
+(:class:`companion.flight.FlightRecorder`); this module does not import the controller.
 """
 
 from __future__ import annotations

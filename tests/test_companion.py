@@ -35,9 +35,9 @@ from companion.camera import CameraError, UdpCameraSource, fit_to_policy, focal_
 from companion.contract import Command, Observation
 from companion.contract.camera_packet import encode_frame
 from companion.contract.topics import TOPIC_COMPANION_COMMAND
+from companion.flight import OffboardConfig
 from companion.flightlog import read_log
 from companion.link import ARDUPILOT, PX4, LinkError, mavlink, parse_connection
-from companion.offboard import OffboardConfig
 from companion.record import latency_stats, replay_log
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector

@@ -21,8 +21,9 @@ import pytest
 
 from companion.camera import ReceivedFrame
 from companion.contract import Command
+from companion.flight import OffboardConfig
 from companion.link import PX4, mavlink
-from companion.offboard import FlightController, OffboardConfig
+from companion.offboard import FlightController
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor
 from companion.states import Failsafe, FailsafeReason, FlightResult, FlightState, TouchdownAction
@@ -89,7 +90,7 @@ class FakeLink:
 
 
 class FakeRecorder:
-    """A :class:`companion.offboard.FlightRecorder` that keeps what it is given."""
+    """A :class:`companion.flight.FlightRecorder` that keeps what it is given."""
 
     def __init__(self) -> None:
         self.path = Path("fake.mcap")
