@@ -198,6 +198,11 @@ def plot_states(traces: dict[str, Trace], title: str, path: Path, prov: Provenan
                 ax.plot(tr.time_s, get(tr), color=_COLORS[row], linewidth=1.0, label=ROWS[row])
         ax.set_ylabel(label, fontsize=9)
         ax.grid(alpha=0.3)
+    return _finish_time_panels(fig, axes, title, path, prov)
+
+
+def _finish_time_panels(fig: Any, axes: Any, title: str, path: Path, prov: Provenance) -> Path:
+    """Time axis label on the bottom row, one legend, title; saved with the provenance line."""
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
@@ -228,12 +233,7 @@ def plot_inputs(traces: dict[str, Trace], title: str, path: Path, prov: Provenan
                 )
         ax.set_ylabel(label, fontsize=9)
         ax.grid(alpha=0.3)
-    for ax in axes[-1]:
-        ax.set_xlabel("time (s)")
-    axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    return _save(fig, path, prov)
+    return _finish_time_panels(fig, axes, title, path, prov)
 
 
 def draw_pad(ax: Any, success_circle: bool = True) -> None:
