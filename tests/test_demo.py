@@ -128,6 +128,10 @@ def _group(pgid: int) -> list[int]:
     return pids
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize(
     "target",
     ["demo process", pytest.param("process group (Ctrl-C)", marks=pytest.mark.slow)],
@@ -147,6 +151,10 @@ def test_ctrl_c_stops_both_processes(tmp_path, low_scenario, target):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group: the SITL and companion join it
+        # Ctrl-C must reach it however the test run was started: a background job of a
+        # non-interactive shell (`make test &`, nohup) inherits SIGINT ignored, and Python keeps
+        # an ignored SIGINT ignored (this test then hung until its timeout under such a run)
+        preexec_fn=_default_sigint,
     )
     try:
         deadline = time.monotonic() + 90
