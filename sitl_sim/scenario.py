@@ -22,7 +22,7 @@ from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
 
-__all__ = ["InitialState", "InitialStateSampler", "Scenario", "load_scenario"]
+__all__ = ["SECTIONS", "InitialState", "InitialStateSampler", "Scenario", "load_scenario"]
 
 _RANGE_KEYS = (
     "roll_pitch_deg",
@@ -76,11 +76,22 @@ class Scenario:
         return d
 
 
+SECTIONS = ("initial_state", "world")
+"""The tables a scenario file may hold; any other is refused (a misspelt section would
+otherwise fly the nominal world without a word)."""
+
+
 def load_scenario(path: str | Path | None = None) -> Scenario:
     """Read a scenario TOML (default ``configs/scenario.toml``) with the keys of DESIGN.md."""
     path = Path(path) if path is not None else CONFIG_DIR / "scenario.toml"
     data = load_toml(path)
     where = str(path)
+    unknown_sections = sorted(set(data) - set(SECTIONS))
+    if unknown_sections:
+        raise ConfigError(
+            f"{where}: unknown section(s) {['[' + s + ']' for s in unknown_sections]}; "
+            f"expected {['[' + s + ']' for s in SECTIONS]} (typo?)"
+        )
     init = data.get("initial_state")
     if not isinstance(init, dict):
         raise ConfigError(f"{where}: missing table [initial_state]")
@@ -105,6 +116,9 @@ def load_scenario(path: str | Path | None = None) -> Scenario:
     world_tbl = data.get("world", {})
     if not isinstance(world_tbl, dict):
         raise ConfigError(f"{where}: [world] must be a table")
+    unknown = sorted(set(world_tbl) - {"planet"})
+    if unknown:
+        raise ConfigError(f"{where}: [world] unknown key(s) {unknown}; expected ['planet']")
     name = world_tbl.get("planet", "earth")
     if name not in PLANETS:
         raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")

@@ -63,6 +63,19 @@ def test_unknown_key_is_reported(tmp_path):
         load_vehicle(path)
 
 
+def test_unknown_scenario_section_or_world_key_is_refused(tmp_path):
+    """A misspelt section used to be ignored silently: the flight went on in the nominal world."""
+    path = tmp_path / "scenario.toml"
+    path.write_text((CONFIG_DIR / "scenario.toml").read_text() + "\n[wnd]\nspeed_m_s = [0, 5]\n")
+    with pytest.raises(
+        ConfigError, match=r"scenario\.toml: unknown section\(s\) \['\[wnd\]'\]; expected"
+    ):
+        load_scenario(path)
+    path = _edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "earth"\nplanett = "x"')
+    with pytest.raises(ConfigError, match=r"\[world\] unknown key\(s\) \['planett'\]"):
+        load_scenario(path)
+
+
 def test_rates_must_be_integer_multiples(tmp_path):
     path = _edit(tmp_path, "sim.toml", "physics_rate_hz = 250", "physics_rate_hz = 255")
     with pytest.raises(
