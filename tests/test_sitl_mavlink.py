@@ -627,12 +627,15 @@ def test_ground_station_link_watches_and_commands_but_never_paces_lockstep(
         # The companion goes quiet; the ground station streams setpoints stamped far ahead.
         # They count as offboard proof of life (no failsafe) but answer no camera frame, so
         # every frame waits out lockstep_timeout_s: pacing belongs to the offboard link.
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 1.0:
+        # Counted in frames, not wall time, so a loaded machine cannot change the outcome: the
+        # ground station streams until the SITL has waited out three frames.
+        sent, deadline = 0, time.monotonic() + 30.0
+        while (sent < 50 or sitl.lockstep_timeouts < 3) and time.monotonic() < deadline:
             gcs.setpoint(hover, (0.0, 0.0, 0.0), 2**31)
+            sent += 1
             time.sleep(0.02)
-        assert 2 <= sitl.lockstep_timeouts <= 6
-        assert sitl.autopilot.mode is FlightMode.OFFBOARD
+        assert sitl.lockstep_timeouts >= 3
+        assert sitl.autopilot.mode is FlightMode.OFFBOARD  # proof of life: no failsafe
         assert gcs.command_long(mavlink.MAV_CMD_NAV_LAND) == ACCEPTED
         assert gcs.last["COMMAND_ACK"].target_system == 254  # answered to the ground station
         client.wait_for("HEARTBEAT", 3.0, lambda m: m.custom_mode == LAND_CUSTOM_MODE)
@@ -643,7 +646,7 @@ def test_ground_station_link_watches_and_commands_but_never_paces_lockstep(
     assert {m["link"] for m in commands} == {"offboard", "gcs"}
     land = next(m for m in commands if m["command"] == mavlink.MAV_CMD_NAV_LAND)
     assert land["link"] == "gcs" and land["src_system"] == 254
-    assert flight.topic("/episode/result")[0]["gcs_link_stats"]["rx_messages"] > 50
+    assert flight.topic("/episode/result")[0]["gcs_link_stats"]["rx_messages"] >= sent
 
 
 def test_ground_station_link_can_be_turned_off_and_a_taken_port_only_warns(
