@@ -12,7 +12,9 @@ Forces and torques:
 * quadratic body drag ``F_i = -1/2 rho C_D A_i |v_i| v_i`` per body axis, with ``v`` the
   air-relative velocity in FRD (bluff-body drag; Beard & McLain, *Small Unmanned Aircraft*,
   2012, sec. 4.2; the per-axis form as in Bangura & Mahony, "Nonlinear dynamic modeling for
-  high performance control of a quadrotor", ACRA 2012). Zero wind;
+  high performance control of a quadrotor", ACRA 2012). ``v = v_ground - v_wind`` when a wind is
+  given (as PX4's gazebo motor model and SIH form the apparent velocity), else the ground velocity
+  itself (no wind: the arithmetic of the windless model, unchanged);
 * roll/pitch torques from the rotors' lever arms (X configuration) and yaw torque from rotor
   drag, ``tau_z = k_m * sum(s_i T_i)`` with ``s_i = +1`` for CCW rotors;
 * Euler's rigid-body equation ``J w' = tau - w x J w``; quaternion kinematics
@@ -167,14 +169,23 @@ def make_state(
 
 
 def translational_accel_ned(
-    quat_wxyz, vel_ned_m_s, collective_thrust_n: float, phys: Physics
+    quat_wxyz,
+    vel_ned_m_s,
+    collective_thrust_n: float,
+    phys: Physics,
+    wind_ned_m_s=None,
 ) -> tuple[float, float, float]:
     """Acceleration (NED, m/s^2) from gravity, collective thrust along body -z and body drag.
 
     Used by :func:`derivative` and, through it or directly, by the MPC expert's linearisation.
+    ``wind_ned_m_s`` (3, NED, m/s): drag then acts on the air-relative velocity ``v - wind``;
+    None (the default) is still air, computed exactly as before wind existed (not ``v - 0``).
     """
     qw, qx, qy, qz = quat_wxyz
     vn, ve, vd = vel_ned_m_s
+    if wind_ned_m_s is not None:
+        wn, we, wd = wind_ned_m_s
+        vn, ve, vd = vn - wn, ve - we, vd - wd
     # Rotation body -> NED, row-major.
     r00 = 1 - 2 * (qy * qy + qz * qz)
     r01 = 2 * (qx * qy - qw * qz)
@@ -201,13 +212,14 @@ def translational_accel_ned(
     )
 
 
-def derivative(x, rotor_cmd_n, phys: Physics) -> list[float]:
-    """Time derivative of the 17-float state for commanded rotor thrusts ``rotor_cmd_n`` (4, N)."""
+def derivative(x, rotor_cmd_n, phys: Physics, wind_ned_m_s=None) -> list[float]:
+    """Time derivative of the 17-float state for commanded rotor thrusts ``rotor_cmd_n`` (4, N)
+    in the wind ``wind_ned_m_s`` (3, NED; None: still air, see :func:`translational_accel_ned`)."""
     qw, qx, qy, qz = x[6], x[7], x[8], x[9]
     p, q, r = x[10], x[11], x[12]
     t1, t2, t3, t4 = x[13], x[14], x[15], x[16]
     an, ae, ad = translational_accel_ned(
-        (qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys
+        (qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys, wind_ned_m_s
     )
     rx, ry = phys.rx, phys.ry
     tau_x = -(ry[0] * t1 + ry[1] * t2 + ry[2] * t3 + ry[3] * t4)
@@ -233,17 +245,21 @@ def derivative(x, rotor_cmd_n, phys: Physics) -> list[float]:
     return [x[3], x[4], x[5], an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, dt1, dt2, dt3, dt4]
 
 
-def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics) -> list[float]:
-    """One classic Runge-Kutta 4 step of :func:`derivative` (no ground, no renormalisation)."""
+def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> list[float]:
+    """One classic Runge-Kutta 4 step of :func:`derivative` (no ground, no renormalisation).
+
+    The wind is held for the whole step (zero-order hold): all four stages see the same
+    ``wind_ned_m_s``, as the commanded rotor thrusts are held.
+    """
     n = STATE_SIZE
-    k1 = derivative(x, rotor_cmd_n, phys)
+    k1 = derivative(x, rotor_cmd_n, phys, wind_ned_m_s)
     h = 0.5 * dt
     x2 = [x[i] + h * k1[i] for i in range(n)]
-    k2 = derivative(x2, rotor_cmd_n, phys)
+    k2 = derivative(x2, rotor_cmd_n, phys, wind_ned_m_s)
     x3 = [x[i] + h * k2[i] for i in range(n)]
-    k3 = derivative(x3, rotor_cmd_n, phys)
+    k3 = derivative(x3, rotor_cmd_n, phys, wind_ned_m_s)
     x4 = [x[i] + dt * k3[i] for i in range(n)]
-    k4 = derivative(x4, rotor_cmd_n, phys)
+    k4 = derivative(x4, rotor_cmd_n, phys, wind_ned_m_s)
     s = dt / 6.0
     return [x[i] + s * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(n)]
 
@@ -301,7 +317,7 @@ def _resolve_ground_contact(x_prev, x_new: list[float], t_prev: float, dt: float
     return out, event
 
 
-def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0):
+def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_s=None):
     """Advance the state by ``dt``: RK4, quaternion renormalisation, ground contact.
 
     Args:
@@ -310,13 +326,14 @@ def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0):
         dt: step length (s).
         phys: vehicle and planet constants.
         t_s: sim time at the start of the step (for the contact time stamp).
+        wind_ned_m_s: (3,) wind held over the step (NED, m/s), or None for still air.
 
     Returns:
         ``(x_next, contact)``: the new state as a list, and a :class:`ContactEvent` if the vehicle
         came down onto the ground during this step, else ``None``.
     """
     on_ground = x[2] >= 0.0
-    x_new = rk4_step(x, rotor_cmd_n, dt, phys)
+    x_new = rk4_step(x, rotor_cmd_n, dt, phys, wind_ned_m_s)
     n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
     x_new[6] /= n
     x_new[7] /= n

@@ -16,7 +16,8 @@
 each later ``reset()`` without a seed takes the next episode; ``options={"episode_index": i}``
 takes episode ``i`` of the seed, ``options={"initial_state": st}`` starts from a given
 :class:`~sitl_sim.scenario.InitialState`. Same seed, same actions: identical
-observations, bit for bit.
+observations, bit for bit. A scenario with ``[wind]`` flies episode ``i`` of seed ``s`` in the
+wind ``WindModel.for_episode(wind, s, i)`` (also with a given initial state).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
+from sitl_sim.wind import WindModel
 
 __all__ = ["ENV_ID", "LandingEnv", "observation_to_dict"]
 
@@ -117,7 +119,14 @@ class LandingEnv(gym.Env):
                 f"options['initial_state'] must be an InitialState, got {type(initial).__name__}"
             )
         self.initial_state = initial
-        self._sim.reset(initial, np.random.SeedSequence([self._seed, self._episode_index]))
+        wind = (
+            WindModel.for_episode(self.scenario.wind, self._seed, self._episode_index)
+            if self.scenario.wind is not None
+            else None
+        )
+        self._sim.reset(
+            initial, np.random.SeedSequence([self._seed, self._episode_index]), wind=wind
+        )
         self._frame = 0
         self.result = None
         truth = self._sim.ground_truth()

@@ -45,7 +45,7 @@ __all__ = [
 
 
 def groundtruth_msg(gt: GroundTruth, frame_id: int) -> dict[str, Any]:
-    return {
+    msg = {
         "frame_id": frame_id,
         "pos_ned_m": gt.pos_ned_m,
         "vel_ned_m_s": gt.vel_ned_m_s,
@@ -54,6 +54,9 @@ def groundtruth_msg(gt: GroundTruth, frame_id: int) -> dict[str, Any]:
         "accel_ned_m_s2": gt.accel_ned_m_s2,
         "rotor_thrust_n": gt.rotor_thrust_n,
     }
+    if gt.wind_ned_m_s is not None:  # only in a world with wind: still-air logs are unchanged
+        msg["wind_ned_m_s"] = gt.wind_ned_m_s
+    return msg
 
 
 def groundtruth_from_msg(msg: dict[str, Any]) -> GroundTruth:
@@ -73,6 +76,7 @@ def groundtruth_from_msg(msg: dict[str, Any]) -> GroundTruth:
         rate_frd_rad_s=vec("rate_frd_rad_s", 3),
         accel_ned_m_s2=vec("accel_ned_m_s2", 3),
         rotor_thrust_n=vec("rotor_thrust_n", 4),
+        wind_ned_m_s=vec("wind_ned_m_s", 3) if "wind_ned_m_s" in msg else None,
     )
 
 

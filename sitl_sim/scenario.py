@@ -3,6 +3,7 @@
 ``sampler = "sobol+uniform"`` (the paper's hybrid): a scrambled Sobol sequence covers the six
 dimensions that shape a landing (north, east, altitude, and the three velocities) evenly; roll,
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
+An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts.
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -21,6 +22,7 @@ from scipy.stats import qmc
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
+from sitl_sim.wind import WindConfig, wind_config_from_table
 
 __all__ = ["SECTIONS", "InitialState", "InitialStateSampler", "Scenario", "load_scenario"]
 
@@ -38,7 +40,8 @@ _SAMPLERS = ("sobol+uniform", "uniform")
 
 @dataclass(frozen=True)
 class Scenario:
-    """Ranges ``(lo, hi)`` of the initial state, the sampler and the planet."""
+    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet and the wind (None:
+    still air)."""
 
     roll_pitch_deg: tuple[float, float]
     yaw_deg: tuple[float, float]
@@ -50,6 +53,7 @@ class Scenario:
     sampler: str
     world: Planet
     source: str = "<memory>"
+    wind: WindConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -73,10 +77,14 @@ class Scenario:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["world"] = self.world.name
+        if self.wind is None:
+            del d["wind"]  # a still-air scenario's record (in every flight log) is unchanged
+        else:
+            d["wind"] = self.wind.to_dict()
         return d
 
 
-SECTIONS = ("initial_state", "world")
+SECTIONS = ("initial_state", "world", "wind")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -122,7 +130,8 @@ def load_scenario(path: str | Path | None = None) -> Scenario:
     name = world_tbl.get("planet", "earth")
     if name not in PLANETS:
         raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")
-    return Scenario(**ranges, sampler=str(sampler), world=planet(name), source=where)
+    wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
+    return Scenario(**ranges, sampler=str(sampler), world=planet(name), source=where, wind=wind)
 
 
 @dataclass(frozen=True)

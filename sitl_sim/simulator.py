@@ -2,7 +2,8 @@
 
 One :class:`Simulator` is one vehicle in one world. It knows nothing of episodes' start or end
 rules beyond reporting the first ground contact; the gymnasium env and the MAVLink SITL build on
-it. Randomness comes from the seed given to :meth:`Simulator.reset` only.
+it. Randomness comes from the seed given to :meth:`Simulator.reset` only (and, with wind, from the
+episode's :class:`~sitl_sim.wind.WindModel`, which carries its own generator).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from sitl_sim.rate_controller import RateController
 from sitl_sim.scenario import InitialState
 from sitl_sim.scene import Camera, Scene
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
+from sitl_sim.wind import WindModel
 
 __all__ = ["Simulator"]
 
@@ -54,11 +56,23 @@ class Simulator:
         self._rotor_cmd = [0.0] * 4
         self.contact: ContactEvent | None = None
         """The first ground contact since reset, if any."""
+        self.wind: WindModel | None = None
+        """This episode's wind (None: still air)."""
 
     # ------------------------------------------------------------------ lifecycle
 
-    def reset(self, initial: InitialState, seed: int | np.random.SeedSequence) -> None:
-        """Place the vehicle at ``initial`` (rotors at hover thrust), reseed every sensor."""
+    def reset(
+        self,
+        initial: InitialState,
+        seed: int | np.random.SeedSequence,
+        wind: WindModel | None = None,
+    ) -> None:
+        """Place the vehicle at ``initial`` (rotors at hover thrust), reseed every sensor.
+
+        ``wind``: the episode's wind, a fresh :class:`WindModel` (started here at the initial
+        position, then advanced once per physics step), or None for still air. The sensors'
+        streams do not depend on it, so a windless flight is the flight it always was.
+        """
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         imu_ss, att_ss, radar_ss, cam_ss = ss.spawn(4)
         self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))
@@ -82,6 +96,9 @@ class Simulator:
         self._step_count = 0
         self.rate_controller.reset()
         self.contact = None
+        self.wind = wind
+        if wind is not None:
+            wind.start(initial.pos_ned_m)
 
     def close(self) -> None:
         if self._owns_scene and self.scene is not None:
@@ -109,7 +126,12 @@ class Simulator:
         else:
             rotor_cmd = self.rate_controller.update(command, x[10:13], dt)
         self._rotor_cmd = rotor_cmd
-        x_new, event = step(x, rotor_cmd, dt, self.phys, self._t)
+        if self.wind is None:
+            x_new, event = step(x, rotor_cmd, dt, self.phys, self._t)
+        else:
+            # held over this step (zero-order hold); the model moves on to the step's end
+            wind = self.wind.step(dt, self._t, x[0:3], x[3:6])
+            x_new, event = step(x, rotor_cmd, dt, self.phys, self._t, wind_ned_m_s=wind)
         self._step_count += 1
         self._t = self._step_count * dt  # integer count: no drift in sim time
         self._x = x_new
@@ -134,7 +156,11 @@ class Simulator:
     def ground_truth(self) -> GroundTruth:
         x = self._state()
         arr = np.asarray(x)
-        d = derivative(x, self._rotor_cmd, self.phys)
+        if self.wind is None:
+            d = derivative(x, self._rotor_cmd, self.phys)
+        else:
+            # the wind now: what the next physics step holds
+            d = derivative(x, self._rotor_cmd, self.phys, self.wind.wind_tuple)
         accel = np.asarray(d[3:6])
         if x[2] >= 0.0 and accel[2] >= 0.0:
             accel = np.zeros(3)  # resting on the ground: the normal force balances the rest
@@ -146,6 +172,7 @@ class Simulator:
             rate_frd_rad_s=arr[LAYOUT.rate_frd_rad_s].copy(),
             accel_ned_m_s2=accel,
             rotor_thrust_n=arr[LAYOUT.rotor_thrust_n].copy(),
+            wind_ned_m_s=self.wind.wind_ned_m_s if self.wind is not None else None,
         )
 
     def observe(self, frame_id: int = 0, truth: GroundTruth | None = None) -> Observation:

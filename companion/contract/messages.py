@@ -145,6 +145,8 @@ class GroundTruth:
         rate_frd_rad_s: (3,) body rates.
         accel_ned_m_s2: (3,) acceleration, or None where the source has none (ODOMETRY).
         rotor_thrust_n: (4,) rotor thrusts, or None where the source has none (ODOMETRY).
+        wind_ned_m_s: (3,) wind at the vehicle (NED, m/s) in a simulated world with wind, else
+            None (still air, or a source that cannot know it).
     """
 
     time_s: float
@@ -154,6 +156,7 @@ class GroundTruth:
     rate_frd_rad_s: np.ndarray
     accel_ned_m_s2: np.ndarray | None = None
     rotor_thrust_n: np.ndarray | None = None
+    wind_ned_m_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Shapes only: finiteness is the producer's business (the simulator raises its own
@@ -165,7 +168,7 @@ class GroundTruth:
             ("rate_frd_rad_s", 3),
         ):
             object.__setattr__(self, name, _vec(name, getattr(self, name), n))
-        for name, n in (("accel_ned_m_s2", 3), ("rotor_thrust_n", 4)):
+        for name, n in (("accel_ned_m_s2", 3), ("rotor_thrust_n", 4), ("wind_ned_m_s", 3)):
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _vec(name, value, n))
