@@ -112,7 +112,7 @@ def test_a_60_degree_320x240_video_becomes_the_policy_45_degree_128px_view_at_10
 
 def test_a_file_plays_at_its_recorded_speed_and_the_config_opens_it(video):
     """Through the companion's own config → camera path: 30 frames at 30 fps take ~1 s and
-    give 10 frames ~0.1 s apart on the companion clock."""
+    give every third frame, none before its recorded time on the companion clock."""
     path, _ = video
     cfg = CompanionConfig(camera=f"opencv:{path}", camera_hfov_deg=HFOV_DEG)
     src = _open_camera(cfg)
@@ -121,11 +121,13 @@ def test_a_file_plays_at_its_recorded_speed_and_the_config_opens_it(video):
     frames = _read_all(src)
     wall = time.monotonic() - t0
     assert [f.frame_id for f in frames] == list(range(0, 30, 3))
-    gaps = np.diff([f.time_s for f in frames])
-    # recorded speed: not faster than 30 frames at 30 fps; the upper bound only catches a hang
-    # (a loaded 2-core CI machine may start the reader late, never early)
+    # Recorded speed: a frame is handed on at its media time after the first, never earlier
+    # (a loaded 2-core CI machine may wake the reader late, so lateness is not bounded here
+    # except as a hang: the upper wall bound). 1 ms covers the clock read after the wait.
+    t = np.array([f.time_s for f in frames]) - frames[0].time_s
+    media = np.array([f.frame_id for f in frames]) / 30.0
+    assert np.all(t >= media - 1e-3), (t, media)
     assert 0.85 <= wall <= 10.0, wall
-    assert np.all(np.abs(gaps - 0.1) < 0.05), gaps
 
 
 def test_lens_and_source_errors_name_the_value_and_the_fix(video, tmp_path):
