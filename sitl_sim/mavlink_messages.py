@@ -17,9 +17,10 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract import GroundTruth
 from sitl_sim.autopilot import FlightMode, base_mode, custom_mode
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
-from sitl_sim.simulator import GroundTruth, Simulator
+from sitl_sim.simulator import Simulator
 
 if TYPE_CHECKING:
     from sitl_sim.autopilot import Autopilot

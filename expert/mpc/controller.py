@@ -5,7 +5,8 @@ with the tuning of :mod:`expert.mpc.config`. Two cheap corrections, computed per
 same physics, keep the hover model honest away from hover:
 
 * the residual ``f(x0, u_hover) - A x0`` at the current state (mostly body drag, quadratic and
-  so invisible to a hover linearisation) is fed forward as a constant affine term;
+  so invisible to a hover linearisation; in wind the drag of the air-relative velocity, from the
+  privileged ``GroundTruth.wind_ned_m_s``) is fed forward as a constant affine term;
 * the rate loop follows a setpoint with a lag (``1/kp`` + rotor lag, from the vehicle config)
   the model does not have, so the start attitude is led by the rotation still under way.
 
@@ -148,7 +149,7 @@ class MpcExpert:
         if groundtruth is None:
             raise MissingGroundTruthError(
                 "MpcExpert is a privileged policy: act() needs groundtruth (a "
-                "sitl_sim.simulator.GroundTruth); it cannot fly from an Observation alone"
+                "companion.contract.GroundTruth); it cannot fly from an Observation alone"
             )
         yaw_hold = state.yaw_hold_rad
         if yaw_hold is None:
@@ -161,6 +162,7 @@ class MpcExpert:
             groundtruth.quat_wxyz,
             yaw_hold,
             groundtruth.rate_frd_rad_s,
+            groundtruth.wind_ned_m_s,
         )
         self.last_plan = plan
         return plan.command, state
@@ -227,6 +229,7 @@ class MpcExpert:
         quat_wxyz: np.ndarray,
         yaw_hold_rad: float | None = None,
         rate_frd_rad_s: np.ndarray | None = None,
+        wind_ned_m_s: np.ndarray | None = None,
     ) -> MpcPlan:
         """Solve the MPC at one state (ground truth, NED/FRD) and return the plan.
 
@@ -237,6 +240,9 @@ class MpcExpert:
             yaw_hold_rad: heading to hold (default: the current yaw).
             rate_frd_rad_s: (3,) current body rates; when given, the attitude the model starts
                 from is led by the rotation still under way (see :meth:`_lead_attitude`).
+            wind_ned_m_s: (3,) the true wind now (privileged, ``GroundTruth.wind_ned_m_s``);
+                its drag at the current state joins the affine residual, i.e. it is fed
+                forward as a disturbance held over the horizon. None: still air.
 
         Raises:
             MpcSolveError: neither OSQP nor Clarabel solved the QP.
@@ -268,9 +274,14 @@ class MpcExpert:
                 0.0,
             ]
         )
-        # Affine residual of the nonlinear model at x0 with hover input (mostly body drag).
+        # Affine residual of the nonlinear model at x0 with hover input (mostly body drag; in
+        # wind, the drag of the air-relative velocity: the wind's push, fed forward).
+        wind_h = None
+        if wind_ned_m_s is not None:
+            wn, we, wd = (float(v) for v in wind_ned_m_s)
+            wind_h = (c * wn + s * we, -s * wn + c * we, wd)  # heading frame, as x0
         acc = translational_accel_ned(
-            quat_from_euler(roll, pitch, 0.0), x0[VEL], self._hover_thrust_n, self.phys
+            quat_from_euler(roll, pitch, 0.0), x0[VEL], self._hover_thrust_n, self.phys, wind_h
         )
         resid = np.zeros(NX)
         resid[VEL] = np.asarray(acc) - model.a[VEL] @ x0
