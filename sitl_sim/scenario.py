@@ -24,7 +24,14 @@ from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
 from sitl_sim.wind import WindConfig, wind_config_from_table
 
-__all__ = ["SECTIONS", "InitialState", "InitialStateSampler", "Scenario", "load_scenario"]
+__all__ = [
+    "SECTIONS",
+    "InitialState",
+    "InitialStateSampler",
+    "Scenario",
+    "load_scenario",
+    "scenario_from_dict",
+]
 
 _RANGE_KEYS = (
     "roll_pitch_deg",
@@ -92,8 +99,15 @@ otherwise fly the nominal world without a word)."""
 def load_scenario(path: str | Path | None = None) -> Scenario:
     """Read a scenario TOML (default ``configs/scenario.toml``) with the keys of DESIGN.md."""
     path = Path(path) if path is not None else CONFIG_DIR / "scenario.toml"
-    data = load_toml(path)
-    where = str(path)
+    return scenario_from_dict(load_toml(path), str(path))
+
+
+def scenario_from_dict(data: Any, where: str) -> Scenario:
+    """Check and type a scenario table (the parsed contents of a scenario file, or a table
+    inline in another file); ``where`` starts every ConfigError message (the file, or e.g.
+    ``suite.toml: [conditions.windy]``) and becomes the scenario's ``source``."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table of scenario sections, got {data!r}")
     unknown_sections = sorted(set(data) - set(SECTIONS))
     if unknown_sections:
         raise ConfigError(

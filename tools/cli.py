@@ -18,6 +18,11 @@ from training.transport import Transport
 __all__ = ["main"]
 
 
+_EVAL_EPISODES = 20
+_EVAL_SEED = 1_000_000
+"""``visland eval``'s defaults without ``--suite``."""
+
+
 def _print_json(obj: Any) -> None:
     """One JSON document on stdout; NaN (e.g. no touchdown) is null: "not defined"."""
     from companion.flightlog import jsonable
@@ -109,9 +114,54 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_suite(args: argparse.Namespace) -> int:
+    from training.suite import format_suite_table, load_suite, plot_suite, run_suite
+
+    clash = [
+        flag
+        for flag, given in (
+            ("--scenario", args.scenario is not None),
+            ("--transport mavlink", args.transport == Transport.MAVLINK),
+        )
+        if given
+    ]
+    if clash:
+        print(
+            f"visland eval: --suite cannot be combined with {' or '.join(clash)} (each suite "
+            "condition names its own scenario; suites fly in process)",
+            file=sys.stderr,
+        )
+        return 2
+    report = run_suite(
+        load_suite(args.suite),
+        args.policy,
+        episodes=args.episodes,
+        seed=args.seed,
+        workers=args.workers,
+        render_camera=not args.no_camera,
+        progress=not args.json,
+    )
+    if args.plot is not None:
+        png = plot_suite(report, args.plot)
+        print(f"plot: {png}", file=sys.stderr if args.json else sys.stdout)
+    if args.json:
+        _print_json(report)
+    else:
+        format_suite_table(report, sys.stdout)
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from training.evaluate import EvalConfig, evaluate, format_table
 
+    if args.suite is not None:
+        return _cmd_eval_suite(args)
+    if args.plot is not None:
+        print("visland eval: --plot needs --suite", file=sys.stderr)
+        return 2
+    # --episodes and --seed default to None so that a suite file's values stand unless given
+    args.episodes = _EVAL_EPISODES if args.episodes is None else args.episodes
+    args.seed = _EVAL_SEED if args.seed is None else args.seed
     if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
         return _cmd_fly(args)
     report = evaluate(
@@ -369,11 +419,38 @@ def _parser() -> argparse.ArgumentParser:
     add_sitl_arguments(st)
     st.set_defaults(func=_cmd_sitl)
 
-    e = sub.add_parser("eval", help="fly a policy over the scenario and print landing metrics")
+    e = sub.add_parser(
+        "eval",
+        help="fly a policy over the scenario (or a benchmark suite) and print landing metrics",
+    )
     e.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
-    e.add_argument("--episodes", type=int, default=20)
-    e.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
+    e.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help=f"episodes (default {_EVAL_EPISODES}; with --suite: per condition, default the "
+        "suite file's)",
+    )
+    e.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help=f"disjoint from training seeds (default {_EVAL_SEED}; with --suite: the suite file's)",
+    )
     e.add_argument("--scenario", type=Path, default=None)
+    e.add_argument(
+        "--suite",
+        type=Path,
+        default=None,
+        help="benchmark suite TOML (e.g. configs/suites/standard.toml): every named condition "
+        "is flown and reported; not with --scenario or --transport mavlink",
+    )
+    e.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        help="with --suite: PNG of success rate and mean landing error per condition",
+    )
     e.add_argument(
         "--workers",
         type=int,

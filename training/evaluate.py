@@ -17,6 +17,7 @@ from typing import Any, TextIO
 from tqdm import tqdm
 
 from sitl_sim.metrics import summarize
+from sitl_sim.scenario import Scenario
 from training.rollout import (
     EpisodeOutcome,
     RolloutSpec,
@@ -38,7 +39,9 @@ class EvalConfig:
     episodes: int = 20
     seed: int = 1_000_000
     """Evaluation seed; keep it disjoint from training/collection seeds."""
-    scenario: str | None = None
+    scenario: str | Scenario | None = None
+    """A scenario file (None: ``configs/scenario.toml``) or a checked scenario, e.g. one of a
+    benchmark suite's inline conditions (reported by its ``source``)."""
     workers: int = 1
     render_camera: bool = True
     """Render the camera (needed by vision policies; privileged ones can skip it)."""
@@ -57,6 +60,12 @@ def _progress(total: int, enabled: bool, desc: str):
     return tqdm(total=total, desc=desc, unit="ep", file=sys.stderr, disable=not enabled)
 
 
+def _scenario_name(scenario: str | Scenario | None) -> str:
+    if isinstance(scenario, Scenario):
+        return scenario.source
+    return scenario or "configs/scenario.toml"
+
+
 def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
@@ -73,7 +82,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
         "policy": cfg.policy,
         "transport": Transport.INPROCESS.value,
         "seed": cfg.seed,
-        "scenario": cfg.scenario or "configs/scenario.toml",
+        "scenario": _scenario_name(cfg.scenario),
         **summarize(results),
         "policy_stats": _totals(outcomes),
         "wall_s": time.perf_counter() - t0,

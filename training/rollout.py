@@ -25,6 +25,7 @@ from sitl_sim.flight_record import (
     write_episode_start,
 )
 from sitl_sim.metrics import EpisodeResult
+from sitl_sim.scenario import Scenario
 from training.provenance import git_commit
 
 __all__ = [
@@ -65,7 +66,8 @@ class RolloutSpec:
 
     policy: str = "expert"
     seed: int = 0
-    scenario: str | None = None
+    scenario: str | Scenario | None = None
+    """A scenario file, or a checked scenario (e.g. a benchmark suite's inline condition)."""
     vehicle: str | None = None
     sim: str | None = None
     render_camera: bool = True

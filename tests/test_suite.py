@@ -1,0 +1,218 @@
+"""Benchmark suites (``visland eval --suite``): a suite flies each condition exactly as
+``evaluate()`` does, bad suite files are ConfigErrors naming file and condition, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sitl_sim.errors import ConfigError
+from training.evaluate import EvalConfig, evaluate
+from training.suite import REPO_ROOT, load_suite, plot_suite, run_suite
+
+# Low starts keep each episode short (a few simulated seconds).
+LOW_INITIAL_STATE = """
+roll_pitch_deg = [-1.5, 1.5]
+yaw_deg = [-180.0, 180.0]
+north_east_m = [-1.0, 1.0]
+altitude_m = [5.0, 6.0]
+vel_north_east_m_s = [-0.2, 0.2]
+vel_down_m_s = [0.0, 0.2]
+rate_rad_s = [0.0, 0.0]
+"""
+LOW_WIND = """
+speed_m_s = [2.0, 4.0]
+direction_deg = [0.0, 360.0]
+turbulence = "light"
+gust_m_s = [0.5, 1.0]
+"""
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture
+def low_file(tmp_path) -> Path:
+    return _write(tmp_path / "low.toml", f"[initial_state]\n{LOW_INITIAL_STATE}")
+
+
+def _rows(report: dict) -> str:
+    return json.dumps(report["per_episode"], sort_keys=True)  # NaN-safe equality
+
+
+def test_suite_conditions_fly_exactly_as_evaluate(tmp_path, low_file):
+    suite_path = _write(
+        tmp_path / "suite.toml",
+        f"""
+[suite]
+episodes = 5
+seed = 4242
+
+[conditions.from_file]
+scenario = "{low_file}"
+
+[conditions.inline_wind.scenario.initial_state]
+{LOW_INITIAL_STATE}
+[conditions.inline_wind.scenario.world]
+planet = "earth"
+[conditions.inline_wind.scenario.wind]
+{LOW_WIND}
+""",
+    )
+    suite = load_suite(suite_path)
+    assert [c.name for c in suite.conditions] == ["from_file", "inline_wind"]
+    assert suite.conditions[1].scenario.wind is not None
+    report = run_suite(suite, "expert", episodes=2, seed=77, render_camera=False, progress=False)
+    assert report["suite"] == str(suite_path)
+    assert (report["episodes"], report["seed"]) == (2, 77)
+    assert list(report["conditions"]) == ["from_file", "inline_wind"]
+
+    wind_file = _write(
+        tmp_path / "wind.toml",
+        f"[initial_state]\n{LOW_INITIAL_STATE}\n[world]\nplanet = 'earth'\n[wind]\n{LOW_WIND}",
+    )
+    for name, scenario in (("from_file", low_file), ("inline_wind", wind_file)):
+        direct = evaluate(
+            EvalConfig(
+                policy="expert",
+                episodes=2,
+                seed=77,
+                scenario=str(scenario),
+                render_camera=False,
+                progress=False,
+            )
+        )
+        got = report["conditions"][name]
+        assert got["episodes"] == 2 and got["seed"] == 77
+        assert _rows(got) == _rows(direct), name
+        assert got["success_rate"] == direct["success_rate"]
+    assert report["conditions"]["inline_wind"]["scenario"] == (
+        f"{suite_path}: [conditions.inline_wind]"
+    )
+
+    png = plot_suite(report, tmp_path / "out" / "suite.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_relative_scenario_paths_resolve_against_the_repository(tmp_path, monkeypatch):
+    suite_path = _write(
+        tmp_path / "s.toml", '[conditions.windy]\nscenario = "configs/scenario_wind.toml"\n'
+    )
+    monkeypatch.chdir(tmp_path)
+    suite = load_suite(suite_path)
+    assert (suite.episodes, suite.seed) == (50, 1_000_000)  # defaults without [suite]
+    (cond,) = suite.conditions
+    assert cond.scenario.source == str(REPO_ROOT / "configs/scenario_wind.toml")
+    assert cond.file == "configs/scenario_wind.toml" and cond.scenario.wind is not None
+
+
+def test_the_standard_suite_loads():
+    suite = load_suite(REPO_ROOT / "configs/suites/standard.toml")
+    names = [c.name for c in suite.conditions]
+    assert names == ["nominal", "wide_initial_states", "wind_moderate_gusts", "wind_severe", "mars"]
+    by = {c.name: c.scenario for c in suite.conditions}
+    assert by["wind_severe"].wind.turbulence == "severe"
+    assert by["wide_initial_states"].north_east_m == (-10.0, 10.0)
+    assert by["mars"].world.name == "mars"
+    assert (suite.episodes, suite.seed) == (50, 1_000_000)
+
+
+@pytest.mark.parametrize(
+    ("body", "expected"),
+    [
+        (
+            "[suite]\nepisodes = 2\nrepeats = 3\n",
+            ["[suite] unknown key(s) ['repeats']", "expected ['episodes', 'seed']"],
+        ),
+        ("[sutie]\nepisodes = 2\n", ["top level unknown key(s) ['sutie']"]),
+        (
+            '[conditions.a]\nscenario = "configs/scenario.toml"\nweight = 2\n',
+            ["[conditions.a] unknown key(s) ['weight']", "expected ['scenario']"],
+        ),
+        (
+            "[conditions.b.scenario.initial_state]\n"
+            + LOW_INITIAL_STATE
+            + "[conditions.b.scenario.wnd]\nspeed_m_s = [1.0, 2.0]\n",
+            ["[conditions.b]: unknown section(s) ['[wnd]']", "expected ['[initial_state]'"],
+        ),
+        (
+            "[conditions.c.scenario.initial_state]\n"
+            + LOW_INITIAL_STATE
+            + "[conditions.c.scenario.world]\nplanet = 'venus'\n",
+            ["[conditions.c]: [world] planet = 'venus'"],
+        ),
+        (
+            '[conditions.d]\nscenario = "configs/no_such_scenario.toml"\n',
+            ["[conditions.d] scenario = 'configs/no_such_scenario.toml': file not found"],
+        ),
+        ("[conditions.e]\n", ["[conditions.e] has no scenario"]),
+        ("[suite]\nepisodes = 0\n[conditions.f]\nscenario = 'x'\n", ["[suite] episodes = 0"]),
+        ("[suite]\nepisodes = 2\n", ["no [conditions.NAME] tables"]),
+    ],
+)
+def test_bad_suite_files_name_file_and_condition(tmp_path, body, expected):
+    path = _write(tmp_path / "bad_suite.toml", body)
+    with pytest.raises(ConfigError) as err:
+        load_suite(path)
+    msg = str(err.value)
+    assert msg.startswith(f"{path}: "), msg
+    for part in expected:
+        assert part in msg, msg
+
+
+def test_missing_suite_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        load_suite(tmp_path / "nope.toml")
+
+
+def _visland(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO_ROOT,
+    )
+
+
+def test_cli_suite_json_and_plot(tmp_path, low_file):
+    suite_path = _write(
+        tmp_path / "one.toml", f'[suite]\nepisodes = 3\n[conditions.low]\nscenario = "{low_file}"\n'
+    )
+    png = tmp_path / "suite.png"
+    proc = _visland(
+        "eval", "--suite", str(suite_path), "--episodes", "1", "--no-camera", "--json",
+        "--plot", str(png),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["suite"] == str(suite_path)
+    assert (report["episodes"], report["seed"], report["policy"]) == (1, 1_000_000, "expert")
+    low = report["conditions"]["low"]
+    assert low["episodes"] == 1 and len(low["per_episode"]) == 1
+    assert low["scenario"] == str(low_file) and low["transport"] == "inprocess"
+    assert png.is_file()
+
+
+@pytest.mark.parametrize(
+    ("extra", "flag"),
+    [
+        (["--scenario", "configs/scenario.toml"], "--scenario"),
+        (["--transport", "mavlink"], "--transport mavlink"),
+    ],
+)
+def test_cli_suite_refuses_scenario_and_mavlink(extra, flag):
+    proc = _visland("eval", "--suite", "configs/suites/standard.toml", *extra)
+    assert proc.returncode == 2
+    assert "--suite" in proc.stderr and flag in proc.stderr, proc.stderr
+
+
+def test_cli_plot_without_suite_is_a_usage_error():
+    proc = _visland("eval", "--plot", "x.png", "--episodes", "1")
+    assert proc.returncode == 2 and "--plot needs --suite" in proc.stderr

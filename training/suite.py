@@ -1,0 +1,252 @@
+"""``visland eval --suite FILE``: a benchmark suite — named conditions, each a complete scenario,
+flown by the same :func:`training.evaluate.evaluate` as ``visland eval``.
+
+A suite file (TOML, e.g. ``configs/suites/standard.toml``)::
+
+    [suite]                      # optional; both keys optional
+    episodes = 50                # per condition (``--episodes`` overrides)
+    seed = 1000000               # evaluation seed (``--seed`` overrides)
+
+    [conditions.nominal]
+    scenario = "configs/scenario.toml"   # a scenario file: relative to the repository root
+
+    [conditions.windy.scenario.initial_state]   # or inline: the sections of a scenario file
+    roll_pitch_deg = [-1.5, 1.5]
+    ...
+    [conditions.windy.scenario.wind]
+    ...
+
+An inline scenario is checked by the code that checks scenario files
+(:func:`sitl_sim.scenario.scenario_from_dict`); its errors name ``<suite file>:
+[conditions.<name>]``. Conditions fly one after another, in file order, each over the worker
+processes; every condition uses the same seed, so episode ``i`` starts from the same sample of
+its scenario's ranges as episode ``i`` of ``visland eval --scenario ... --seed ...``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+from sitl_sim.config import load_toml
+from sitl_sim.errors import ConfigError
+from sitl_sim.scenario import Scenario, load_scenario, scenario_from_dict
+from training.evaluate import EvalConfig, evaluate
+
+__all__ = [
+    "REPO_ROOT",
+    "Condition",
+    "SuiteConfig",
+    "format_suite_table",
+    "load_suite",
+    "plot_suite",
+    "run_suite",
+]
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+"""Relative scenario paths in a suite file resolve against this folder."""
+
+DEFAULT_EPISODES = 50
+DEFAULT_SEED = 1_000_000
+
+_TOP_LEVEL = ("suite", "conditions")
+_SUITE_KEYS = ("episodes", "seed")
+_CONDITION_KEYS = ("scenario",)
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One named condition: its checked scenario and where it came from."""
+
+    name: str
+    scenario: Scenario
+    file: str | None = None
+    """The scenario file as written in the suite (None: an inline table)."""
+
+
+@dataclass(frozen=True)
+class SuiteConfig:
+    """A loaded suite file: episodes and seed per condition, the conditions in file order."""
+
+    path: str
+    episodes: int
+    seed: int
+    conditions: tuple[Condition, ...]
+
+
+def _int(value: Any, where: str, key: str, minimum: int) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise ConfigError(f"{where}: [suite] {key} = {value!r}; expected an integer >= {minimum}")
+    return value
+
+
+def _unknown(where: str, table: str, got: Mapping[str, Any], expected: tuple[str, ...]) -> None:
+    unknown = sorted(set(got) - set(expected))
+    if unknown:
+        raise ConfigError(
+            f"{where}: {table} unknown key(s) {unknown}; expected {list(expected)} (typo?)"
+        )
+
+
+def _resolve(file: str) -> Path:
+    path = Path(file)
+    return path if path.is_absolute() else REPO_ROOT / path
+
+
+def _condition(where: str, name: str, table: Any) -> Condition:
+    tag = f"[conditions.{name}]"
+    if not isinstance(table, dict):
+        raise ConfigError(
+            f'{where}: {tag} must be a table with scenario = "FILE" or a [conditions.{name}'
+            f".scenario] table, got {table!r}"
+        )
+    _unknown(where, tag, table, _CONDITION_KEYS)
+    if "scenario" not in table:
+        raise ConfigError(
+            f'{where}: {tag} has no scenario; expected scenario = "FILE" (relative to the '
+            f"repository root) or an inline [conditions.{name}.scenario] table with the sections "
+            "of a scenario file"
+        )
+    value = table["scenario"]
+    if isinstance(value, str):
+        path = _resolve(value)
+        if not path.is_file():
+            raise ConfigError(f"{where}: {tag} scenario = {value!r}: file not found ({path})")
+        return Condition(name=name, scenario=load_scenario(path), file=value)
+    if isinstance(value, dict):
+        return Condition(name=name, scenario=scenario_from_dict(value, f"{where}: {tag}"))
+    raise ConfigError(
+        f"{where}: {tag} scenario = {value!r}; expected a file path (string) or a table of "
+        "scenario sections"
+    )
+
+
+def load_suite(path: str | Path) -> SuiteConfig:
+    """Read and check a suite file; every condition's scenario is loaded and checked now, so a
+    bad condition fails before any episode flies."""
+    where = str(path)
+    data = load_toml(path)
+    _unknown(where, "top level", data, _TOP_LEVEL)
+    head = data.get("suite", {})
+    if not isinstance(head, dict):
+        raise ConfigError(f"{where}: [suite] must be a table, got {head!r}")
+    _unknown(where, "[suite]", head, _SUITE_KEYS)
+    episodes = _int(head.get("episodes", DEFAULT_EPISODES), where, "episodes", 1)
+    seed = _int(head.get("seed", DEFAULT_SEED), where, "seed", 0)
+    conditions = data.get("conditions")
+    if not isinstance(conditions, dict) or not conditions:
+        raise ConfigError(f"{where}: no [conditions.NAME] tables; expected at least one condition")
+    return SuiteConfig(
+        path=where,
+        episodes=episodes,
+        seed=seed,
+        conditions=tuple(_condition(where, n, t) for n, t in conditions.items()),
+    )
+
+
+def run_suite(
+    suite: SuiteConfig,
+    policy: str = "expert",
+    *,
+    episodes: int | None = None,
+    seed: int | None = None,
+    workers: int = 1,
+    render_camera: bool = True,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
+    processes). ``episodes``/``seed`` override the suite file's. Returns ``{"suite", "policy",
+    "seed", "episodes", "conditions": {name: eval report}}``."""
+    n = suite.episodes if episodes is None else episodes
+    s = suite.seed if seed is None else seed
+    reports: dict[str, dict[str, Any]] = {}
+    for k, cond in enumerate(suite.conditions, 1):
+        if progress:
+            print(f"condition {k}/{len(suite.conditions)}: {cond.name}", file=sys.stderr)
+        reports[cond.name] = evaluate(
+            EvalConfig(
+                policy=policy,
+                episodes=n,
+                seed=s,
+                scenario=cond.scenario,
+                workers=workers,
+                render_camera=render_camera,
+                progress=progress,
+            )
+        )
+    return {"suite": suite.path, "policy": policy, "seed": s, "episodes": n, "conditions": reports}
+
+
+def _stat(report: dict[str, Any], key: str, field: str) -> float:
+    value = (report.get(key) or {}).get(field)
+    return float("nan") if value is None else float(value)
+
+
+def _num(value: float, width: int, digits: int) -> str:
+    return f"{'-':>{width}}" if math.isnan(value) else f"{value:{width}.{digits}f}"
+
+
+def format_suite_table(report: dict[str, Any], out: TextIO) -> None:
+    """One row per condition: episodes, success, landing error mean/max, touchdown speed mean,
+    timeouts ("-": no episode touched down)."""
+    conds = report["conditions"]
+    width = max([len("condition"), *(len(n) for n in conds)])
+    out.write(
+        f"{report.get('policy')}: suite {report['suite']}, {report['episodes']} episodes per "
+        f"condition, seed {report['seed']}\n"
+    )
+    out.write(
+        f"  {'condition':<{width}}  episodes  success %  error mean m  error max m"
+        "  touchdown mean m/s  timeouts\n"
+    )
+    for name, r in conds.items():
+        out.write(
+            f"  {name:<{width}}  {r['episodes']:8d}  {100 * r['success_rate']:9.1f}"
+            f"  {_num(_stat(r, 'landing_error_m', 'mean'), 12, 3)}"
+            f"  {_num(_stat(r, 'landing_error_m', 'max'), 11, 3)}"
+            f"  {_num(_stat(r, 'touchdown_speed_m_s', 'mean'), 18, 3)}"
+            f"  {r['timeouts']:8d}\n"
+        )
+
+
+def plot_suite(report: dict[str, Any], out_png: str | Path) -> Path:
+    """Two bar panels side by side: success rate and mean landing error per condition (PNG,
+    matplotlib Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, never a window
+    import matplotlib.pyplot as plt
+
+    names = list(report["conditions"])
+    reports = list(report["conditions"].values())
+    success = [100 * r["success_rate"] for r in reports]
+    error = [_stat(r, "landing_error_m", "mean") for r in reports]
+    x = list(range(len(names)))
+    fig, (ax_s, ax_e) = plt.subplots(1, 2, figsize=(max(8.0, 1.6 * len(names) + 4), 4.2))
+    ax_s.bar(x, success, color="tab:green")
+    ax_s.set_ylim(0, 105)
+    ax_s.set_ylabel("success rate (%)")
+    ax_e.bar(x, [0.0 if math.isnan(e) else e for e in error], color="tab:blue")
+    ax_e.set_ylabel("mean landing error (m)")
+    for ax in (ax_s, ax_e):
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, rotation=25, ha="right")
+        ax.grid(axis="y", alpha=0.3)
+    for i, e in enumerate(error):
+        if math.isnan(e):
+            ax_e.text(i, 0.0, "no touchdown", ha="center", va="bottom", fontsize=7)
+    fig.suptitle(
+        f"{report.get('policy')} — {report['suite']}: {report['episodes']} episodes per "
+        f"condition, seed {report['seed']}",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    path = Path(out_png)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80, pil_kwargs={"optimize": True})
+    plt.close(fig)
+    return path
