@@ -26,7 +26,7 @@ from companion.flightlog import read_log
 from tools.demo import MARKER, DemoConfig, DemoError, run
 from tools.log_plots import plot_flights
 from tools.logtool import log_info
-from training.fly import REPO
+from training.provenance import REPO
 
 _ROW = re.compile(
     r"^\s*(?P<ep>\d+)\s+[+-]?\d+\.\d,\s+[+-]?\d+\.\d\s+(?P<alt>\d+\.\d)\s+(?P<time>\d+\.\d)\s+"

@@ -12,7 +12,8 @@ import pytest
 
 from sitl_sim.errors import ConfigError
 from training.evaluate import EvalConfig, evaluate
-from training.suite import REPO_ROOT, load_suite, plot_suite, run_suite
+from training.provenance import REPO
+from training.suite import load_suite, plot_suite, run_suite
 
 # Low starts keep each episode short (a few simulated seconds).
 LOW_INITIAL_STATE = """
@@ -108,12 +109,12 @@ def test_relative_scenario_paths_resolve_against_the_repository(tmp_path, monkey
     suite = load_suite(suite_path)
     assert (suite.episodes, suite.seed) == (50, 1_000_000)  # defaults without [suite]
     (cond,) = suite.conditions
-    assert cond.scenario.source == str(REPO_ROOT / "configs/scenario_wind.toml")
+    assert cond.scenario.source == str(REPO / "configs/scenario_wind.toml")
     assert cond.file == "configs/scenario_wind.toml" and cond.scenario.wind is not None
 
 
 def test_the_standard_suite_loads():
-    suite = load_suite(REPO_ROOT / "configs/suites/standard.toml")
+    suite = load_suite(REPO / "configs/suites/standard.toml")
     names = [c.name for c in suite.conditions]
     assert names == ["nominal", "wide_initial_states", "wind_moderate_gusts", "wind_severe", "mars"]
     by = {c.name: c.scenario for c in suite.conditions}
@@ -177,7 +178,7 @@ def _visland(*args: str) -> subprocess.CompletedProcess:
         capture_output=True,
         text=True,
         timeout=120,
-        cwd=REPO_ROOT,
+        cwd=REPO,
     )
 
 

@@ -33,10 +33,9 @@ from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from tools.sitl_client import ClientTimeout, SitlClient
 from training.fly import free_udp_port
+from training.provenance import REPO
 
 __all__ = ["SitlBenchConfig", "bench_sitl"]
-
-_REPO = Path(__file__).resolve().parent.parent
 
 
 @dataclass(frozen=True)
@@ -97,7 +96,7 @@ def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
     scenario = load_scenario(cfg.scenario)
     pilot = CascadeLander(vehicle, scenario.world)
     hover = vehicle.hover_thrust_norm(scenario.world)
-    proc = subprocess.Popen(cmd, cwd=_REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         with SitlClient(("127.0.0.1", mav_port), remote_port, cam_port) as client:
             client.wait_for("HEARTBEAT", 60.0)

@@ -13,14 +13,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from training.seeds import EVAL_SEED
 from training.transport import Transport
 
 __all__ = ["main"]
 
 
 _EVAL_EPISODES = 20
-_EVAL_SEED = 1_000_000
-"""``visland eval``'s defaults without ``--suite``."""
+"""``visland eval``'s episodes without ``--suite``."""
 
 
 def _print_json(obj: Any) -> None:
@@ -161,7 +161,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         return 2
     # --episodes and --seed default to None so that a suite file's values stand unless given
     args.episodes = _EVAL_EPISODES if args.episodes is None else args.episodes
-    args.seed = _EVAL_SEED if args.seed is None else args.seed
+    args.seed = EVAL_SEED if args.seed is None else args.seed
     if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
         return _cmd_fly(args)
     report = evaluate(
@@ -435,7 +435,7 @@ def _parser() -> argparse.ArgumentParser:
         "--seed",
         type=int,
         default=None,
-        help=f"disjoint from training seeds (default {_EVAL_SEED}; with --suite: the suite file's)",
+        help=f"disjoint from training seeds (default {EVAL_SEED}; with --suite: the suite file's)",
     )
     e.add_argument("--scenario", type=Path, default=None)
     e.add_argument(
@@ -485,7 +485,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     fl.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
     fl.add_argument("--episodes", type=int, default=20)
-    fl.add_argument("--seed", type=int, default=1_000_000, help="disjoint from training seeds")
+    fl.add_argument("--seed", type=int, default=EVAL_SEED, help="disjoint from training seeds")
     fl.add_argument("--scenario", type=Path, default=None)
     fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
     fl.add_argument(

@@ -32,14 +32,13 @@ from sitl_sim.metrics import (
     SUCCESS_MAX_VERTICAL_SPEED_M_S,
 )
 from tools.log_plots import plot_flights
-from training.fly import REPO, FlyConfig, fly
+from training.fly import FlyConfig, fly
+from training.provenance import REPO
+from training.seeds import EVAL_SEED
 
 __all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run"]
 
 SHIPPED_MODEL = REPO / "models" / "visland_vision.pt"
-EVAL_SEED = 1_000_000
-"""The evaluation seed of ``visland eval``/``fly`` and of the model card (disjoint from
-training: collect uses seed 0, DAgger 100+k, vision DAgger 200+k)."""
 
 MARKER = ".visland-demo"
 """File that marks a folder as a demo output folder, so a new demo may replace its contents."""

@@ -34,6 +34,8 @@ from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize
+from training.provenance import REPO
+from training.seeds import EVAL_SEED
 from training.transport import Transport
 
 __all__ = [
@@ -45,8 +47,6 @@ __all__ = [
     "policy_is_privileged",
     "sitl_log_name",
 ]
-
-REPO = Path(__file__).resolve().parent.parent
 
 
 class FlyError(RuntimeError):
@@ -60,7 +60,7 @@ class FlyConfig:
     policy: str = "expert"
     """``expert`` | ``cascade`` | a checkpoint path (``untrained`` for benchmarks)."""
     episodes: int = 20
-    seed: int = 1_000_000
+    seed: int = EVAL_SEED
     first_episode: int = 0
     """Fly episodes ``first_episode .. first_episode + episodes - 1`` of ``seed``."""
     scenario: str | None = None

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from training.record import Record
+from training.seeds import EVAL_SEED
 from training.transport import Transport
 
 __all__ = ["PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Profile"]
@@ -45,7 +46,7 @@ class Profile(Record):
     collect_seed: int = 0
     dagger_seed: int = 100
     vision_seed: int = 200
-    eval_seed: int = 1_000_000
+    eval_seed: int = EVAL_SEED
     batch_segments: int = 32
     lr: float = 1e-3
     finetune_lr: float = 5e-4

@@ -6,7 +6,11 @@ import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["git_commit"]
+__all__ = ["REPO", "git_commit"]
+
+REPO = Path(__file__).resolve().parent.parent
+"""The checkout (or installed tree) holding this code: relative config, model and suite paths
+resolve against it, and child processes start in it."""
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -19,7 +23,7 @@ def git_commit(repo: str | Path | None = None, paths: Sequence[str] | None = Non
     """HEAD of ``repo`` (default: the checkout holding this code), ``<sha>+dirty`` when tracked
     files — under ``paths`` only, if given — differ from it (the code that ran is then not that
     commit); ``unknown`` outside a git checkout."""
-    where = Path(repo) if repo is not None else Path(__file__).resolve().parent
+    where = Path(repo) if repo is not None else REPO
     try:
         head = _git(where, "rev-parse", "HEAD")
         dirty = _git(where, "status", "--porcelain", "--untracked-files=no", "--", *(paths or ()))

@@ -36,9 +36,10 @@ from sitl_sim.config import load_toml
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import Scenario, load_scenario, scenario_from_dict
 from training.evaluate import EvalConfig, evaluate
+from training.provenance import REPO
+from training.seeds import EVAL_SEED
 
 __all__ = [
-    "REPO_ROOT",
     "Condition",
     "SuiteConfig",
     "format_suite_table",
@@ -47,11 +48,7 @@ __all__ = [
     "run_suite",
 ]
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-"""Relative scenario paths in a suite file resolve against this folder."""
-
 DEFAULT_EPISODES = 50
-DEFAULT_SEED = 1_000_000
 
 _TOP_LEVEL = ("suite", "conditions")
 _SUITE_KEYS = ("episodes", "seed")
@@ -94,7 +91,7 @@ def _unknown(where: str, table: str, got: Mapping[str, Any], expected: tuple[str
 
 def _resolve(file: str) -> Path:
     path = Path(file)
-    return path if path.is_absolute() else REPO_ROOT / path
+    return path if path.is_absolute() else REPO / path
 
 
 def _condition(where: str, name: str, table: Any) -> Condition:
@@ -136,7 +133,7 @@ def load_suite(path: str | Path) -> SuiteConfig:
         raise ConfigError(f"{where}: [suite] must be a table, got {head!r}")
     _unknown(where, "[suite]", head, _SUITE_KEYS)
     episodes = _int(head.get("episodes", DEFAULT_EPISODES), where, "episodes", 1)
-    seed = _int(head.get("seed", DEFAULT_SEED), where, "seed", 0)
+    seed = _int(head.get("seed", EVAL_SEED), where, "seed", 0)
     conditions = data.get("conditions")
     if not isinstance(conditions, dict) or not conditions:
         raise ConfigError(f"{where}: no [conditions.NAME] tables; expected at least one condition")
