@@ -38,7 +38,7 @@ from companion.camera import CameraError, check_intrinsics, open_camera
 from companion.flight import OffboardConfig
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
 from companion.offboard import FlightController
-from companion.options import option
+from companion.options import option, redacted_dict
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor
 from companion.states import FlightResult, TouchdownAction
@@ -161,10 +161,8 @@ class CompanionConfig:
                 raise CompanionError(f"camera {self.camera!r}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        if d["signing_key"] is not None:
-            d["signing_key"] = "<set>"
-        return d
+        """JSON-ready, with the signing key redacted."""
+        return redacted_dict(self)
 
     def safety_config(self) -> SafetyConfig:
         """The safety monitor's limits (milliseconds to seconds, per-axis rate clamp).

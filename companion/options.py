@@ -15,7 +15,17 @@ import argparse
 import dataclasses
 from typing import Any
 
-__all__ = ["add_arguments", "check_table", "option", "values_from_args"]
+__all__ = ["add_arguments", "check_table", "option", "redacted_dict", "values_from_args"]
+
+
+def redacted_dict(config: Any, secrets: tuple[str, ...] = ("signing_key",)) -> dict[str, Any]:
+    """``dataclasses.asdict(config)`` with each set secret field replaced by ``"<set>"`` (what
+    flight logs and reports record of a config: never the key itself)."""
+    d = dataclasses.asdict(config)
+    for name in secrets:
+        if d.get(name) is not None:
+            d[name] = "<set>"
+    return d
 
 
 def option(

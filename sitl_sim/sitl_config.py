@@ -4,13 +4,12 @@ the ``--signing-key`` secret, and the argparse plumbing between the two."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
 
 from companion.contract.signing import SigningKeyError, signing_key_bytes
-from companion.options import add_arguments, option, values_from_args
+from companion.options import add_arguments, option, redacted_dict, values_from_args
 from sitl_sim.mavlink_endpoint import SitlError
 
 __all__ = [
@@ -109,10 +108,7 @@ class SitlConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the signing key redacted."""
-        d = dataclasses.asdict(self)
-        if d["signing_key"] is not None:
-            d["signing_key"] = "<set>"
-        return d
+        return redacted_dict(self)
 
 
 def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
