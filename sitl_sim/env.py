@@ -16,8 +16,9 @@
 each later ``reset()`` without a seed takes the next episode; ``options={"episode_index": i}``
 takes episode ``i`` of the seed, ``options={"initial_state": st}`` starts from a given
 :class:`~sitl_sim.scenario.InitialState`. Same seed, same actions: identical
-observations, bit for bit. A scenario with ``[wind]`` flies episode ``i`` of seed ``s`` in the
-wind ``WindModel.for_episode(wind, s, i)`` (also with a given initial state).
+observations, bit for bit. Episode ``i`` of seed ``s`` flies the world
+:func:`sitl_sim.world.episode_world` draws for ``(scenario, s, i)`` (wind, and every other
+scenario section), also with a given initial state.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
-from sitl_sim.wind import WindModel
+from sitl_sim.world import episode_world
 
 __all__ = ["ENV_ID", "LandingEnv", "observation_to_dict"]
 
@@ -119,13 +120,9 @@ class LandingEnv(gym.Env):
                 f"options['initial_state'] must be an InitialState, got {type(initial).__name__}"
             )
         self.initial_state = initial
-        wind = (
-            WindModel.for_episode(self.scenario.wind, self._seed, self._episode_index)
-            if self.scenario.wind is not None
-            else None
-        )
+        world = episode_world(self.scenario, self._seed, self._episode_index)
         self._sim.reset(
-            initial, np.random.SeedSequence([self._seed, self._episode_index]), wind=wind
+            initial, np.random.SeedSequence([self._seed, self._episode_index]), world=world
         )
         self._frame = 0
         self.result = None

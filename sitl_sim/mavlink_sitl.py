@@ -30,8 +30,8 @@ happens in wall time). **Real time** (``lockstep=False``): the clock follows the
 
 **Episodes**: episode ``i`` starts at ``InitialStateSampler(scenario, seed).sample(i)`` in HOLD,
 armed, frozen; the flight starts at the first control period after the vehicle is armed in a mode
-other than HOLD (the simulator is re-seeded then, and a scenario's wind restarts as
-``WindModel.for_episode(wind, seed, i)``, so a flight does not depend on how long HOLD
+other than HOLD (the simulator is re-seeded then, and the episode's world is drawn again as
+``episode_world(scenario, seed, i)``, so a flight does not depend on how long HOLD
 lasted); it ends at touchdown + disarm (auto after COM_DISARM_LAND), at ``episode_timeout_s`` of
 flight, or after ``hold_timeout_s`` without a take-over. One MCAP flight log per episode;
 ``first_episode`` lets parallel SITLs fly disjoint parts of one seed.

@@ -19,6 +19,7 @@ from sitl_sim.scenario import InitialState
 from sitl_sim.scene import Camera, Scene
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
 from sitl_sim.wind import WindModel
+from sitl_sim.world import EpisodeWorld
 
 __all__ = ["Simulator"]
 
@@ -65,14 +66,17 @@ class Simulator:
         self,
         initial: InitialState,
         seed: int | np.random.SeedSequence,
-        wind: WindModel | None = None,
+        world: EpisodeWorld | None = None,
     ) -> None:
         """Place the vehicle at ``initial`` (rotors at hover thrust), reseed every sensor.
 
-        ``wind``: the episode's wind, a fresh :class:`WindModel` (started here at the initial
-        position, then advanced once per physics step), or None for still air. The sensors'
-        streams do not depend on it, so a windless flight is the flight it always was.
+        ``world``: the episode's drawn world (:func:`sitl_sim.world.episode_world`), or None for
+        the nominal world of the config files. Its wind, a fresh :class:`WindModel`, is started
+        here at the initial position, then advanced once per physics step. The sensors' streams
+        do not depend on the world, so a windless flight is the flight it always was.
         """
+        world = world or EpisodeWorld()
+        wind = world.wind
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         imu_ss, att_ss, radar_ss, cam_ss = ss.spawn(4)
         self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))

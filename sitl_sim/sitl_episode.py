@@ -51,7 +51,7 @@ from sitl_sim.autopilot import Autopilot
 from sitl_sim.flight_record import command_msg, groundtruth_msg
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState
-from sitl_sim.wind import WindModel
+from sitl_sim.world import EpisodeWorld, episode_world
 
 if TYPE_CHECKING:
     from sitl_sim.autopilot import AutopilotParams
@@ -112,7 +112,7 @@ class EpisodeLifecycle:
     def _start_episode(self, index: int) -> None:
         initial = self.sampler.sample(index)
         seed_key = (self.config.seed, index)
-        self.sim.reset(initial, np.random.SeedSequence(seed_key), wind=self._wind(index))
+        self.sim.reset(initial, np.random.SeedSequence(seed_key), world=self._world(index))
         self._reset_samples()
         self.autopilot = Autopilot(self.params, armed=self.config.start_armed)
         self._flying = False
@@ -149,12 +149,10 @@ class EpisodeLifecycle:
         self._send_heartbeat()
         log.info("episode %d: initial state %s", index, initial.to_dict())
 
-    def _wind(self, index: int) -> WindModel | None:
-        """Episode ``index``'s wind, fresh for each reset (the take-over re-runs it from the
-        start, like the sensor streams), or None for a still-air scenario."""
-        if self.scenario.wind is None:
-            return None
-        return WindModel.for_episode(self.scenario.wind, self.config.seed, index)
+    def _world(self, index: int) -> EpisodeWorld:
+        """Episode ``index``'s drawn world, fresh for each reset (the take-over re-runs it from
+        the start, like the sensor streams)."""
+        return episode_world(self.scenario, self.config.seed, index)
 
     def _finish_episode(self, aborted: bool = False) -> None:
         ep = self._episode
@@ -194,7 +192,9 @@ class EpisodeLifecycle:
         (HOLD's length and the sensor readings taken while frozen cannot change the flight)."""
         ep = self._episode
         assert ep is not None
-        self.sim.reset(ep.initial, np.random.SeedSequence(ep.seed_key), wind=self._wind(ep.index))
+        self.sim.reset(
+            ep.initial, np.random.SeedSequence(ep.seed_key), world=self._world(ep.index)
+        )
         self._reset_samples()
         self._flying = True
         self.clock.restart_phase()

@@ -24,6 +24,7 @@ from sitl_sim.mavlink_sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.sitl_config import SitlConfig
+from sitl_sim.world import EpisodeWorld
 from sitl_sim.wind import (
     TURBULENCE_W20_M_S,
     WindConfig,
@@ -270,7 +271,7 @@ def test_a_hovering_vehicle_drifts_downwind_in_a_steady_wind(vehicle, quiet_cfg)
     sim = Simulator(vehicle, quiet_cfg, render=False)
     initial = InitialState((0.0, 0.0, -20.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     wind = WindModel(WindConfig((6.0, 6.0), (0.0, 0.0)), np.random.default_rng(0))
-    sim.reset(initial, 0, wind=wind)
+    sim.reset(initial, 0, world=EpisodeWorld(wind=wind))
     truth = sim.ground_truth()
     np.testing.assert_array_equal(truth.wind_ned_m_s, [-6.0, 0.0, 0.0])
     hover = vehicle.hover_thrust_norm(EARTH)
@@ -288,7 +289,7 @@ def _fly(vehicle, sim_cfg, wind: WindModel | None, *, new_call: bool = True) -> 
     initial = InitialState((1.0, -2.0, -30.0), (0.5, 0.0, 0.2), (0.02, -0.01, 0.3), (0.0,) * 3)
     seed = np.random.SeedSequence([11, 4])
     if new_call:
-        sim.reset(initial, seed, wind=wind)
+        sim.reset(initial, seed, world=EpisodeWorld(wind=wind))
     else:
         sim.reset(initial, seed)  # the call signature from before wind existed
     rng = np.random.default_rng(5)
