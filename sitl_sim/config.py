@@ -252,6 +252,9 @@ class CameraConfig:
     height_px: int
     fov_deg: float
     noise_std_px: float
+    renderer: str = "pybullet"
+    """``"pybullet"`` (TinyRenderer, the reference) or ``"fast"`` (plane homographies, the same
+    image: :mod:`sitl_sim.render_fast`)."""
 
 
 @dataclass(frozen=True)
@@ -355,5 +358,6 @@ def _build_sim(s: _Fields, i: _Fields, a: _Fields, r: _Fields, c: _Fields) -> Si
             height_px=c.integer("height_px", 8, 4096),
             fov_deg=c.number("fov_deg", 1.0, 170.0),
             noise_std_px=c.number("noise_std_px", 0.0, 64.0),
+            renderer=c.string("renderer", ("pybullet", "fast"), "pybullet"),
         ),
     )

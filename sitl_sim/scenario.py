@@ -3,7 +3,8 @@
 ``sampler = "sobol+uniform"`` (the paper's hybrid): a scrambled Sobol sequence covers the six
 dimensions that shape a landing (north, east, altitude, and the three velocities) evenly; roll,
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
-An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts.
+An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts;
+``[visual]`` (:mod:`sitl_sim.visual`) ground families, sun, pad and camera effects.
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -22,6 +23,7 @@ from scipy.stats import qmc
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
+from sitl_sim.visual import VisualConfig, visual_config_from_table
 from sitl_sim.wind import WindConfig, wind_config_from_table
 
 __all__ = [
@@ -61,6 +63,7 @@ class Scenario:
     world: Planet
     source: str = "<memory>"
     wind: WindConfig | None = None
+    visual: VisualConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -84,14 +87,17 @@ class Scenario:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["world"] = self.world.name
-        if self.wind is None:
-            del d["wind"]  # a still-air scenario's record (in every flight log) is unchanged
-        else:
-            d["wind"] = self.wind.to_dict()
+        # an absent section is left out: a nominal scenario's record (in every log) is unchanged
+        for key in ("wind", "visual"):
+            section = getattr(self, key)
+            if section is None:
+                del d[key]
+            else:
+                d[key] = section.to_dict()
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind")
+SECTIONS = ("initial_state", "world", "wind", "visual")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -145,7 +151,10 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     if name not in PLANETS:
         raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")
     wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
-    return Scenario(**ranges, sampler=str(sampler), world=planet(name), source=where, wind=wind)
+    visual = visual_config_from_table(data["visual"], where) if "visual" in data else None
+    return Scenario(
+        **ranges, sampler=str(sampler), world=planet(name), source=where, wind=wind, visual=visual
+    )
 
 
 @dataclass(frozen=True)

@@ -13,21 +13,23 @@ The colour render is converted to mono8 with the ITU-R BT.601 luma weights.
 from __future__ import annotations
 
 import math
-import tempfile
-from dataclasses import dataclass
-from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
+import cv2
 import numpy as np
 import pybullet as pb
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.dynamics import quat_to_rotation
 from sitl_sim.errors import SimError
+from sitl_sim.ground import GROUND_HALF_SIDE_M, GroundMap, PadGeometry, luma, nominal_ground
 
-__all__ = ["Camera", "PadGeometry", "Scene", "ned_to_scene"]
+if TYPE_CHECKING:
+    from sitl_sim.visual import CameraEffects
+
+__all__ = ["Camera", "PadGeometry", "Renderer", "Scene", "make_renderer", "ned_to_scene"]
 
 _NED_TO_SCENE = np.diag([1.0, -1.0, -1.0])
-_LUMA_Q8 = (77, 150, 29)  # ITU-R BT.601 luma weights 0.299, 0.587, 0.114 in 1/256ths
 
 
 def ned_to_scene(v_ned) -> np.ndarray:
@@ -35,30 +37,53 @@ def ned_to_scene(v_ned) -> np.ndarray:
     return _NED_TO_SCENE @ np.asarray(v_ned, dtype=float)
 
 
-@dataclass(frozen=True)
-class PadGeometry:
-    """The paper's landing target: a red cross on a green square, centred on the origin."""
+class Renderer(Protocol):
+    """What the camera renders from: :class:`Scene` (pybullet, the reference) or
+    :class:`sitl_sim.render_fast.FastRenderer`; both draw the same ground map and pad."""
 
-    side_m: float = 4.0
-    cross_length_m: float = 3.2
-    cross_width_m: float = 0.6
-    green_rgb: tuple[float, float, float] = (0.25, 0.85, 0.25)
-    red_rgb: tuple[float, float, float] = (0.80, 0.08, 0.08)
+    def configure(self, ground: GroundMap, pad: PadGeometry) -> None: ...
+
+    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray: ...
+
+    def close(self) -> None: ...
+
+
+RENDERERS = ("pybullet", "fast")
+
+
+def make_renderer(name: str) -> Renderer:
+    """The renderer called ``name`` (``[camera] renderer`` of the sim config), on the nominal
+    ground and pad."""
+    if name == "pybullet":
+        return Scene()
+    if name == "fast":
+        from sitl_sim.render_fast import FastRenderer
+
+        return FastRenderer()
+    raise SimError(f"renderer {name!r}; expected one of {list(RENDERERS)}")
 
 
 class Scene:
-    """A pybullet DIRECT client holding the ground and the pad. Close it (or use ``with``)."""
+    """A pybullet DIRECT client holding the ground and the pad. Close it (or use ``with``).
 
-    GROUND_HALF_SIDE_M = 300.0
-    TEXTURE_PX = 1024
+    The nominal ground is a 600 m box textured with :func:`~sitl_sim.ground.nominal_ground`
+    (pybullet's own box UVs); a periodic ground map (:mod:`sitl_sim.terrain`) is a mesh of
+    quads cut at the tile edges, each with uvs spanning its part of the tile, so texel (col, row)
+    lies exactly where the map's ``texel_to_ne`` says.
+    """
 
-    def __init__(self, pad: PadGeometry | None = None, texture_seed: int = 7) -> None:
-        self.pad = pad or PadGeometry()
+    GROUND_HALF_SIDE_M = GROUND_HALF_SIDE_M
+
+    def __init__(
+        self, pad: PadGeometry | None = None, ground: GroundMap | None = None
+    ) -> None:
         self._client = pb.connect(pb.DIRECT)
         if self._client < 0:
             raise SimError("pybullet: could not open a DIRECT client")
+        self.ground: GroundMap | None = None
+        self.pad: PadGeometry | None = None
         try:
-            self._build(texture_seed)
+            self.configure(ground or nominal_ground(), pad or PadGeometry())
         except Exception:
             pb.disconnect(physicsClientId=self._client)
             raise
@@ -66,6 +91,15 @@ class Scene:
     @property
     def client_id(self) -> int:
         return self._client
+
+    def configure(self, ground: GroundMap, pad: PadGeometry) -> None:
+        """Show ``ground`` and ``pad`` from now on (rebuilds the bodies if they changed)."""
+        if ground is self.ground and pad == self.pad:
+            return
+        pb.resetSimulation(physicsClientId=self._client)
+        self.ground = ground
+        self.pad = pad
+        self._build()
 
     def _box(self, half_extents, rgba, z_top: float) -> int:
         c = self._client
@@ -79,26 +113,75 @@ class Scene:
             physicsClientId=c,
         )
 
-    def _build(self, texture_seed: int) -> None:
+    def _build(self) -> None:
         c = self._client
         h = self.GROUND_HALF_SIDE_M
-        ground = self._box([h, h, 0.05], [1, 1, 1, 1], 0.0)
-        tex = pb.loadTexture(str(_ground_texture(texture_seed, self.TEXTURE_PX)), physicsClientId=c)
+        if self.ground.periodic:
+            ground = self._tiled_ground()
+        else:
+            ground = self._box([h, h, 0.05], [1, 1, 1, 1], 0.0)
+        tex = pb.loadTexture(str(self.ground.png()), physicsClientId=c)
         if tex < 0:
             raise SimError("pybullet: could not load the ground texture")
         pb.changeVisualShape(ground, -1, textureUniqueId=tex, physicsClientId=c)
         pad = self.pad
         s = pad.side_m / 2
-        self._box([s, s, 0.01], [*pad.green_rgb, 1], 0.02)
+        self._box([s, s, 0.01], [*pad.green_rgb, 1], pad.square_top_m)
         a, w = pad.cross_length_m / 2, pad.cross_width_m / 2
-        self._box([a, w, 0.01], [*pad.red_rgb, 1], 0.04)
-        self._box([w, a, 0.01], [*pad.red_rgb, 1], 0.04)
+        self._box([a, w, 0.01], [*pad.red_rgb, 1], pad.cross_top_m)
+        self._box([w, a, 0.01], [*pad.red_rgb, 1], pad.cross_top_m)
+
+    def _tiled_ground(self) -> int:
+        """One mesh body: the ground square cut into quads at the tile edges (z = 0)."""
+        g = self.ground
+        h = self.GROUND_HALF_SIDE_M
+        inv = np.linalg.inv(g.texel_to_ne)
+        rows, cols = g.rgb.shape[:2]
+
+        def uv(n: float, e: float) -> tuple[float, float]:
+            col, row, _ = inv @ (n, e, 1.0)
+            # texel centre k <-> u = (k + .5)/W; TinyRenderer reads a mesh's v bottom-up
+            return (col + 0.5) / cols, 1.0 - (row + 0.5) / rows
+
+        def cuts(axis_origin: float, step: float) -> list[float]:
+            k0 = math.floor((-h - axis_origin) / step)
+            pts = [axis_origin + k * step for k in range(k0, k0 + int(2 * h / step) + 3)]
+            return sorted({-h, h, *[p for p in pts if -h < p < h]})
+
+        # tile edges: where (col + 0.5) or (row + 0.5) is a multiple of the tile size
+        n_origin = float(g.texel_to_ne[0, 2] - 0.5 * g.texel_to_ne[0, 0])
+        e_origin = float(g.texel_to_ne[1, 2] - 0.5 * g.texel_to_ne[1, 1])
+        ns, es = cuts(n_origin, g.tile_m), cuts(e_origin, g.tile_m)
+        vertices, uvs, indices = [], [], []
+        for n0, n1 in zip(ns[:-1], ns[1:], strict=True):
+            for e0, e1 in zip(es[:-1], es[1:], strict=True):
+                nm, em = (n0 + n1) / 2, (e0 + e1) / 2
+                # this quad's tile: uv of its centre, shifted into [0, 1)
+                u_c, v_c = uv(nm, em)
+                du, dv = math.floor(u_c), math.floor(v_c)
+                base = len(vertices)
+                for n, e in ((n0, e0), (n1, e0), (n1, e1), (n0, e1)):
+                    u, v = uv(n, e)
+                    vertices.append(ned_to_scene((n, e, 0.0)).tolist())
+                    uvs.append([u - du, v - dv])
+                indices += [base, base + 1, base + 2, base, base + 2, base + 3]
+                indices += [base, base + 2, base + 1, base, base + 3, base + 2]  # both faces
+        c = self._client
+        shape = pb.createVisualShape(
+            pb.GEOM_MESH,
+            vertices=vertices,
+            indices=indices,
+            uvs=uvs,
+            normals=[[0.0, 0.0, 1.0]] * len(vertices),
+            physicsClientId=c,
+        )
+        if shape < 0:
+            raise SimError("pybullet: could not create the ground mesh")
+        return pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=c)
 
     def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
         """Noise-free mono8 image (height, width) from a camera at the vehicle's pose."""
-        rgb = self.render_rgb(pos_ned_m, quat_wxyz, cfg).astype(np.uint16)
-        r, g, b = _LUMA_Q8
-        return ((r * rgb[..., 0] + g * rgb[..., 1] + b * rgb[..., 2] + 128) >> 8).astype(np.uint8)
+        return luma(self.render_rgb(pos_ned_m, quat_wxyz, cfg))
 
     def render_rgb(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
         """Noise-free colour image (height, width, 3) uint8, row 0 = body forward."""
@@ -152,12 +235,22 @@ class Scene:
 
 
 class Camera:
-    """The downward camera: a :class:`Scene` render plus seeded sensor noise."""
+    """The downward camera: a renderer's image, the episode's light and camera effects
+    (:class:`sitl_sim.visual.CameraEffects`, none in the nominal world), then seeded sensor noise."""
 
-    def __init__(self, scene: Scene, cfg: CameraConfig, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        scene: Renderer,
+        cfg: CameraConfig,
+        rng: np.random.Generator,
+        light: float = 1.0,
+        effects: CameraEffects | None = None,
+    ) -> None:
         self._scene = scene
         self._cfg = cfg
         self._rng = rng
+        self._light = float(light)
+        self._effects = effects
 
     @property
     def config(self) -> CameraConfig:
@@ -167,34 +260,15 @@ class Camera:
         """Pinhole focal length in pixels (square pixels, ``fov_deg`` across the height)."""
         return 0.5 * self._cfg.height_px / math.tan(math.radians(self._cfg.fov_deg) / 2)
 
-    def capture(self, pos_ned_m, quat_wxyz) -> np.ndarray:
+    def capture(self, pos_ned_m, quat_wxyz, rate_frd_rad_s=(0.0, 0.0, 0.0)) -> np.ndarray:
         img = self._scene.render(pos_ned_m, quat_wxyz, self._cfg)
+        if self._light != 1.0:
+            img = cv2.convertScaleAbs(img, alpha=self._light)
+        if self._effects is not None:
+            img = self._effects.apply(img, pos_ned_m, quat_to_rotation(quat_wxyz), rate_frd_rad_s)
         sigma = self._cfg.noise_std_px
         if sigma > 0:
             noise = self._rng.standard_normal(img.shape, dtype=np.float32)
             noisy = img.astype(np.float32) + np.float32(sigma) * noise
             img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
         return img
-
-
-def _ground_texture(seed: int, size: int) -> Path:
-    """A deterministic, terrain-like PNG texture (multi-octave value noise), cached on disk."""
-    from PIL import Image
-
-    path = Path(tempfile.gettempdir()) / f"visland_ground_v2_{seed}_{size}.png"
-    if path.exists():
-        return path
-    rng = np.random.default_rng(seed)
-    field = np.zeros((size, size))
-    for octave, weight in ((8, 1.0), (32, 0.6), (128, 0.35), (512, 0.2)):
-        coarse = rng.random((octave, octave))
-        reps = size // octave
-        field += weight * np.kron(coarse, np.ones((reps, reps)))
-    field = (field - field.min()) / (np.ptp(field) + 1e-9)
-    # Dry, reddish-brown terrain (Mars-like): in mono8 always darker than the pad's green.
-    base = np.array([100.0, 80.0, 65.0])
-    rgb = base[None, None, :] * (0.6 + 0.8 * field[..., None])
-    tmp = path.with_suffix(f".{rng.integers(1 << 30)}.tmp.png")
-    Image.fromarray(np.clip(rgb, 0, 255).astype(np.uint8), "RGB").save(tmp)
-    tmp.replace(path)  # atomic: parallel workers never read a half-written file
-    return path

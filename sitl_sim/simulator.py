@@ -16,7 +16,9 @@ from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_st
 from sitl_sim.errors import SimStateError
 from sitl_sim.rate_controller import RateController
 from sitl_sim.scenario import InitialState
-from sitl_sim.scene import Camera, Scene
+from sitl_sim.ground import PadGeometry, nominal_ground
+from sitl_sim.scene import Camera, Renderer, make_renderer
+from sitl_sim.visual import CameraEffects, VisualSample
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
 from sitl_sim.wind import WindModel
 from sitl_sim.world import EpisodeWorld
@@ -30,8 +32,10 @@ class Simulator:
     Args:
         vehicle: the vehicle and rate-loop configuration.
         sim: rates, planet and sensor models.
-        scene: a pybullet scene to render from (created on demand when ``render`` is True;
-            pass one to share it between simulators in one process).
+        scene: a renderer to draw from (:class:`sitl_sim.scene.Scene` or
+            :class:`sitl_sim.render_fast.FastRenderer`; made from ``sim.camera.renderer`` when
+            ``render`` is True; pass one to share it between simulators in one process — each
+            reset shows that episode's ground and pad on it).
         render: whether observations carry a rendered camera image (False gives a black frame,
             for physics-only use such as the expert's fast paths and benchmarks).
     """
@@ -41,7 +45,7 @@ class Simulator:
         vehicle: VehicleConfig,
         sim: SimConfig,
         *,
-        scene: Scene | None = None,
+        scene: Renderer | None = None,
         render: bool = True,
     ) -> None:
         self.vehicle = vehicle
@@ -50,7 +54,10 @@ class Simulator:
         self.rate_controller = RateController(vehicle.rate_controller, self.phys)
         self._render = render
         self._owns_scene = scene is None and render
-        self.scene = scene if scene is not None else (Scene() if render else None)
+        self.scene = (
+            scene if scene is not None else (make_renderer(sim.camera.renderer) if render else None)
+        )
+        self._visual: tuple[VisualSample | None, object] | None = None  # (sample, its ground)
         self._x: list[float] | None = None
         self._t = 0.0
         self._step_count = 0
@@ -82,11 +89,7 @@ class Simulator:
         self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))
         self.attitude_sensor = AttitudeSensor(self.sim.attitude, np.random.default_rng(att_ss))
         self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss))
-        self.camera = (
-            Camera(self.scene, self.sim.camera, np.random.default_rng(cam_ss))
-            if self.scene is not None
-            else None
-        )
+        self.camera = self._camera(world.visual, np.random.default_rng(cam_ss))
         hover = self.phys.hover_rotor_thrust_n
         self._x = make_state(
             pos_ned_m=initial.pos_ned_m,
@@ -103,6 +106,22 @@ class Simulator:
         self.wind = wind
         if wind is not None:
             wind.start(initial.pos_ned_m)
+
+    def _camera(self, visual: VisualSample | None, rng: np.random.Generator) -> Camera | None:
+        """The episode's camera: its ground and pad shown on the renderer, its light and
+        effects (the nominal ground, full light and none without ``[visual]``)."""
+        if self.scene is None:
+            return None
+        if self._visual is None or self._visual[0] != visual:
+            ground = visual.ground() if visual is not None else nominal_ground()
+            self._visual = (visual, ground)
+        ground = self._visual[1]
+        if visual is None:
+            self.scene.configure(ground, PadGeometry())
+            return Camera(self.scene, self.sim.camera, rng)
+        self.scene.configure(ground, visual.pad())
+        effects = CameraEffects(visual, self.sim.camera, visual.light)
+        return Camera(self.scene, self.sim.camera, rng, light=visual.light, effects=effects)
 
     def close(self) -> None:
         if self._owns_scene and self.scene is not None:
@@ -189,7 +208,7 @@ class Simulator:
         att = self.attitude_sensor.read(t, gt.quat_wxyz, gt.rate_frd_rad_s)
         rng = self.radar.read(gt.pos_ned_m, gt.quat_wxyz)
         if self.camera is not None:
-            image = self.camera.capture(gt.pos_ned_m, gt.quat_wxyz)
+            image = self.camera.capture(gt.pos_ned_m, gt.quat_wxyz, gt.rate_frd_rad_s)
         else:
             cam = self.sim.camera
             image = np.zeros((cam.height_px, cam.width_px), dtype=np.uint8)

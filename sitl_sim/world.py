@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sitl_sim.scenario import Scenario
+from sitl_sim.visual import VisualSample
 from sitl_sim.wind import WindModel
 
 __all__ = ["EpisodeWorld", "episode_world"]
@@ -32,6 +33,14 @@ class EpisodeWorld:
     """
 
     wind: WindModel | None = None
+    visual: VisualSample | None = None
+
+    def record(self) -> dict:
+        """What was drawn, for the episode's log record (absent sections left out)."""
+        out: dict = {}
+        if self.visual is not None:
+            out["visual"] = self.visual.to_dict()
+        return out
 
 
 def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
@@ -39,4 +48,5 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
     wind = (
         WindModel.for_episode(scenario.wind, seed, index) if scenario.wind is not None else None
     )
-    return EpisodeWorld(wind=wind)
+    visual = scenario.visual.draw(seed, index) if scenario.visual is not None else None
+    return EpisodeWorld(wind=wind, visual=visual)

@@ -39,7 +39,7 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
             "companion.files",
             "companion.options",
         ),
-        {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL"},
+        {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2"},
     ),
     "expert": (
         ("expert", "sitl_sim", "companion.contract", "companion.flightlog", "companion.files"),

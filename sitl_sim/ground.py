@@ -1,0 +1,163 @@
+"""The ground under the camera: a texture, where it lies, and the landing pad on it.
+
+Both renderers read the same :class:`GroundMap` and :class:`PadGeometry`, which is what lets a
+test hold them to the same image:
+
+- :class:`sitl_sim.scene.Scene` (pybullet's TinyRenderer, the reference) textures its ground
+  geometry with :attr:`GroundMap.rgb` and builds the pad from boxes;
+- :class:`sitl_sim.render_fast.FastRenderer` warps the same texels onto the image with the
+  ground plane's homography and paints the pad's two layers the same way.
+
+A map's :attr:`~GroundMap.texel_to_ne` is the affine map from texel coordinates (column, row;
+integer = texel centre, OpenCV's convention) to north/east metres on the ground. Texels are
+sampled nearest-neighbour, as TinyRenderer does.
+
+The nominal ground (no ``[visual]`` section) is the project's original texture on the original
+600 m box: pybullet's box mesh maps its top face to the last quarter of the texture in u and v
+(measured: texel column ``896 + n * 256/600``, row ``896 - e * 256/600``), so the nominal ground
+shows 256 x 256 texels of 2.34 m — kept exactly, so the flights and the policy trained on them
+see the world they always did. Procedural terrains (:mod:`sitl_sim.terrain`) are periodic tiles
+laid edge to edge over the whole ground, mapped texel for texel.
+"""
+
+from __future__ import annotations
+
+import functools
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "GROUND_HALF_SIDE_M",
+    "LUMA_Q8",
+    "GroundMap",
+    "PadGeometry",
+    "luma",
+    "nominal_ground",
+]
+
+GROUND_HALF_SIDE_M = 300.0
+"""Half the side of the square ground (m); the pad is at its centre."""
+
+LUMA_Q8 = (77, 150, 29)
+"""ITU-R BT.601 luma weights 0.299, 0.587, 0.114 in 1/256ths (colour to mono8)."""
+
+_NOMINAL_TEXTURE_PX = 1024
+_NOMINAL_SEED = 7
+
+
+def luma(rgb: np.ndarray) -> np.ndarray:
+    """mono8 of a uint8 RGB array (..., 3), rounded as the camera rounds."""
+    c = rgb.astype(np.uint16)
+    r, g, b = LUMA_Q8
+    return ((r * c[..., 0] + g * c[..., 1] + b * c[..., 2] + 128) >> 8).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class PadGeometry:
+    """The paper's landing target: a red cross on a green square, centred on the origin.
+
+    The square's top is ``square_top_m`` above the ground and the cross's ``cross_top_m``
+    (the boxes of the reference scene); both renderers draw each layer at its own height.
+    """
+
+    side_m: float = 4.0
+    cross_length_m: float = 3.2
+    cross_width_m: float = 0.6
+    green_rgb: tuple[float, float, float] = (0.25, 0.85, 0.25)
+    red_rgb: tuple[float, float, float] = (0.80, 0.08, 0.08)
+    square_top_m: float = 0.02
+    cross_top_m: float = 0.04
+
+    def scaled(self, factor: float) -> PadGeometry:
+        """The same pad ``factor`` times as large across (heights unchanged)."""
+        return PadGeometry(
+            side_m=self.side_m * factor,
+            cross_length_m=self.cross_length_m * factor,
+            cross_width_m=self.cross_width_m * factor,
+            green_rgb=self.green_rgb,
+            red_rgb=self.red_rgb,
+            square_top_m=self.square_top_m,
+            cross_top_m=self.cross_top_m,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class GroundMap:
+    """A ground texture and its placement.
+
+    Attributes:
+        rgb: (rows, cols, 3) uint8 texture, the ground's colour under full light.
+        texel_to_ne: (3, 3) affine map, texel (col, row, 1) -> (north, east, 1) metres.
+        periodic: the texture repeats edge to edge over the whole ground (a tile); otherwise it
+            covers the ground once and nothing lies beyond it.
+        name: what it is, for logs (e.g. ``"nominal"``, ``"mars_rocks#12"``).
+        tile_m: the side of one tile in metres (periodic maps).
+    """
+
+    rgb: np.ndarray
+    texel_to_ne: np.ndarray
+    periodic: bool
+    name: str
+    tile_m: float = 0.0
+    _mono: list = field(default_factory=list, repr=False)
+
+    @property
+    def mono(self) -> np.ndarray:
+        """The texture in mono8 (computed once)."""
+        if not self._mono:
+            self._mono.append(luma(self.rgb))
+        return self._mono[0]
+
+    def png(self) -> Path:
+        """The texture as a PNG file (for pybullet), written once per content."""
+        from PIL import Image
+
+        digest = _digest(self.rgb)
+        path = Path(tempfile.gettempdir()) / f"visland_ground_{digest}.png"
+        if not path.exists():
+            tmp = path.with_suffix(f".{np.random.default_rng().integers(1 << 30)}.tmp.png")
+            Image.fromarray(self.rgb, "RGB").save(tmp)
+            tmp.replace(path)  # atomic: parallel workers never read a half-written file
+        return path
+
+
+def _digest(a: np.ndarray) -> str:
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
+
+
+@functools.cache
+def nominal_ground() -> GroundMap:
+    """The original ground: seed-7 value noise, reddish brown, on pybullet's box UVs (one
+    object per process: renderers recognise it by identity)."""
+    rgb = _nominal_texture(_NOMINAL_SEED, _NOMINAL_TEXTURE_PX)
+    used = _NOMINAL_TEXTURE_PX // 4  # the box's top face spans the last quarter in u and v
+    s = 2 * GROUND_HALF_SIDE_M / used  # metres per texel
+    c = _NOMINAL_TEXTURE_PX - used / 2 - 0.5  # texel coordinate of the ground's centre
+    texel_to_ne = np.array([[s, 0.0, -c * s], [0.0, -s, c * s], [0.0, 0.0, 1.0]])
+    return GroundMap(rgb=rgb, texel_to_ne=texel_to_ne, periodic=False, name="nominal")
+
+
+_NOMINAL_CACHE: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _nominal_texture(seed: int, size: int) -> np.ndarray:
+    """A deterministic, terrain-like texture (multi-octave value noise) — the original ground."""
+    key = (seed, size)
+    if key not in _NOMINAL_CACHE:
+        rng = np.random.default_rng(seed)
+        f = np.zeros((size, size))
+        for octave, weight in ((8, 1.0), (32, 0.6), (128, 0.35), (512, 0.2)):
+            coarse = rng.random((octave, octave))
+            reps = size // octave
+            f += weight * np.kron(coarse, np.ones((reps, reps)))
+        f = (f - f.min()) / (np.ptp(f) + 1e-9)
+        # Dry, reddish-brown terrain (Mars-like): in mono8 always darker than the pad's green.
+        base = np.array([100.0, 80.0, 65.0])
+        rgb = base[None, None, :] * (0.6 + 0.8 * f[..., None])
+        _NOMINAL_CACHE[key] = np.clip(rgb, 0, 255).astype(np.uint8)
+    return _NOMINAL_CACHE[key]

@@ -1,0 +1,147 @@
+"""The fast camera: the flat ground and the pad warped onto the image by plane homographies.
+
+The world under a landing camera is a plane (the ground) and two thin layers on it (the pad's
+green square and red cross, a few centimetres up). A point on the horizontal plane at depth
+``d0`` maps to the image by a 3x3 homography, so the whole frame is three
+``cv2.warpPerspective`` calls of a 128 x 128 image — tens of microseconds each, independent of
+the texture's size — instead of rasterising the scene:
+
+    pixel ~ K · C · Rᵀ · [[1, 0, -n], [0, 1, -e], [0, 0, d0 - d]] · (north, east, 1)
+
+with ``R`` the body-to-NED rotation, ``(n, e, d)`` the camera position, ``C`` the body-to-image
+axes (image right = body right, image down = body back, optical axis = body down) and ``K`` the
+pinhole intrinsics of :class:`~sitl_sim.config.CameraConfig` (vertical field of view, pixel
+centres at integers). Texels are sampled nearest-neighbour like pybullet's TinyRenderer, which
+stays the reference renderer (:class:`sitl_sim.scene.Scene`); ``tests/test_render_fast.py``
+holds the two to the same image across the visual conditions.
+
+Points behind the camera never reach the image: the homography is only valid for a camera
+above the plane looking at it; a camera at or below a layer's height sees none of that layer
+(the pad's layers vanish when the camera is on them, as in a render from inside the box).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from sitl_sim.config import CameraConfig
+from sitl_sim.dynamics import quat_to_rotation
+from sitl_sim.ground import GroundMap, PadGeometry, luma, nominal_ground
+
+__all__ = ["FastRenderer", "camera_intrinsics", "plane_homography"]
+
+_BODY_TO_IMAGE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+_PAD_TEXELS_PER_M = 100  # 1 cm texels: the pad's edges stay sharp down to touchdown
+
+
+def camera_intrinsics(cfg: CameraConfig) -> np.ndarray:
+    """K: focal length from the vertical field of view, square pixels, and the principal point
+    on TinyRenderer's pixel grid: ``(w/2, h/2 - 1)`` in OpenCV's integer-centre pixels (measured
+    by fitting renders; the half pixel either side of ``(w-1)/2`` is its rasteriser's rounding
+    and the bottom-up row order of its frame buffer). Within a pixel of the ideal centre."""
+    f = 0.5 * cfg.height_px / math.tan(math.radians(cfg.fov_deg) / 2)
+    return np.array(
+        [[f, 0.0, cfg.width_px / 2], [0.0, f, cfg.height_px / 2 - 1.0], [0.0, 0.0, 1.0]]
+    )
+
+
+def plane_homography(
+    k: np.ndarray, pos_ned_m, rot_body_to_ned: np.ndarray, depth_m: float
+) -> np.ndarray:
+    """The homography from (north, east, 1) on the plane at NED depth ``depth_m`` to pixels."""
+    n, e, d = (float(v) for v in pos_ned_m)
+    shift = np.array([[1.0, 0.0, -n], [0.0, 1.0, -e], [0.0, 0.0, depth_m - d]])
+    return k @ _BODY_TO_IMAGE @ rot_body_to_ned.T @ shift
+
+
+class FastRenderer:
+    """Renders a :class:`GroundMap` and a :class:`PadGeometry` to mono8 (no pybullet), under
+    the reference scene's full, overhead light (the camera applies the episode's light level)."""
+
+    def __init__(self, ground: GroundMap | None = None, pad: PadGeometry | None = None) -> None:
+        self._k_cache: tuple[CameraConfig, np.ndarray] | None = None
+        self.configure(ground or nominal_ground(), pad or PadGeometry())
+
+    def configure(self, ground: GroundMap, pad: PadGeometry) -> None:
+        """Show ``ground`` and ``pad`` from now on (a new episode's world)."""
+        self.ground = ground
+        self.pad = pad
+        self._ground_mono = ground.mono
+        self._pad_square, self._square_to_ne = _pad_layer(pad, cross=False)
+        self._pad_cross, self._cross_to_ne = _pad_layer(pad, cross=True)
+        # TinyRenderer turns a float colour into bytes by truncation (0.25 -> 63)
+        greys = [luma((np.array(c) * 255.0).astype(np.uint8)) for c in (pad.green_rgb, pad.red_rgb)]
+        # label -> grey level: 0 = ground (painted separately), 1 = green, 2 = red
+        self._pad_grey = np.array([0, *greys], dtype=np.uint8)
+
+    def _k(self, cfg: CameraConfig) -> np.ndarray:
+        if self._k_cache is None or self._k_cache[0] != cfg:
+            self._k_cache = (cfg, camera_intrinsics(cfg))
+        return self._k_cache[1]
+
+    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
+        """Noise-free mono8 image (height, width), row 0 = body forward."""
+        k = self._k(cfg)
+        rot = quat_to_rotation(quat_wxyz)
+        size = (cfg.width_px, cfg.height_px)
+        g = self.ground
+        h_ground = plane_homography(k, pos_ned_m, rot, 0.0) @ g.texel_to_ne
+        image = cv2.warpPerspective(
+            self._ground_mono,
+            h_ground,
+            size,
+            flags=cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_WRAP if g.periodic else cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+        altitude = -float(pos_ned_m[2])
+        for labels, to_ne, top in (
+            (self._pad_square, self._square_to_ne, self.pad.square_top_m),
+            (self._pad_cross, self._cross_to_ne, self.pad.cross_top_m),
+        ):
+            if altitude <= top:
+                continue
+            h = plane_homography(k, pos_ned_m, rot, -top) @ to_ne
+            layer = cv2.warpPerspective(
+                labels, h, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
+            )
+            mask = layer != 0
+            image[mask] = self._pad_grey[layer[mask]]
+        return image
+
+
+    def close(self) -> None:
+        """Nothing to release (the same interface as :class:`sitl_sim.scene.Scene`)."""
+
+    def __enter__(self) -> FastRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _pad_layer(pad: PadGeometry, cross: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A label texture of one pad layer (1 = green square, 2 = red cross) and its texel->NE map.
+
+    Box edges follow TinyRenderer's fill rule closely enough at 1 cm texels (< 0.1 px at any
+    altitude the camera flies above the pad).
+    """
+    half = pad.side_m / 2 if not cross else pad.cross_length_m / 2
+    n = max(2, int(math.ceil(2 * half * _PAD_TEXELS_PER_M)))
+    s = 2 * half / n
+    coords = (np.arange(n) + 0.5) * s - half  # texel centres
+    north = coords[None, :] * np.ones((n, 1))  # columns: north
+    east = -coords[:, None] * np.ones((1, n))  # rows: east downwards negative, like the ground
+    if cross:
+        w = pad.cross_width_m / 2
+        inside = (np.abs(north) <= w) | (np.abs(east) <= w)
+        labels = np.where(inside, 2, 0).astype(np.uint8)
+    else:
+        labels = np.ones((n, n), dtype=np.uint8)
+    c = (n - 1) / 2
+    to_ne = np.array([[s, 0.0, -c * s], [0.0, -s, c * s], [0.0, 0.0, 1.0]])
+    return labels, to_ne
+

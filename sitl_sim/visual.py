@@ -1,0 +1,306 @@
+"""The ``[visual]`` scenario section: ground, sun, pad and camera effects drawn per episode.
+
+Keys (all optional but ``terrain``; ranges ``[lo, hi]`` are drawn uniformly per episode):
+
+``terrain``               list of ground families to pick from (:data:`sitl_sim.terrain.FAMILIES`,
+                          or ``"nominal"``: the original ground, which ignores the seed and sun)
+``texture_seed``          ``[lo, hi]`` integers, inclusive (default ``[0, 999]``): disjoint ranges
+                          give grounds never seen in training
+``sun_elevation_deg``     degrees above the horizon, in [1, 90] (default ``[90, 90]``: overhead)
+``sun_azimuth_deg``       where the sun stands, from north clockwise (default ``[0, 360]``)
+``brightness``            gain on the image (default ``[1, 1]``)
+``contrast``              gain on the deviation from mid-grey (default ``[1, 1]``)
+``pad_scale``             factor on the pad's size (default ``[1, 1]``)
+``pad_colour_jitter``     each pad colour channel x a factor in [1 - j, 1 + j] (default 0)
+``haze``                  share of the airlight at 100 m slant range, in [0, 0.95]: dust or haze
+                          that greys the view with distance (default ``[0, 0]``)
+``exposure_noise``        std of the per-frame log exposure gain (auto-exposure flicker)
+``motion_blur_ms``        exposure time (ms): the body rates smear the image over it
+``lens_k1``               radial distortion ``x_d = x (1 + k1 r^2)`` in normalised coordinates
+                          (negative: barrel), in [-0.5, 0.5]
+
+Absent section: the nominal world, bit for bit. The draw comes from its own generator
+``(seed, episode, VISUAL_STREAM)``; the per-frame exposure flicker from a second stream of that
+key, so neither touches the sensor noise, the initial state or the wind.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sitl_sim.config import CameraConfig
+from sitl_sim.errors import ConfigError
+from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.terrain import FAMILIES, Sun, terrain_map
+
+__all__ = [
+    "VISUAL_STREAM",
+    "CameraEffects",
+    "VisualConfig",
+    "VisualSample",
+    "visual_config_from_table",
+]
+
+VISUAL_STREAM = 0x5649_5355  # "VISU"
+NOMINAL_TERRAIN = "nominal"
+_HAZE_REFERENCE_M = 100.0
+_AIRLIGHT = 190.0  # grey level of the haze itself in full light (a bright dusty sky)
+
+_RANGES: dict[str, tuple[float, float, tuple[float, float]]] = {
+    # key: (lowest, highest, default)
+    "sun_elevation_deg": (1.0, 90.0, (90.0, 90.0)),
+    "sun_azimuth_deg": (-360.0, 720.0, (0.0, 360.0)),
+    "brightness": (0.05, 5.0, (1.0, 1.0)),
+    "contrast": (0.05, 5.0, (1.0, 1.0)),
+    "pad_scale": (0.1, 10.0, (1.0, 1.0)),
+    "haze": (0.0, 0.95, (0.0, 0.0)),
+    "motion_blur_ms": (0.0, 200.0, (0.0, 0.0)),
+    "lens_k1": (-0.5, 0.5, (0.0, 0.0)),
+}
+_SCALARS: dict[str, tuple[float, float]] = {"pad_colour_jitter": (0.0, 0.9), "exposure_noise": (0.0, 1.0)}
+KEYS = ("terrain", "texture_seed", *_RANGES, *_SCALARS)
+
+
+@dataclass(frozen=True)
+class VisualConfig:
+    """The checked ``[visual]`` section: what each episode's look is drawn from."""
+
+    terrain: tuple[str, ...]
+    texture_seed: tuple[int, int] = (0, 999)
+    sun_elevation_deg: tuple[float, float] = (90.0, 90.0)
+    sun_azimuth_deg: tuple[float, float] = (0.0, 360.0)
+    brightness: tuple[float, float] = (1.0, 1.0)
+    contrast: tuple[float, float] = (1.0, 1.0)
+    pad_scale: tuple[float, float] = (1.0, 1.0)
+    pad_colour_jitter: float = 0.0
+    haze: tuple[float, float] = (0.0, 0.0)
+    exposure_noise: float = 0.0
+    motion_blur_ms: tuple[float, float] = (0.0, 0.0)
+    lens_k1: tuple[float, float] = (0.0, 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    def draw(self, seed: int, index: int) -> VisualSample:
+        """Episode ``index`` of ``seed``: a pure function of the three."""
+        rng = np.random.default_rng([int(seed), int(index), VISUAL_STREAM])
+
+        def u(rg: tuple[float, float]) -> float:
+            return float(rg[0] + (rg[1] - rg[0]) * rng.random())
+
+        terrain = self.terrain[int(rng.integers(len(self.terrain)))]
+        texture_seed = int(rng.integers(self.texture_seed[0], self.texture_seed[1] + 1))
+        sun = (u(self.sun_elevation_deg), u(self.sun_azimuth_deg) % 360.0)
+        gains = (u(self.brightness), u(self.contrast))
+        pad_scale = u(self.pad_scale)
+        j = self.pad_colour_jitter
+        jitter = tuple(float(v) for v in rng.uniform(1.0 - j, 1.0 + j, 6))
+        return VisualSample(
+            terrain=terrain,
+            texture_seed=texture_seed,
+            sun_elevation_deg=sun[0],
+            sun_azimuth_deg=sun[1],
+            brightness=gains[0],
+            contrast=gains[1],
+            pad_scale=pad_scale,
+            pad_colour_gain=jitter,  # type: ignore[arg-type]
+            haze=u(self.haze),
+            exposure_noise=self.exposure_noise,
+            motion_blur_s=u(self.motion_blur_ms) / 1000.0,
+            lens_k1=u(self.lens_k1),
+            frame_seed=(int(seed), int(index), VISUAL_STREAM + 1),
+        )
+
+
+@dataclass(frozen=True)
+class VisualSample:
+    """One episode's look (what :meth:`VisualConfig.draw` drew)."""
+
+    terrain: str
+    texture_seed: int
+    sun_elevation_deg: float
+    sun_azimuth_deg: float
+    brightness: float
+    contrast: float
+    pad_scale: float
+    pad_colour_gain: tuple[float, float, float, float, float, float]
+    haze: float
+    exposure_noise: float
+    motion_blur_s: float
+    lens_k1: float
+    frame_seed: tuple[int, int, int]
+
+    @property
+    def sun(self) -> Sun:
+        return Sun(self.sun_elevation_deg, self.sun_azimuth_deg)
+
+    @property
+    def light(self) -> float:
+        """The flat-ground light level (1.0 on the nominal ground: it has no sun)."""
+        return 1.0 if self.terrain == NOMINAL_TERRAIN else self.sun.flat_light
+
+    def ground(self) -> GroundMap:
+        if self.terrain == NOMINAL_TERRAIN:
+            return nominal_ground()
+        return terrain_map(self.terrain, self.texture_seed, self.sun)
+
+    def pad(self, base: PadGeometry | None = None) -> PadGeometry:
+        base = (base or PadGeometry()).scaled(self.pad_scale)
+        g = self.pad_colour_gain
+
+        def jit(rgb, gains):
+            return tuple(float(min(1.0, c * k)) for c, k in zip(rgb, gains, strict=True))
+
+        return PadGeometry(
+            side_m=base.side_m,
+            cross_length_m=base.cross_length_m,
+            cross_width_m=base.cross_width_m,
+            green_rgb=jit(base.green_rgb, g[:3]),
+            red_rgb=jit(base.red_rgb, g[3:]),
+            square_top_m=base.square_top_m,
+            cross_top_m=base.cross_top_m,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["pad_colour_gain"] = list(self.pad_colour_gain)
+        d["frame_seed"] = list(self.frame_seed)
+        return d
+
+
+class CameraEffects:
+    """The image-side effects of a :class:`VisualSample`, applied to a noise-free mono8 render
+    before the sensor noise: haze by slant range, lens distortion, motion blur from the body
+    rates over the exposure, brightness/contrast and the per-frame exposure flicker."""
+
+    def __init__(self, sample: VisualSample, cfg: CameraConfig, light: float) -> None:
+        from sitl_sim.render_fast import camera_intrinsics
+
+        self.sample = sample
+        self._cfg = cfg
+        self._rng = np.random.default_rng(list(sample.frame_seed))
+        k = camera_intrinsics(cfg)
+        self._f = float(k[0, 0])
+        v, u = np.mgrid[0 : cfg.height_px, 0 : cfg.width_px].astype(np.float64)
+        x, y = (u - k[0, 2]) / self._f, (v - k[1, 2]) / self._f
+        # unit rays in the body frame (image right = body right, image down = body back)
+        rays = np.stack([-y, x, np.ones_like(x)], axis=-1)
+        self._rays_body = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
+        self._airlight = np.float32(_AIRLIGHT * light)
+        self._haze_per_m = (
+            -math.log(1.0 - sample.haze) / _HAZE_REFERENCE_M if sample.haze > 0.0 else 0.0
+        )
+        self._lens_maps = None
+        if sample.lens_k1 != 0.0:
+            # output (distorted) pixel <- source (ideal) pixel at x_u = x_d (1 + k1 r_d^2)
+            r2 = x * x + y * y
+            scale = 1.0 + sample.lens_k1 * r2
+            self._lens_maps = (
+                (x * scale * self._f + k[0, 2]).astype(np.float32),
+                (y * scale * self._f + k[1, 2]).astype(np.float32),
+            )
+
+    def apply(self, image: np.ndarray, pos_ned_m, rot_body_to_ned: np.ndarray, rate_frd) -> np.ndarray:
+        s = self.sample
+        img = image.astype(np.float32)
+        if self._haze_per_m > 0.0:
+            cos_down = (self._rays_body @ rot_body_to_ned[2]).reshape(img.shape)
+            altitude = max(0.0, -float(pos_ned_m[2]))
+            with np.errstate(divide="ignore"):
+                slant = np.where(cos_down > 1e-3, altitude / np.maximum(cos_down, 1e-3), np.inf)
+            t = np.exp(-self._haze_per_m * slant).astype(np.float32)
+            img = img * t + self._airlight * (1.0 - t)
+        if self._lens_maps is not None:
+            img = cv2.remap(img, *self._lens_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if s.motion_blur_s > 0.0:
+            img = self._blur(img, rate_frd)
+        gain = s.brightness
+        if s.exposure_noise > 0.0:
+            gain *= math.exp(s.exposure_noise * float(self._rng.standard_normal()))
+        img = ((img - 128.0) * s.contrast + 128.0) * gain
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+    def _blur(self, img: np.ndarray, rate_frd) -> np.ndarray:
+        """Smear along the image motion of a rotation at the body rates over the exposure
+        (roll moves the image across, pitch along; yaw's smear at the edges is left out)."""
+        dx = self._f * float(rate_frd[0]) * self.sample.motion_blur_s
+        dy = self._f * float(rate_frd[1]) * self.sample.motion_blur_s
+        length = math.hypot(dx, dy)
+        if length < 1.0:
+            return img
+        n = int(math.ceil(length)) | 1
+        kernel = np.zeros((n, n), np.float32)
+        c = n // 2
+        for t in np.linspace(-0.5, 0.5, 4 * n):
+            kernel[int(round(c + t * dy)), int(round(c + t * dx))] += 1.0
+        return cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
+
+
+def _pair(value: Any, key: str, where: str, lo: float, hi: float) -> tuple[float, float]:
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected [lo, hi] (two numbers)")
+    a, b = float(value[0]), float(value[1])
+    if not (math.isfinite(a) and math.isfinite(b) and lo <= a <= b <= hi):
+        raise ConfigError(
+            f"{where}: [visual] {key} = {value!r}; expected {lo} <= lo <= hi <= {hi}"
+        )
+    return a, b
+
+
+def visual_config_from_table(table: Any, where: str) -> VisualConfig:
+    """Check and type a ``[visual]`` table; ``where`` (the file) starts every error."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: [visual] must be a table, got {table!r}")
+    unknown = sorted(set(table) - set(KEYS))
+    if unknown:
+        raise ConfigError(f"{where}: [visual] unknown key(s) {unknown}; expected {list(KEYS)}")
+    if "terrain" not in table:
+        raise ConfigError(
+            f"{where}: [visual] missing key 'terrain'; expected a list of "
+            f"{[NOMINAL_TERRAIN, *FAMILIES]}"
+        )
+    terrain = table["terrain"]
+    names = (NOMINAL_TERRAIN, *FAMILIES)
+    if (
+        not isinstance(terrain, list)
+        or not terrain
+        or not all(isinstance(t, str) and t in names for t in terrain)
+    ):
+        raise ConfigError(
+            f"{where}: [visual] terrain = {terrain!r}; expected a non-empty list of {list(names)}"
+        )
+    kwargs: dict[str, Any] = {"terrain": tuple(terrain)}
+    if "texture_seed" in table:
+        ts = table["texture_seed"]
+        if (
+            not isinstance(ts, list)
+            or len(ts) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in ts)
+            or not 0 <= ts[0] <= ts[1] < 2**31
+        ):
+            raise ConfigError(
+                f"{where}: [visual] texture_seed = {ts!r}; expected [lo, hi] integers, "
+                "0 <= lo <= hi < 2**31"
+            )
+        kwargs["texture_seed"] = (ts[0], ts[1])
+    for key, (lo, hi, _default) in _RANGES.items():
+        if key in table:
+            kwargs[key] = _pair(table[key], key, where, lo, hi)
+    for key, (lo, hi) in _SCALARS.items():
+        if key in table:
+            v = table[key]
+            if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
+                raise ConfigError(
+                    f"{where}: [visual] {key} = {v!r}; expected a number in [{lo}, {hi}]"
+                )
+            kwargs[key] = float(v)
+    return VisualConfig(**kwargs)
