@@ -112,7 +112,6 @@ class FastRenderer:
             image[mask] = self._pad_grey[layer[mask]]
         return image
 
-
     def close(self) -> None:
         """Nothing to release (the same interface as :class:`sitl_sim.scene.Scene`)."""
 
@@ -130,7 +129,7 @@ def _pad_layer(pad: PadGeometry, cross: bool) -> tuple[np.ndarray, np.ndarray]:
     altitude the camera flies above the pad).
     """
     half = pad.side_m / 2 if not cross else pad.cross_length_m / 2
-    n = max(2, int(math.ceil(2 * half * _PAD_TEXELS_PER_M)))
+    n = max(2, math.ceil(2 * half * _PAD_TEXELS_PER_M))
     s = 2 * half / n
     coords = (np.arange(n) + 0.5) * s - half  # texel centres
     north = coords[None, :] * np.ones((n, 1))  # columns: north
@@ -144,4 +143,3 @@ def _pad_layer(pad: PadGeometry, cross: bool) -> tuple[np.ndarray, np.ndarray]:
     c = (n - 1) / 2
     to_ne = np.array([[s, 0.0, -c * s], [0.0, -s, c * s], [0.0, 0.0, 1.0]])
     return labels, to_ne
-

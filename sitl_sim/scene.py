@@ -12,6 +12,7 @@ The colour render is converted to mono8 with the ITU-R BT.601 luma weights.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import TYPE_CHECKING, Protocol
 
@@ -73,10 +74,9 @@ class Scene:
     """
 
     GROUND_HALF_SIDE_M = GROUND_HALF_SIDE_M
+    QUAD_M = 10.0
 
-    def __init__(
-        self, pad: PadGeometry | None = None, ground: GroundMap | None = None
-    ) -> None:
+    def __init__(self, pad: PadGeometry | None = None, ground: GroundMap | None = None) -> None:
         self._client = pb.connect(pb.DIRECT)
         if self._client < 0:
             raise SimError("pybullet: could not open a DIRECT client")
@@ -146,15 +146,18 @@ class Scene:
         def cuts(axis_origin: float, step: float) -> list[float]:
             k0 = math.floor((-h - axis_origin) / step)
             pts = [axis_origin + k * step for k in range(k0, k0 + int(2 * h / step) + 3)]
-            return sorted({-h, h, *[p for p in pts if -h < p < h]})
+            # plus a cut every QUAD_M: TinyRenderer interpolates uvs in single precision, and
+            # smaller quads keep its texel lookups on the map's grid near the camera
+            grid = np.arange(-h, h, self.QUAD_M)
+            return sorted({-h, h, *[p for p in pts if -h < p < h], *grid.tolist()})
 
         # tile edges: where (col + 0.5) or (row + 0.5) is a multiple of the tile size
         n_origin = float(g.texel_to_ne[0, 2] - 0.5 * g.texel_to_ne[0, 0])
         e_origin = float(g.texel_to_ne[1, 2] - 0.5 * g.texel_to_ne[1, 1])
         ns, es = cuts(n_origin, g.tile_m), cuts(e_origin, g.tile_m)
         vertices, uvs, indices = [], [], []
-        for n0, n1 in zip(ns[:-1], ns[1:], strict=True):
-            for e0, e1 in zip(es[:-1], es[1:], strict=True):
+        for n0, n1 in itertools.pairwise(ns):
+            for e0, e1 in itertools.pairwise(es):
                 nm, em = (n0 + n1) / 2, (e0 + e1) / 2
                 # this quad's tile: uv of its centre, shifted into [0, 1)
                 u_c, v_c = uv(nm, em)
@@ -236,7 +239,8 @@ class Scene:
 
 class Camera:
     """The downward camera: a renderer's image, the episode's light and camera effects
-    (:class:`sitl_sim.visual.CameraEffects`, none in the nominal world), then seeded sensor noise."""
+    (:class:`sitl_sim.visual.CameraEffects`, none in the nominal world), then seeded sensor
+    noise."""
 
     def __init__(
         self,

@@ -14,12 +14,12 @@ from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
 from sitl_sim.errors import SimStateError
+from sitl_sim.ground import PadGeometry, nominal_ground
 from sitl_sim.rate_controller import RateController
 from sitl_sim.scenario import InitialState
-from sitl_sim.ground import PadGeometry, nominal_ground
 from sitl_sim.scene import Camera, Renderer, make_renderer
-from sitl_sim.visual import CameraEffects, VisualSample
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
+from sitl_sim.visual import CameraEffects, VisualSample
 from sitl_sim.wind import WindModel
 from sitl_sim.world import EpisodeWorld
 

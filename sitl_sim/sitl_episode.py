@@ -192,9 +192,7 @@ class EpisodeLifecycle:
         (HOLD's length and the sensor readings taken while frozen cannot change the flight)."""
         ep = self._episode
         assert ep is not None
-        self.sim.reset(
-            ep.initial, np.random.SeedSequence(ep.seed_key), world=self._world(ep.index)
-        )
+        self.sim.reset(ep.initial, np.random.SeedSequence(ep.seed_key), world=self._world(ep.index))
         self._reset_samples()
         self._flying = True
         self.clock.restart_phase()

@@ -85,7 +85,7 @@ def _spectral(rng: np.random.Generator, n: int, beta: float, lo_m: float = 0.0) 
 def _stamp(target: np.ndarray, r: float, c: float, radius_px: float, profile, value) -> None:
     """Add ``value * profile(d / radius)`` (d = distance in texels) around (r, c), wrapping."""
     n = target.shape[0]
-    k = int(math.ceil(radius_px)) + 1
+    k = math.ceil(radius_px) + 1
     rows = np.arange(int(r) - k, int(r) + k + 1)
     cols = np.arange(int(c) - k, int(c) + k + 1)
     d = np.hypot(rows[:, None] - r, cols[None, :] - c) / radius_px
@@ -240,7 +240,7 @@ def _cast_shadow(height: np.ndarray, sun: Sun) -> np.ndarray:
     steps = int(min(96, math.ceil(relief / max(rise_per_step, 1e-6)))) if relief > 0 else 0
     shadow = np.zeros(height.shape, dtype=bool)
     for k in range(1, steps + 1):
-        shifted = np.roll(height, (-int(round(k * dr)), -int(round(k * dc))), axis=(0, 1))
+        shifted = np.roll(height, (-round(k * dr), -round(k * dc)), axis=(0, 1))
         shadow |= shifted > height + k * rise_per_step
     return shadow
 

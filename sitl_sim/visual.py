@@ -62,7 +62,10 @@ _RANGES: dict[str, tuple[float, float, tuple[float, float]]] = {
     "motion_blur_ms": (0.0, 200.0, (0.0, 0.0)),
     "lens_k1": (-0.5, 0.5, (0.0, 0.0)),
 }
-_SCALARS: dict[str, tuple[float, float]] = {"pad_colour_jitter": (0.0, 0.9), "exposure_noise": (0.0, 1.0)}
+_SCALARS: dict[str, tuple[float, float]] = {
+    "pad_colour_jitter": (0.0, 0.9),
+    "exposure_noise": (0.0, 1.0),
+}
 KEYS = ("terrain", "texture_seed", *_RANGES, *_SCALARS)
 
 
@@ -205,7 +208,9 @@ class CameraEffects:
                 (y * scale * self._f + k[1, 2]).astype(np.float32),
             )
 
-    def apply(self, image: np.ndarray, pos_ned_m, rot_body_to_ned: np.ndarray, rate_frd) -> np.ndarray:
+    def apply(
+        self, image: np.ndarray, pos_ned_m, rot_body_to_ned: np.ndarray, rate_frd
+    ) -> np.ndarray:
         s = self.sample
         img = image.astype(np.float32)
         if self._haze_per_m > 0.0:
@@ -233,11 +238,11 @@ class CameraEffects:
         length = math.hypot(dx, dy)
         if length < 1.0:
             return img
-        n = int(math.ceil(length)) | 1
+        n = math.ceil(length) | 1
         kernel = np.zeros((n, n), np.float32)
         c = n // 2
         for t in np.linspace(-0.5, 0.5, 4 * n):
-            kernel[int(round(c + t * dy)), int(round(c + t * dx))] += 1.0
+            kernel[round(c + t * dy), round(c + t * dx)] += 1.0
         return cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
 
 
@@ -250,9 +255,7 @@ def _pair(value: Any, key: str, where: str, lo: float, hi: float) -> tuple[float
         raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected [lo, hi] (two numbers)")
     a, b = float(value[0]), float(value[1])
     if not (math.isfinite(a) and math.isfinite(b) and lo <= a <= b <= hi):
-        raise ConfigError(
-            f"{where}: [visual] {key} = {value!r}; expected {lo} <= lo <= hi <= {hi}"
-        )
+        raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected {lo} <= lo <= hi <= {hi}")
     return a, b
 
 

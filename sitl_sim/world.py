@@ -5,9 +5,9 @@ terrain families, sensor fault rates, ...); :func:`episode_world` draws the valu
 ``index`` of seed ``seed`` into an :class:`EpisodeWorld`, which :meth:`Simulator.reset
 <sitl_sim.simulator.Simulator.reset>` takes. Every section draws from its own generator, keyed by
 ``(seed, index, SECTION_STREAM)`` (a distinct constant per section, e.g.
-:data:`sitl_sim.wind.WIND_STREAM`), so adding a section to a scenario never changes what another section
-draws, and the same (seed, episode) is the same world in every process (the gymnasium env, the
-MAVLink SITL, parallel evaluation workers, resumed runs).
+:data:`sitl_sim.wind.WIND_STREAM`), so adding a section to a scenario never changes what another
+section draws, and the same (seed, episode) is the same world in every process (the gymnasium
+env, the MAVLink SITL, parallel evaluation workers, resumed runs).
 
 A scenario without a section gets that section's "as the config files say" value (None below),
 so the nominal scenario flies exactly the world it always did.
@@ -45,8 +45,6 @@ class EpisodeWorld:
 
 def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
     """Draw episode ``index`` of seed ``seed`` of ``scenario``'s world."""
-    wind = (
-        WindModel.for_episode(scenario.wind, seed, index) if scenario.wind is not None else None
-    )
+    wind = WindModel.for_episode(scenario.wind, seed, index) if scenario.wind is not None else None
     visual = scenario.visual.draw(seed, index) if scenario.visual is not None else None
     return EpisodeWorld(wind=wind, visual=visual)
