@@ -160,7 +160,7 @@ def _sand(rng: np.random.Generator, n: int):
     waves = max(1, round(n / wavelength_px / math.hypot(kx, ky)))  # whole ripples per tile
     rows, cols = np.mgrid[0:n, 0:n] / n
     phase = 2 * math.pi * waves * (kx * cols + ky * rows) + 1.2 * _spectral(rng, n, 3.0)
-    height = 0.05 * np.sin(phase) + 0.5 * _spectral(rng, n, 3.4)
+    height = 0.025 * np.sin(phase) + 0.5 * _spectral(rng, n, 3.4)
     tone = 0.92 + 0.04 * _spectral(rng, n, 1.6)
     return np.array([206.0, 184.0, 142.0]) * tone[..., None], height
 

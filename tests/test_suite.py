@@ -216,4 +216,4 @@ def test_cli_suite_refuses_scenario_and_mavlink(extra, flag):
 
 def test_cli_plot_without_suite_is_a_usage_error():
     proc = _visland("eval", "--plot", "x.png", "--episodes", "1")
-    assert proc.returncode == 2 and "--plot needs --suite" in proc.stderr
+    assert proc.returncode == 2 and "--plot and --markdown need --suite" in proc.stderr

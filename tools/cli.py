@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -115,7 +117,13 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_suite(args: argparse.Namespace) -> int:
-    from training.suite import format_suite_table, load_suite, plot_suite, run_suite
+    from training.suite import (
+        format_suite_table,
+        load_suite,
+        plot_suite,
+        run_suite,
+        suite_markdown,
+    )
 
     clash = [
         flag
@@ -141,13 +149,30 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
         render_camera=not args.no_camera,
         progress=not args.json,
     )
+    png = None
     if args.plot is not None:
         png = plot_suite(report, args.plot)
         print(f"plot: {png}", file=sys.stderr if args.json else sys.stdout)
+    if args.markdown is not None:
+        md = Path(args.markdown)
+        md.parent.mkdir(parents=True, exist_ok=True)
+        plot_rel = os.path.relpath(png, md.parent) if png is not None else None
+        command = "visland " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        md.write_text(suite_markdown(report, command, plot_rel))
+        print(f"markdown: {md}", file=sys.stderr if args.json else sys.stdout)
     if args.json:
         _print_json(report)
     else:
         format_suite_table(report, sys.stdout)
+    return 0
+
+
+def _cmd_pictures(args: argparse.Namespace) -> int:
+    from tools.world_pictures import draw_visual_conditions, draw_wind_flight
+
+    out = Path(args.out)
+    print(draw_visual_conditions(out / "visual_conditions.png"))
+    print(draw_wind_flight(out / "wind_flight.png"))
     return 0
 
 
@@ -156,8 +181,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     if args.suite is not None:
         return _cmd_eval_suite(args)
-    if args.plot is not None:
-        print("visland eval: --plot needs --suite", file=sys.stderr)
+    if args.plot is not None or args.markdown is not None:
+        print("visland eval: --plot and --markdown need --suite", file=sys.stderr)
         return 2
     # --episodes and --seed default to None so that a suite file's values stand unless given
     args.episodes = _EVAL_EPISODES if args.episodes is None else args.episodes
@@ -394,6 +419,13 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     d.set_defaults(func=_cmd_demo)
 
+    pi = sub.add_parser(
+        "pictures",
+        help="draw the worlds: camera frames across the visual conditions, a wind flight (PNG)",
+    )
+    pi.add_argument("--out", default="docs/figures", help="folder for the PNGs")
+    pi.set_defaults(func=_cmd_pictures)
+
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")
     b.add_argument(
         "what",
@@ -471,6 +503,13 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help="with --suite: PNG of success rate and mean landing error per condition",
+    )
+    e.add_argument(
+        "--markdown",
+        type=Path,
+        default=None,
+        help="with --suite: write the results page (command, commit, table, plot) to this file, "
+        "e.g. docs/suite_shipped.md",
     )
     e.add_argument(
         "--workers",
