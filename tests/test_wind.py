@@ -434,3 +434,18 @@ def test_sitl_flies_in_the_scenario_wind_and_logs_it(tmp_path, low_scenario):
     fresh = WindModel.for_episode(load_scenario(scenario).wind, 6, 0)
     fresh.start(flying[0]["pos_ned_m"])
     np.testing.assert_allclose(flying[0]["wind_ned_m_s"], fresh.wind_ned_m_s, rtol=1e-12)
+
+
+def test_env_info_groundtruth_carries_the_wind_only_in_wind():
+    windy = LandingEnv(scenario=str(CONFIG_DIR / "scenario_wind.toml"), render_camera=False)
+    still = LandingEnv(render_camera=False)
+    try:
+        _, info = windy.reset(seed=2)
+        np.testing.assert_array_equal(
+            info["groundtruth"]["wind_ned_m_s"], windy.simulator.ground_truth().wind_ned_m_s
+        )
+        _, info = still.reset(seed=2)
+        assert "wind_ned_m_s" not in info["groundtruth"]
+    finally:
+        windy.close()
+        still.close()

@@ -174,10 +174,14 @@ class GroundTruth:
                 object.__setattr__(self, name, _vec(name, value, n))
 
     def as_dict(self) -> dict[str, np.ndarray]:
-        """The gymnasium ``info["groundtruth"]`` layout."""
-        return {
+        """The gymnasium ``info["groundtruth"]`` layout (``wind_ned_m_s`` only in wind, like
+        the ground-truth log record)."""
+        out = {
             "pos_ned_m": self.pos_ned_m.copy(),
             "vel_ned_m_s": self.vel_ned_m_s.copy(),
             "quat_wxyz": self.quat_wxyz.copy(),
             "rate_frd_rad_s": self.rate_frd_rad_s.copy(),
         }
+        if self.wind_ned_m_s is not None:
+            out["wind_ned_m_s"] = np.array(self.wind_ned_m_s, dtype=float)
+        return out
