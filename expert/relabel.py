@@ -31,7 +31,7 @@ from companion.contract.topics import (
 from companion.files import sha256_file
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
-from sitl_sim.config import load_sim, load_vehicle, planet
+from sitl_sim.config import Planet, VehicleConfig, load_sim, load_vehicle, planet
 from sitl_sim.flight_record import groundtruth_from_msg, observation_from_msg
 
 __all__ = ["RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
@@ -79,23 +79,33 @@ def _expert_for(log_path: Path, meta: dict[str, Any]) -> MpcExpert:
     config = meta.get("config")
     if not isinstance(config, dict) or "vehicle" not in config or "sim" not in config:
         raise RelabelError(f"{log_path}: no 'config' metadata with vehicle and sim")
+    try:
+        world = planet(config["sim"]["planet"]["name"])
+    except (KeyError, TypeError) as exc:
+        raise RelabelError(f"{log_path}: metadata config.sim.planet missing: {exc}") from None
     vehicle = load_vehicle()
     logged = config["vehicle"]
     ours = vehicle.to_dict()
-    diff = sorted(k for k in ours if _jsonish(ours[k]) != logged.get(k))
+    diff = sorted(k for k in ours if not _same_vehicle_field(k, ours, logged, vehicle, world))
     if diff:
         raise RelabelError(
             f"{log_path}: flown with another vehicle config (differs in {diff}); the expert "
             "would label it with the wrong physics"
         )
-    try:
-        world = planet(config["sim"]["planet"]["name"])
-    except (KeyError, TypeError) as exc:
-        raise RelabelError(f"{log_path}: metadata config.sim.planet missing: {exc}") from None
     key = world.name
     if key not in _EXPERTS:
         _EXPERTS[key] = MpcExpert(vehicle, load_sim().with_planet(world))
     return _EXPERTS[key]
+
+
+def _same_vehicle_field(
+    key: str, ours: dict[str, Any], logged: dict[str, Any], vehicle: VehicleConfig, world: Planet
+) -> bool:
+    if key == "max_total_thrust_n_by_planet" and key not in logged:
+        # A log from before T_max was stated per planet holds one figure, the one it flew.
+        old = logged.get("max_total_thrust_n")
+        return isinstance(old, int | float) and old == vehicle.max_total_thrust_n(world)
+    return _jsonish(ours[key]) == logged.get(key)
 
 
 def _jsonish(value: Any) -> Any:
