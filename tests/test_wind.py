@@ -24,13 +24,13 @@ from sitl_sim.mavlink_sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.sitl_config import SitlConfig
-from sitl_sim.world import EpisodeWorld
 from sitl_sim.wind import (
     TURBULENCE_W20_M_S,
     WindConfig,
     WindModel,
     dryden_low_altitude,
 )
+from sitl_sim.world import EpisodeWorld
 from tools.sitl_client import ClientTimeout, SitlClient
 from training.fly import free_udp_port
 
