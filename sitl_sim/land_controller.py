@@ -48,6 +48,13 @@ class CascadeLandController:
         self.gains = gains or CascadeGains()
         self._max_total_thrust_n = vehicle.max_total_thrust_n(world)
 
+    def for_vehicle(self, vehicle: VehicleConfig) -> CascadeLandController:
+        """The same law (gains, planet) for ``vehicle``: this controller when it already flies
+        it, else a new one (cheap: it keeps only the mass and T_max)."""
+        if vehicle == self.vehicle:
+            return self
+        return type(self)(vehicle, self.world, self.gains)
+
     def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command:
         g = self.gains
         pos = np.asarray(pos_ned_m, dtype=float)

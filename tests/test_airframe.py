@@ -1,6 +1,6 @@
 """The ``[vehicle]`` scenario section (airframe randomisation) and T_max per planet: config
-errors, determinism, the physics of a scaled airframe, MPC_THR_HOVER over MAVLink, and nominal
-flights unchanged bit for bit."""
+errors, determinism, the physics of a scaled airframe, MPC_THR_HOVER over MAVLink, the expert
+flying and relabelling the episode's vehicle, and nominal flights unchanged bit for bit."""
 
 from __future__ import annotations
 
@@ -17,10 +17,11 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import Command
-from companion.contract.topics import TOPIC_SCENARIO
+from companion.contract.topics import TOPIC_COMMAND, TOPIC_LABEL, TOPIC_SCENARIO
 from companion.flightlog import read_log
 from expert.cascade import CascadeLander
 from expert.mpc import MpcExpert
+from expert.relabel import RelabelError, relabel_log
 from sitl_sim.airframe import (
     AIRFRAME_KEYS,
     AirframeConfig,
@@ -37,6 +38,7 @@ from sitl_sim.sitl_config import SitlConfig
 from sitl_sim.world import EpisodeWorld, episode_world
 from tools.sitl_client import ClientTimeout, SitlClient
 from training.fly import free_udp_port
+from training.rollout import episode_pilot, fly_episode, make_policy
 
 EARTH, MARS = PLANETS["earth"], PLANETS["mars"]
 HEAVY = CONFIG_DIR / "scenario_heavy.toml"
@@ -277,9 +279,8 @@ def test_same_seed_and_episode_fly_the_same_airframe_bit_for_bit_and_another_epi
     assert not np.array_equal(a[-1]["pos_ned_m"], c[-1]["pos_ned_m"])
     nominal, info_n = _env_flight(CONFIG_DIR / "scenario.toml", 1)
     assert "airframe" not in info_n
-    assert not np.array_equal(
-        nominal[-1]["pos_ned_m"], a[-1]["pos_ned_m"]
-    )  # same start, other airframe
+    # the same start and commands, another airframe: another flight
+    assert not np.array_equal(nominal[-1]["pos_ned_m"], a[-1]["pos_ned_m"])
 
 
 # --------------------------------------------------------------------------- physics
@@ -391,3 +392,65 @@ def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(tmp_path, 
         assert log.metadata["config"]["params"]["mpc_thr_hover"] == expected[i]
         unscaled = json.loads(json.dumps(load_vehicle().to_dict()))  # the file, as logged
         assert log.metadata["config"]["vehicle"] == unscaled
+
+
+# --------------------------------------------------------------------------- the expert
+
+
+@pytest.mark.parametrize("scenario", [HEAVY, LIGHT], ids=["heavy", "light"])
+def test_expert_lands_a_heavy_and_a_light_episode_flying_their_airframe(scenario):
+    env = LandingEnv(scenario=scenario, render_camera=False)
+    try:
+        policy = make_policy("expert", env)
+        out = fly_episode(env, policy, seed=1_000_000, index=0)
+        pilot = episode_pilot(policy, env.episode_vehicle)
+        assert pilot is not policy and pilot.vehicle == env.episode_vehicle
+        assert episode_pilot(policy, env.episode_vehicle) is pilot  # built once per vehicle
+        assert episode_pilot(policy, env.vehicle) is policy  # the nominal path builds nothing
+    finally:
+        env.close()
+    assert out.result.success and out.result.landing_error_m < 0.05
+    assert out.policy_stats["solves"] == out.steps and out.policy_stats["failed"] == 0
+
+
+def test_relabel_labels_a_heavy_flight_with_its_airframe(tmp_path, low_scenario):
+    """The expert's own flight of a heavy episode, relabelled offline, gives back its commands:
+    the relabeller read the factors from the log (a vehicle-file expert would ask ~20 % less
+    thrust). A log from before T_max per planet (one figure) is still accepted when it matches."""
+    scenario = _scenario(tmp_path, Path(low_scenario).read_text(), "mass_scale = [1.25, 1.3]")
+    env = LandingEnv(scenario=scenario, render_camera=False)
+    log_path = tmp_path / "flights" / "ep.mcap"
+    log_path.parent.mkdir()
+    try:
+        policy = make_policy("expert", env)
+        fly_episode(env, policy, 0, 0, log_path, source="expert")
+        old_vehicle = {
+            k: v for k, v in env.vehicle.to_dict().items() if k != "max_total_thrust_n_by_planet"
+        }
+        config = {
+            "vehicle": {**old_vehicle, "max_total_thrust_n": 25.0},
+            "sim": env.sim_config.to_dict(),
+            "scenario": env.scenario.to_dict(),
+        }
+        old_log = tmp_path / "flights" / "old.mcap"
+        fly_episode(env, policy, 0, 0, old_log, source="expert", metadata={"config": config})
+        config["vehicle"]["max_total_thrust_n"] = 20.0
+        other_log = tmp_path / "flights" / "other.mcap"
+        fly_episode(env, policy, 0, 0, other_log, source="expert", metadata={"config": config})
+    finally:
+        env.close()
+    report = relabel_log(log_path, tmp_path / "labels")
+    labels = read_log(Path(report.labels)).topic(TOPIC_LABEL)
+    recorded = {m["frame_id"]: m for m in read_log(log_path).topic(TOPIC_COMMAND)}
+    assert report.steps == len(recorded) > 20
+    for label in labels:
+        rec = recorded[label["frame_id"]]
+        assert label["thrust_norm"] == pytest.approx(rec["thrust_norm"], abs=1e-9)
+        np.testing.assert_allclose(label["rate_frd_rad_s"], rec["rate_frd_rad_s"], atol=1e-9)
+    assert relabel_log(old_log, tmp_path / "labels").steps == report.steps
+    with pytest.raises(
+        RelabelError,
+        match=r"flown with another vehicle config \(differs in "
+        r"\['max_total_thrust_n_by_planet'\]\)",
+    ):
+        relabel_log(other_log, tmp_path / "labels")
