@@ -6,7 +6,9 @@ frame, the expert computes what it would have commanded from that frame's ground
 to a sibling file ``<log stem>.labels.mcap`` in ``out_dir``; the log itself is never modified.
 
 The expert is privileged: it reads the ground truth of each step and not the image, so frames are
-not decoded (that keeps relabelling far above 500 steps/s per core).
+not decoded (that keeps relabelling far above 500 steps/s per core). It labels with the vehicle
+the log flew: the log's vehicle file (which must be ours) scaled by the episode's airframe factors
+when the scenario had a ``[vehicle]`` section (the ``airframe`` of ``/episode/scenario``).
 """
 
 from __future__ import annotations
@@ -27,11 +29,13 @@ from companion.contract.topics import (
     TOPIC_GROUNDTRUTH,
     TOPIC_LABEL,
     TOPIC_OBSERVATION,
+    TOPIC_SCENARIO,
 )
 from companion.files import sha256_file
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
-from sitl_sim.config import load_sim, load_vehicle, planet
+from sitl_sim.airframe import AirframeScales
+from sitl_sim.config import Planet, VehicleConfig, load_sim, load_vehicle, planet
 from sitl_sim.flight_record import groundtruth_from_msg, observation_from_msg
 
 __all__ = ["RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
@@ -74,28 +78,54 @@ def label_path(log: Path, out_dir: Path) -> Path:
 _EXPERTS: dict[str, MpcExpert] = {}
 
 
-def _expert_for(log_path: Path, meta: dict[str, Any]) -> MpcExpert:
-    """The expert for the log's planet, after checking the log flew our vehicle."""
+def _expert_for(
+    log_path: Path, meta: dict[str, Any], scenario_records: list[dict[str, Any]]
+) -> MpcExpert:
+    """The expert for the log's planet and episode vehicle, after checking the log flew our
+    vehicle file."""
     config = meta.get("config")
     if not isinstance(config, dict) or "vehicle" not in config or "sim" not in config:
         raise RelabelError(f"{log_path}: no 'config' metadata with vehicle and sim")
+    try:
+        world = planet(config["sim"]["planet"]["name"])
+    except (KeyError, TypeError) as exc:
+        raise RelabelError(f"{log_path}: metadata config.sim.planet missing: {exc}") from None
     vehicle = load_vehicle()
     logged = config["vehicle"]
     ours = vehicle.to_dict()
-    diff = sorted(k for k in ours if _jsonish(ours[k]) != logged.get(k))
+    diff = sorted(k for k in ours if not _same_vehicle_field(k, ours, logged, vehicle, world))
     if diff:
         raise RelabelError(
             f"{log_path}: flown with another vehicle config (differs in {diff}); the expert "
             "would label it with the wrong physics"
         )
-    try:
-        world = planet(config["sim"]["planet"]["name"])
-    except (KeyError, TypeError) as exc:
-        raise RelabelError(f"{log_path}: metadata config.sim.planet missing: {exc}") from None
     key = world.name
     if key not in _EXPERTS:
         _EXPERTS[key] = MpcExpert(vehicle, load_sim().with_planet(world))
-    return _EXPERTS[key]
+    return _EXPERTS[key].for_vehicle(_episode_vehicle(log_path, vehicle, scenario_records))
+
+
+def _same_vehicle_field(
+    key: str, ours: dict[str, Any], logged: dict[str, Any], vehicle: VehicleConfig, world: Planet
+) -> bool:
+    if key == "max_total_thrust_n_by_planet" and key not in logged:
+        # A log from before T_max was stated per planet holds one figure, the one it flew.
+        old = logged.get("max_total_thrust_n")
+        return isinstance(old, int | float) and old == vehicle.max_total_thrust_n(world)
+    return _jsonish(ours[key]) == logged.get(key)
+
+
+def _episode_vehicle(
+    log_path: Path, vehicle: VehicleConfig, scenario_records: list[dict[str, Any]]
+) -> VehicleConfig:
+    """The vehicle file scaled by the episode's airframe factors, if the log has any."""
+    if not scenario_records or "airframe" not in scenario_records[0]:
+        return vehicle
+    try:
+        scales = AirframeScales.from_dict(scenario_records[0]["airframe"], "airframe")
+    except ValueError as exc:
+        raise RelabelError(f"{log_path}: /episode/scenario: {exc}") from None
+    return scales.apply(vehicle)
 
 
 def _jsonish(value: Any) -> Any:
@@ -109,8 +139,10 @@ def _jsonish(value: Any) -> Any:
 def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
     """Label every control step of one flight log. Raises RelabelError / FlightLogError."""
     log_path, out_dir = Path(log_path), Path(out_dir)
-    log = read_log(log_path, topics=[TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_COMMAND])
-    expert = _expert_for(log_path, log.metadata)
+    log = read_log(
+        log_path, topics=[TOPIC_GROUNDTRUTH, TOPIC_OBSERVATION, TOPIC_COMMAND, TOPIC_SCENARIO]
+    )
+    expert = _expert_for(log_path, log.metadata, log.topic(TOPIC_SCENARIO))
     truths = {m["frame_id"]: m for m in log.topic(TOPIC_GROUNDTRUTH)}
     observations = {m["frame_id"]: m for m in log.topic(TOPIC_OBSERVATION)}
     recorded = {m["frame_id"]: m for m in log.topic(TOPIC_COMMAND)}

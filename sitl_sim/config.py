@@ -7,7 +7,7 @@ controller, sensors, camera, the MPC expert) takes these objects, never a loose 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +79,12 @@ class _Fields:
             raise ConfigError(f"{self._where}: missing table [{key}]")
         self.used.add(key)
         return _Fields(value, f"{self._where} [{key}]")
+
+    def value(self, key: str) -> Any:
+        """The raw value of ``key`` (None when absent), for a field with checks of its own."""
+        if key in self._data:
+            self.used.add(key)
+        return self._data.get(key)
 
     def _raw(self, key: str, default: Any) -> Any:
         if key not in self._data:
@@ -172,26 +178,49 @@ class VehicleConfig:
     mass_kg: float
     arm_length_m: float
     inertia_diag_kg_m2: tuple[float, float, float]
-    max_total_thrust_n: float
+    max_total_thrust_n_by_planet: tuple[tuple[str, float], ...]
+    """T_max of all four rotors together per planet name, ``(("earth", 25.0), ...)`` (a tuple
+    so the config stays hashable). Stated per planet in the file, never derived: a rotor's
+    thrust depends on the air density. Read it through :meth:`max_total_thrust_n`."""
     motor_time_constant_s: float
     yaw_torque_per_thrust_m: float
     drag_coefficient_area_m2: tuple[float, float, float]
     rate_controller: RateControllerConfig
+    source: str = field(default="<memory>", compare=False)
+    """The file it came from (for error messages; not part of the vehicle)."""
 
-    @property
-    def max_rotor_thrust_n(self) -> float:
-        return self.max_total_thrust_n / 4.0
+    def max_total_thrust_n(self, world: Planet) -> float:
+        """T_max of all four rotors on ``world``, N.
+
+        Raises:
+            ConfigError: the vehicle file states no T_max for that planet (naming the file
+                and the planet): thrust must never silently follow another planet's air.
+        """
+        for name, thrust_n in self.max_total_thrust_n_by_planet:
+            if name == world.name:
+                return thrust_n
+        stated = [name for name, _ in self.max_total_thrust_n_by_planet]
+        raise ConfigError(
+            f"{self.source}: [vehicle.max_total_thrust_n] has no T_max for planet "
+            f"{world.name!r} (stated: {stated}); add '{world.name} = <N>' for the rotors "
+            "this vehicle flies there (thrust depends on the air density, so it is not derived "
+            "from another planet's figure)"
+        )
 
     @property
     def inertia_kg_m2(self) -> np.ndarray:
         return np.diag(self.inertia_diag_kg_m2)
 
     def hover_thrust_norm(self, world: Planet) -> float:
-        """Collective thrust fraction that balances gravity (PX4's MPC_THR_HOVER)."""
-        return self.mass_kg * world.gravity_m_s2 / self.max_total_thrust_n
+        """Collective thrust fraction that balances gravity on ``world`` (PX4's
+        MPC_THR_HOVER): ``m g / T_max(world)``."""
+        return self.mass_kg * world.gravity_m_s2 / self.max_total_thrust_n(world)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        del d["source"]  # where it was read from is not the vehicle (logs compare vehicles)
+        d["max_total_thrust_n_by_planet"] = dict(self.max_total_thrust_n_by_planet)
+        return d
 
 
 def load_vehicle(path: str | Path | None = None) -> VehicleConfig:
@@ -211,15 +240,41 @@ def load_vehicle(path: str | Path | None = None) -> VehicleConfig:
         mass_kg=v.number("mass_kg", 0.0, 100.0, lo_open=True),
         arm_length_m=v.number("arm_length_m", 0.0, 5.0, lo_open=True),
         inertia_diag_kg_m2=v.vector("inertia_diag_kg_m2", 3, 1e-6, 100.0),  # type: ignore[arg-type]
-        max_total_thrust_n=v.number("max_total_thrust_n", 0.0, 1e4, lo_open=True),
+        max_total_thrust_n_by_planet=_thrust_by_planet(v, str(path)),
         motor_time_constant_s=v.number("motor_time_constant_s", 0.0, 1.0),
         yaw_torque_per_thrust_m=v.number("yaw_torque_per_thrust_m", 0.0, 1.0),
         drag_coefficient_area_m2=v.vector("drag_coefficient_area_m2", 3, 0.0, 10.0),  # type: ignore[arg-type]
         rate_controller=rate,
+        source=str(path),
     )
     for section in (root, v, rc):
         section.check_unknown()
     return cfg
+
+
+def _thrust_by_planet(v: _Fields, where: str) -> tuple[tuple[str, float], ...]:
+    """``[vehicle.max_total_thrust_n]``: one T_max per planet the vehicle may fly."""
+    table = v.value("max_total_thrust_n")
+    key = "[vehicle.max_total_thrust_n]"
+    if table is None:
+        raise ConfigError(
+            f"{where}: missing table {key} (T_max in N per planet, e.g. earth = 25.0)"
+        )
+    if not isinstance(table, dict) or not table:
+        raise ConfigError(
+            f"{where}: [vehicle] max_total_thrust_n = {table!r}; expected a table {key} with "
+            f"T_max (N) per planet, e.g. earth = 25.0 (known planets {sorted(PLANETS)}): a "
+            "rotor's thrust depends on the air density, so each planet's figure is stated"
+        )
+    unknown = sorted(set(table) - set(PLANETS))
+    if unknown:
+        raise ConfigError(
+            f"{where}: {key} unknown planet(s) {unknown}; expected some of {sorted(PLANETS)}"
+        )
+    thrust = _Fields(table, f"{where} {key}")
+    return tuple(
+        (name, thrust.number(name, 0.0, 1e4, lo_open=True)) for name in PLANETS if name in table
+    )
 
 
 # --------------------------------------------------------------------------- simulation

@@ -89,7 +89,8 @@ class Physics:
         self.ry = tuple(d * s for s in self.ROTOR_Y)
         self.km = vehicle.yaw_torque_per_thrust_m
         self.tau_motor = vehicle.motor_time_constant_s
-        self.max_rotor_thrust = vehicle.max_rotor_thrust_n
+        self.max_total_thrust_n = vehicle.max_total_thrust_n(world)  # T_max on this planet
+        self.max_rotor_thrust = self.max_total_thrust_n / 4.0
         half_rho = 0.5 * world.air_density_kg_m3
         self.kdrag = tuple(half_rho * c for c in vehicle.drag_coefficient_area_m2)
         # Allocation: rotor thrusts (4) -> [collective N, tau_x, tau_y, tau_z] (N, N m).

@@ -1,11 +1,15 @@
 """``visland/Landing-v0``: the landing task as a gymnasium environment (in process, lockstep).
 
-* action ``float32[4] = [thrust_norm, p, q, r]`` — the Command contract (thrust fraction of the
-  25 N total, FRD body rates in rad/s), one per camera frame (10 Hz);
+* action ``float32[4] = [thrust_norm, p, q, r]`` — the Command contract (thrust fraction of
+  T_max, 25 N for the vehicle file, FRD body rates in rad/s), one per camera frame (10 Hz);
 * observation ``dict``: ``image`` (128, 128) uint8, ``attitude_rad`` (3,), ``rate_frd_rad_s``
   (3,), ``range_m`` (1,) (``-1`` when the radar reports invalid), ``accel_frd_m_s2`` (3,);
 * ``info["groundtruth"]``: ``pos_ned_m``, ``vel_ned_m_s``, ``quat_wxyz``, ``rate_frd_rad_s``
-  (privileged: for experts, labels and metrics, never in the observation);
+  (+ ``wind_ned_m_s`` in wind) (privileged: for experts, labels and metrics, never in the
+  observation);
+* ``info["airframe"]`` (only with a ``[vehicle]`` scenario section): the episode's airframe
+  factors; :attr:`LandingEnv.episode_vehicle` is the vehicle they make (privileged too);
+  ``info["visual"]`` (only with ``[visual]``): the episode's drawn look (terrain, seed, sun, ...);
 * the episode terminates at the first ground contact (``info["result"]`` then holds the landing
   metrics) and is truncated at ``episode_timeout_s``;
 * reward: 0 during flight; at the end ``-(landing error [m] + touchdown speed [m/s])``, or
@@ -17,8 +21,8 @@ each later ``reset()`` without a seed takes the next episode; ``options={"episod
 takes episode ``i`` of the seed, ``options={"initial_state": st}`` starts from a given
 :class:`~sitl_sim.scenario.InitialState`. Same seed, same actions: identical
 observations, bit for bit. Episode ``i`` of seed ``s`` flies the world
-:func:`sitl_sim.world.episode_world` draws for ``(scenario, s, i)`` (wind, and every other
-scenario section), also with a given initial state.
+:func:`sitl_sim.world.episode_world` draws for ``(scenario, s, i)`` (wind, airframe, and every
+other scenario section), also with a given initial state.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import numpy as np
 from gymnasium import spaces
 
 from companion.contract import IMAGE_SIZE_PX, Command, ContractError, GroundTruth, Observation
+from sitl_sim.airframe import AirframeScales, check_airframe_can_hover
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
@@ -74,6 +79,8 @@ class LandingEnv(gym.Env):
         sim_cfg = sim if isinstance(sim, SimConfig) else load_sim(sim)
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.sim_config = sim_cfg.with_planet(self.scenario.world)
+        if self.scenario.vehicle is not None:
+            check_airframe_can_hover(self.scenario.vehicle, self.vehicle, self.scenario.world)
         self.render_mode = render_mode
         self._sim = Simulator(self.vehicle, self.sim_config, render=render_camera)
         rc = self.vehicle.rate_controller
@@ -97,6 +104,8 @@ class LandingEnv(gym.Env):
         self._episode_index = -1
         self._frame = 0
         self._last_image: np.ndarray | None = None
+        self._airframe: AirframeScales | None = None
+        self._drawn: dict[str, Any] = {}
         self.result: EpisodeResult | None = None
 
     # ------------------------------------------------------------------ gymnasium API
@@ -121,6 +130,8 @@ class LandingEnv(gym.Env):
             )
         self.initial_state = initial
         world = episode_world(self.scenario, self._seed, self._episode_index)
+        self._airframe = world.airframe
+        self._drawn = world.record()
         self._sim.reset(
             initial, np.random.SeedSequence([self._seed, self._episode_index]), world=world
         )
@@ -180,6 +191,18 @@ class LandingEnv(gym.Env):
     def simulator(self) -> Simulator:
         return self._sim
 
+    @property
+    def episode_vehicle(self) -> VehicleConfig:
+        """The vehicle the current episode flies: :attr:`vehicle` (the vehicle file) scaled by
+        the episode's ``[vehicle]`` factors, or :attr:`vehicle` itself (privileged: a
+        model-based expert flies it; a deployable policy never reads it)."""
+        return self._sim.episode_vehicle
+
+    @property
+    def airframe(self) -> AirframeScales | None:
+        """The current episode's airframe factors (None: no ``[vehicle]`` section)."""
+        return self._airframe
+
     def _info(self, truth: GroundTruth) -> dict[str, Any]:
         info: dict[str, Any] = {
             "groundtruth": truth.as_dict(),
@@ -187,6 +210,7 @@ class LandingEnv(gym.Env):
             "frame_id": self._frame,
             "episode_index": self._episode_index,
         }
+        info.update(self._drawn)  # airframe / visual draws; nominal episodes' info is unchanged
         if self.result is not None:
             info["result"] = self.result.to_dict()
         return info

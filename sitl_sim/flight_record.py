@@ -29,6 +29,7 @@ from companion.contract.topics import (
     TOPIC_SCENARIO,
 )
 from companion.flightlog import FlightLogWriter
+from sitl_sim.airframe import AirframeScales
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import InitialState
 
@@ -125,18 +126,20 @@ def write_episode_start(
     scenario: dict[str, Any],
     seed: int,
     episode_index: int,
+    airframe: AirframeScales | None = None,
 ) -> None:
-    log.write(
-        TOPIC_SCENARIO,
-        SCHEMA_EPISODE_SCENARIO,
-        0.0,
-        {
-            "seed": seed,
-            "episode_index": episode_index,
-            "initial_state": initial.to_dict(),
-            "scenario": scenario,
-        },
-    )
+    """``/episode/scenario``: the episode's seed, index, initial state, scenario and, with a
+    ``[vehicle]`` section, its drawn airframe factors (``airframe``; left out otherwise, so a
+    nominal record is unchanged; the SITL's record carries the same ``airframe``)."""
+    record = {
+        "seed": seed,
+        "episode_index": episode_index,
+        "initial_state": initial.to_dict(),
+        "scenario": scenario,
+    }
+    if airframe is not None:
+        record["airframe"] = airframe.to_dict()
+    log.write(TOPIC_SCENARIO, SCHEMA_EPISODE_SCENARIO, 0.0, record)
 
 
 def write_control_step(

@@ -46,6 +46,14 @@ class CascadeLandController:
         self.vehicle = vehicle
         self.world = world
         self.gains = gains or CascadeGains()
+        self._max_total_thrust_n = vehicle.max_total_thrust_n(world)
+
+    def for_vehicle(self, vehicle: VehicleConfig) -> CascadeLandController:
+        """The same law (gains, planet) for ``vehicle``: this controller when it already flies
+        it, else a new one (cheap: it keeps only the mass and T_max)."""
+        if vehicle == self.vehicle:
+            return self
+        return type(self)(vehicle, self.world, self.gains)
 
     def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command:
         g = self.gains
@@ -69,7 +77,7 @@ class CascadeLandController:
         rot = quat_to_rotation(quat_wxyz)
         z_des = -force / np.linalg.norm(force)  # desired body down axis
         thrust_n = float(-force @ rot[:, 2]) if force @ rot[:, 2] < 0 else 0.0
-        thrust_norm = min(1.0, max(0.0, thrust_n / self.vehicle.max_total_thrust_n))
+        thrust_norm = min(1.0, max(0.0, thrust_n / self._max_total_thrust_n))
         # Rate setpoint from the body-frame tilt error (small-angle, as PX4's attitude P loop)
         # and a yaw damper: only the tilt matters for landing.
         err_body = rot.T @ np.cross(rot[:, 2], z_des)

@@ -34,7 +34,10 @@ other than HOLD (the simulator is re-seeded then, and the episode's world is dra
 ``episode_world(scenario, seed, i)``, so a flight does not depend on how long HOLD
 lasted); it ends at touchdown + disarm (auto after COM_DISARM_LAND), at ``episode_timeout_s`` of
 flight, or after ``hold_timeout_s`` without a take-over. One MCAP flight log per episode;
-``first_episode`` lets parallel SITLs fly disjoint parts of one seed.
+``first_episode`` lets parallel SITLs fly disjoint parts of one seed. With a ``[vehicle]``
+scenario section each episode flies its own airframe, and the autopilot is tuned for it as a
+tuned PX4 is: ``MPC_THR_HOVER`` is that airframe's hover thrust (a change is announced with a
+PARAM_VALUE at the episode start) and AUTO.LAND flies it.
 
 This module wires the parts and runs the loop; the rest lives one job per module:
 
@@ -67,6 +70,7 @@ import numpy as np
 from companion.contract import Command, GroundTruth
 from companion.contract.camera_packet import encode_frame
 from companion.contract.signing import signing_key_bytes
+from sitl_sim.airframe import check_airframe_can_hover
 from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import SimError
@@ -98,7 +102,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
 
     Args:
         config: the SitlConfig.
-        land_controller_factory: builds the AUTO.LAND controller from (vehicle, planet); the
+        land_controller_factory: builds the AUTO.LAND controller from (vehicle, planet), called
+            again at an episode start whose vehicle differs (a scenario's ``[vehicle]``); the
             default is the privileged
             :class:`~sitl_sim.land_controller.CascadeLandController` (ground truth in).
 
@@ -122,8 +127,11 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
         self.episode_timeout_s = config.episode_timeout_s or sim_cfg.episode_timeout_s
         self.clock = SimClock(sim_cfg.physics_rate_hz, sim_cfg.physics_dt_s)
         self._substeps = sim_cfg.substeps
-        factory = land_controller_factory or _default_land_controller
-        self.land_controller = factory(self.vehicle, sim_cfg.planet)
+        if self.scenario.vehicle is not None:
+            check_airframe_can_hover(self.scenario.vehicle, self.vehicle, sim_cfg.planet)
+        self._land_controller_factory = land_controller_factory or _default_land_controller
+        self.land_controller = self._land_controller_factory(self.vehicle, sim_cfg.planet)
+        self._land_controller_vehicle = self.vehicle
         self.params = AutopilotParams(mpc_thr_hover=self.vehicle.hover_thrust_norm(sim_cfg.planet))
         self.autopilot = Autopilot(self.params, armed=config.start_armed)
         self.sampler = InitialStateSampler(self.scenario, config.seed)

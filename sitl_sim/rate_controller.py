@@ -64,7 +64,7 @@ class RateController:
             iyy * alpha[1] + (ixx - izz) * r * p,
             izz * alpha[2] + (iyy - ixx) * p * q,
         )
-        collective = command.thrust_norm * phys.vehicle.max_total_thrust_n
+        collective = command.thrust_norm * phys.max_total_thrust_n
         rotors, limited, collective_limited = self._mix(collective, tau)
         self.saturated = any(limited) or collective_limited
         for i in range(3):

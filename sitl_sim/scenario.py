@@ -3,8 +3,9 @@
 ``sampler = "sobol+uniform"`` (the paper's hybrid): a scrambled Sobol sequence covers the six
 dimensions that shape a landing (north, east, altitude, and the three velocities) evenly; roll,
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
-An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts;
-``[visual]`` (:mod:`sitl_sim.visual`) ground families, sun, pad and camera effects.
+An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts; an
+optional ``[vehicle]`` section (:mod:`sitl_sim.airframe`) scales the vehicle file per episode;
+``[visual]`` (:mod:`sitl_sim.visual`) draws ground families, sun, pad and camera effects.
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import qmc
 
+from sitl_sim.airframe import AirframeConfig, airframe_config_from_table
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
@@ -49,8 +51,8 @@ _SAMPLERS = ("sobol+uniform", "uniform")
 
 @dataclass(frozen=True)
 class Scenario:
-    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet and the wind (None:
-    still air)."""
+    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, the wind (None:
+    still air) and the airframe factors of ``[vehicle]`` (None: the vehicle file as is)."""
 
     roll_pitch_deg: tuple[float, float]
     yaw_deg: tuple[float, float]
@@ -64,6 +66,7 @@ class Scenario:
     source: str = "<memory>"
     wind: WindConfig | None = None
     visual: VisualConfig | None = None
+    vehicle: AirframeConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -88,7 +91,7 @@ class Scenario:
         d = asdict(self)
         d["world"] = self.world.name
         # an absent section is left out: a nominal scenario's record (in every log) is unchanged
-        for key in ("wind", "visual"):
+        for key in ("wind", "vehicle", "visual"):
             section = getattr(self, key)
             if section is None:
                 del d[key]
@@ -97,7 +100,7 @@ class Scenario:
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind", "visual")
+SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -151,9 +154,16 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     if name not in PLANETS:
         raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")
     wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
+    airframe = airframe_config_from_table(data["vehicle"], where) if "vehicle" in data else None
     visual = visual_config_from_table(data["visual"], where) if "visual" in data else None
     return Scenario(
-        **ranges, sampler=str(sampler), world=planet(name), source=where, wind=wind, visual=visual
+        **ranges,
+        sampler=str(sampler),
+        world=planet(name),
+        source=where,
+        wind=wind,
+        vehicle=airframe,
+        visual=visual,
     )
 
 

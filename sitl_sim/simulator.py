@@ -3,7 +3,9 @@
 One :class:`Simulator` is one vehicle in one world. It knows nothing of episodes' start or end
 rules beyond reporting the first ground contact; the gymnasium env and the MAVLink SITL build on
 it. Randomness comes from the seed given to :meth:`Simulator.reset` only (and, with wind, from the
-episode's :class:`~sitl_sim.wind.WindModel`, which carries its own generator).
+episode's :class:`~sitl_sim.wind.WindModel`, which carries its own generator). The vehicle given
+to the constructor is the vehicle file; each episode flies :attr:`Simulator.episode_vehicle`,
+that file scaled by the episode's airframe factors (a scenario's ``[vehicle]``), if any.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ class Simulator:
     """Physics at ``physics_rate_hz``, camera and control at ``control_rate_hz``.
 
     Args:
-        vehicle: the vehicle and rate-loop configuration.
+        vehicle: the vehicle and rate-loop configuration (the vehicle file; an episode's world
+            may scale it, see :meth:`reset`).
         sim: rates, planet and sensor models.
         scene: a renderer to draw from (:class:`sitl_sim.scene.Scene` or
             :class:`sitl_sim.render_fast.FastRenderer`; made from ``sim.camera.renderer`` when
@@ -52,6 +55,9 @@ class Simulator:
         self.sim = sim
         self.phys = Physics(vehicle, sim.planet)
         self.rate_controller = RateController(vehicle.rate_controller, self.phys)
+        self.episode_vehicle = vehicle
+        """The vehicle this episode flies (``vehicle`` scaled by the world's airframe factors;
+        ``vehicle`` itself when the scenario has no ``[vehicle]``)."""
         self._render = render
         self._owns_scene = scene is None and render
         self.scene = (
@@ -79,11 +85,19 @@ class Simulator:
 
         ``world``: the episode's drawn world (:func:`sitl_sim.world.episode_world`), or None for
         the nominal world of the config files. Its wind, a fresh :class:`WindModel`, is started
-        here at the initial position, then advanced once per physics step. The sensors' streams
-        do not depend on the world, so a windless flight is the flight it always was.
+        here at the initial position, then advanced once per physics step. Its airframe factors
+        make :attr:`episode_vehicle`; the physics and the rate loop (tuned for the airframe it
+        flies, as a tuned autopilot is) are rebuilt for it when it differs from the last
+        episode's, so nominal episodes keep the objects built once. The sensors' streams do not
+        depend on the world, so a windless, nominal-airframe flight is the flight it always was.
         """
         world = world or EpisodeWorld()
         wind = world.wind
+        vehicle = world.vehicle(self.vehicle)
+        if vehicle != self.episode_vehicle:
+            self.phys = Physics(vehicle, self.sim.planet)
+            self.rate_controller = RateController(vehicle.rate_controller, self.phys)
+            self.episode_vehicle = vehicle
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         imu_ss, att_ss, radar_ss, cam_ss = ss.spawn(4)
         self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))

@@ -50,11 +50,14 @@ from companion.flightlog import FlightLogWriter
 from sitl_sim.autopilot import Autopilot
 from sitl_sim.flight_record import command_msg, groundtruth_msg
 from sitl_sim.metrics import EpisodeResult
+from sitl_sim.params import param_table, param_value_msg
 from sitl_sim.scenario import InitialState
 from sitl_sim.world import EpisodeWorld, episode_world
 
 if TYPE_CHECKING:
-    from sitl_sim.autopilot import AutopilotParams
+    from collections.abc import Callable
+
+    from sitl_sim.autopilot import AutopilotParams, LandController
     from sitl_sim.config import SimConfig, VehicleConfig
     from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint, RxError
     from sitl_sim.scenario import InitialStateSampler, Scenario
@@ -106,19 +109,27 @@ class EpisodeLifecycle:
     endpoint: MavlinkEndpoint
     gcs_endpoint: MavlinkEndpoint | None
     lockstep_timeouts: int
+    land_controller: LandController
+    _land_controller_factory: Callable[[VehicleConfig, Any], LandController]
+    _land_controller_vehicle: VehicleConfig
 
     # ------------------------------------------------------------------ lifecycle
 
     def _start_episode(self, index: int) -> None:
         initial = self.sampler.sample(index)
         seed_key = (self.config.seed, index)
-        self.sim.reset(initial, np.random.SeedSequence(seed_key), world=self._world(index))
+        world = self._world(index)
+        self.sim.reset(initial, np.random.SeedSequence(seed_key), world=world)
+        hover_changed = self._tune_for_episode_vehicle()
         self._reset_samples()
         self.autopilot = Autopilot(self.params, armed=self.config.start_armed)
         self._flying = False
         self._land_cmd = None
         self._wait = None
         self.clock.restart_phase()
+        # what was drawn (only with [vehicle] / [visual]: nominal records are unchanged); the
+        # airframe factors are what `visland relabel` applies to the logged vehicle file
+        drawn = world.record()
         writer = None
         if self.config.log_dir:
             path = Path(self.config.log_dir) / f"sitl_seed{self.config.seed}_ep{index:04d}.mcap"
@@ -131,7 +142,7 @@ class EpisodeLifecycle:
                         "vehicle": self.vehicle.to_dict(),
                         "params": dataclasses.asdict(self.params),
                     },
-                    "episode": {"index": index, "seed": self.config.seed},
+                    "episode": {"index": index, "seed": self.config.seed, **drawn},
                 },
             )
         self._episode = Episode(index, initial, seed_key, self.clock.tick, writer)
@@ -143,11 +154,31 @@ class EpisodeLifecycle:
                 "seed": self.config.seed,
                 "initial_state": initial.to_dict(),
                 "scenario": self.scenario.to_dict(),
+                **drawn,
             },
         )
+        if hover_changed:
+            # As PX4 announces a changed parameter: a client holding the old value hears it.
+            table = param_table(self.params, self.endpoint.sysid)
+            row = [name for name, _, _ in table].index("MPC_THR_HOVER")
+            self._send(param_value_msg(self.endpoint.mav, table, row))
         self._statustext(6, f"Episode {index} ready: HOLD")
         self._send_heartbeat()
         log.info("episode %d: initial state %s", index, initial.to_dict())
+
+    def _tune_for_episode_vehicle(self) -> bool:
+        """Tune the autopilot for the airframe this episode flies (:attr:`Simulator.
+        episode_vehicle`), as a tuned PX4 is: MPC_THR_HOVER is its hover thrust on this planet
+        and AUTO.LAND flies it. Returns whether MPC_THR_HOVER changed."""
+        vehicle = self.sim.episode_vehicle
+        if vehicle != self._land_controller_vehicle:
+            self.land_controller = self._land_controller_factory(vehicle, self.sim_cfg.planet)
+            self._land_controller_vehicle = vehicle
+        hover = vehicle.hover_thrust_norm(self.sim_cfg.planet)
+        if hover == self.params.mpc_thr_hover:
+            return False
+        self.params = dataclasses.replace(self.params, mpc_thr_hover=hover)
+        return True
 
     def _world(self, index: int) -> EpisodeWorld:
         """Episode ``index``'s drawn world, fresh for each reset (the take-over re-runs it from

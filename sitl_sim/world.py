@@ -4,10 +4,11 @@ A :class:`~sitl_sim.scenario.Scenario` holds *ranges* (wind speeds, airframe sca
 terrain families, sensor fault rates, ...); :func:`episode_world` draws the values for episode
 ``index`` of seed ``seed`` into an :class:`EpisodeWorld`, which :meth:`Simulator.reset
 <sitl_sim.simulator.Simulator.reset>` takes. Every section draws from its own generator, keyed by
-``(seed, index, SECTION_STREAM)`` (a distinct constant per section, e.g.
-:data:`sitl_sim.wind.WIND_STREAM`), so adding a section to a scenario never changes what another
-section draws, and the same (seed, episode) is the same world in every process (the gymnasium
-env, the MAVLink SITL, parallel evaluation workers, resumed runs).
+``(seed, index, SECTION_STREAM)`` (a distinct constant per section: :data:`sitl_sim.wind.
+WIND_STREAM`, :data:`sitl_sim.airframe.AIRFRAME_STREAM`, :data:`sitl_sim.visual.VISUAL_STREAM`),
+so adding a section to a scenario never changes what another section draws, and the same (seed,
+episode) is the same world in every process (the gymnasium env, the MAVLink SITL, parallel
+evaluation workers, resumed runs).
 
 A scenario without a section gets that section's "as the config files say" value (None below),
 so the nominal scenario flies exactly the world it always did.
@@ -17,6 +18,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sitl_sim.airframe import AirframeScales, draw_airframe
+from sitl_sim.config import VehicleConfig
 from sitl_sim.scenario import Scenario
 from sitl_sim.visual import VisualSample
 from sitl_sim.wind import WindModel
@@ -30,14 +33,26 @@ class EpisodeWorld:
 
     ``wind`` is a fresh :class:`~sitl_sim.wind.WindModel` carrying its own generator; it is
     stateful, so an EpisodeWorld is flown once (:func:`episode_world` again to re-fly).
+    ``airframe`` holds the drawn factors of ``[vehicle]``, not a vehicle: the world does not
+    depend on the vehicle file; :meth:`vehicle` applies them to one.
     """
 
     wind: WindModel | None = None
+    airframe: AirframeScales | None = None
     visual: VisualSample | None = None
 
+    def vehicle(self, base: VehicleConfig) -> VehicleConfig:
+        """The episode's vehicle: ``base`` (the vehicle file) itself without ``[vehicle]``,
+        else ``base`` scaled by the drawn factors."""
+        return base if self.airframe is None else self.airframe.apply(base)
+
     def record(self) -> dict:
-        """What was drawn, for the episode's log record (absent sections left out)."""
+        """What was drawn, for the episode's log records and ``info`` (``airframe``,
+        ``visual``; absent sections left out, so nominal records are unchanged). The wind is
+        logged as it blows, in the ground truth."""
         out: dict = {}
+        if self.airframe is not None:
+            out["airframe"] = self.airframe.to_dict()
         if self.visual is not None:
             out["visual"] = self.visual.to_dict()
         return out
@@ -46,5 +61,8 @@ class EpisodeWorld:
 def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
     """Draw episode ``index`` of seed ``seed`` of ``scenario``'s world."""
     wind = WindModel.for_episode(scenario.wind, seed, index) if scenario.wind is not None else None
+    airframe = (
+        draw_airframe(scenario.vehicle, seed, index) if scenario.vehicle is not None else None
+    )
     visual = scenario.visual.draw(seed, index) if scenario.visual is not None else None
-    return EpisodeWorld(wind=wind, visual=visual)
+    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual)

@@ -27,7 +27,8 @@ def test_default_configs_match_table_1():
     v = load_vehicle()
     assert v.mass_kg == 1.0 and v.arm_length_m == 0.125
     assert v.inertia_diag_kg_m2 == (0.009, 0.009, 0.016)
-    assert v.max_total_thrust_n == 25.0
+    assert v.max_total_thrust_n(planet("earth")) == 25.0
+    assert v.max_total_thrust_n(planet("mars")) == 25.0  # the stated design assumption
     s = load_sim()
     assert s.physics_rate_hz % s.control_rate_hz == 0 and s.physics_rate_hz >= 250
     assert (s.camera.width_px, s.camera.height_px, s.camera.fov_deg) == (128, 128, 45.0)

@@ -202,7 +202,7 @@ def test_mixer_saturates_without_exceeding_rotor_limits(vehicle, quiet_cfg):
     for _ in range(20):
         sim.step_physics(Command(1.0, np.array([3.5, -3.5, 1.5])))
         thrust = sim.ground_truth().rotor_thrust_n
-        assert np.all(thrust >= -1e-9) and np.all(thrust <= vehicle.max_rotor_thrust_n + 1e-9)
+        assert np.all(thrust >= -1e-9) and np.all(thrust <= sim.phys.max_rotor_thrust + 1e-9)
     assert sim.rate_controller.saturated
 
 

@@ -85,7 +85,7 @@ def test_linearisation_matches_the_nonlinear_model(vehicle, sim_cfg, planet):
     x0 = np.zeros(len(ModelState))
     np.testing.assert_allclose(model_derivative(phys, x0, u0), 0.0, atol=1e-9)
     # Known entries: kinematics, thrust along body -z, tilt -> horizontal acceleration.
-    g, t_max, m = phys.g, vehicle.max_total_thrust_n, vehicle.mass_kg
+    g, t_max, m = phys.g, vehicle.max_total_thrust_n(PLANETS[planet]), vehicle.mass_kg
     assert model.b[ModelState.VD, ModelInput.THRUST] == pytest.approx(-t_max / m, rel=1e-6)
     assert model.a[ModelState.VN, ModelState.PITCH] == pytest.approx(-g, rel=1e-6)
     assert model.a[ModelState.VE, ModelState.ROLL] == pytest.approx(g, rel=1e-6)

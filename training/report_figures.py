@@ -78,6 +78,13 @@ class _Recording:
     def initial_state(self) -> Any:
         return self._policy.initial_state()
 
+    def for_vehicle(self, vehicle: Any) -> _Recording:
+        """Record the pilot that flies ``vehicle`` (``training.rollout.episode_pilot``)."""
+        from training.rollout import episode_pilot
+
+        pilot = episode_pilot(self._policy, vehicle)
+        return self if pilot is self._policy else _Recording(pilot, self._trace)
+
     def act(self, observation: Any, groundtruth: Any, state: Any) -> tuple[Any, Any]:
         command, state = self._policy.act(observation, groundtruth, state)
         t = self._trace

@@ -13,11 +13,11 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import VehicleConfig, load_sim, load_vehicle
 from sitl_sim.env import LandingEnv
 from sitl_sim.flight_record import (
     write_control_step,
@@ -31,6 +31,8 @@ from training.provenance import git_commit
 __all__ = [
     "EpisodeOutcome",
     "RolloutSpec",
+    "VehicleModelPilot",
+    "episode_pilot",
     "fly_episode",
     "log_name",
     "make_policy",
@@ -58,6 +60,22 @@ def make_policy(name: str, env: LandingEnv):
 
     torch.set_num_threads(1)  # one policy per worker process; workers run in parallel
     return load_policy(name)
+
+
+@runtime_checkable
+class VehicleModelPilot(Protocol):
+    """A pilot that carries a model of the vehicle it flies (the MPC expert, the cascade
+    lander): ``for_vehicle(v)`` is the same pilot built for vehicle ``v``."""
+
+    def for_vehicle(self, vehicle: VehicleConfig) -> Any: ...
+
+
+def episode_pilot(policy, vehicle: VehicleConfig):
+    """Who flies an episode of ``vehicle`` (the env's ``episode_vehicle``): a model-based
+    privileged pilot is rebuilt for that airframe (cached by vehicle; the nominal vehicle is the
+    pilot itself), as it reads the true wind; a learned policy flies whatever airframe it is in,
+    as it must on hardware."""
+    return policy.for_vehicle(vehicle) if isinstance(policy, VehicleModelPilot) else policy
 
 
 @dataclass(frozen=True)
@@ -126,29 +144,35 @@ def fly_episode(
     source: str = "policy",
     metadata: dict[str, Any] | None = None,
 ) -> EpisodeOutcome:
-    """Fly episode ``index`` of ``seed`` with ``policy`` (``act(obs, gt, state)``).
+    """Fly episode ``index`` of ``seed`` with ``policy`` (``act(obs, gt, state)``; a
+    :class:`VehicleModelPilot` flies as :func:`episode_pilot` of the episode's vehicle).
 
     With ``log_path``, the flight log is written to ``<log_path>.part`` and renamed when the
     episode has ended, so an existing ``.mcap`` is always a complete flight.
     """
     env.reset(seed=seed, options={"episode_index": index})
     sim = env.simulator
+    policy = episode_pilot(policy, env.episode_vehicle)
     stats_before = _policy_counts(policy)
     log = None
     tmp = None
     if log_path is not None:
         tmp = log_path.with_suffix(".mcap.part")
+        # config.vehicle is the vehicle file; the drawn factors, if any, go with the episode
+        airframe = {} if env.airframe is None else {"airframe": env.airframe.to_dict()}
         meta = {
             "config": {
                 "vehicle": env.vehicle.to_dict(),
                 "sim": env.sim_config.to_dict(),
                 "scenario": env.scenario.to_dict(),
             },
-            "episode": {"seed": seed, "episode_index": index, "source": source},
+            "episode": {"seed": seed, "episode_index": index, "source": source, **airframe},
             **(metadata or {}),
         }
         log = FlightLogWriter(tmp, meta)
-        write_episode_start(log, env.initial_state, env.scenario.to_dict(), seed, index)
+        write_episode_start(
+            log, env.initial_state, env.scenario.to_dict(), seed, index, env.airframe
+        )
     try:
         state = policy.initial_state()
         steps = 0

@@ -16,11 +16,16 @@ is the one of the episode's first step (kept in the policy state, :class:`MpcSta
 is a state the MPC drives to zero with ``r``, and the rate loop damps any yaw rate.
 
 Solve outcomes (OSQP, the Clarabel fallback, failures) are counted in :attr:`MpcExpert.stats`.
+
+The model is the vehicle the expert was built for. An episode whose airframe is randomised (a
+scenario's ``[vehicle]``) is flown by :meth:`MpcExpert.for_vehicle` of the episode's vehicle:
+the expert is privileged and flies the true airframe, as it reads the true wind.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,6 +97,11 @@ class MpcPlan:
     inputs: np.ndarray
 
 
+_OTHER_VEHICLES = 8
+"""Experts for other vehicles kept by :meth:`MpcExpert.for_vehicle` (least recently used out):
+re-flying or relabelling an episode finds its expert; a stream of fresh draws stays bounded."""
+
+
 def _wrap_pi(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -112,6 +122,7 @@ class MpcExpert:
     ) -> None:
         self.config = config if config is not None else load_mpc_config()
         self.vehicle = vehicle
+        self.sim = sim
         self.phys = Physics(vehicle, sim.planet)
         self.model = linearise_hover(self.phys, sim.control_dt_s)
         cfg = self.config
@@ -123,6 +134,21 @@ class MpcExpert:
         )
         self.last_plan: MpcPlan | None = None
         """The plan behind the latest :meth:`act` command (predicted trajectory, solver, time)."""
+        self._others: OrderedDict[VehicleConfig, MpcExpert] = OrderedDict()
+
+    def for_vehicle(self, vehicle: VehicleConfig) -> MpcExpert:
+        """The expert for ``vehicle`` (same tuning, planet and control period): this one when
+        it already flies it (the nominal path builds nothing), else one re-linearised for it
+        and kept (up to :data:`_OTHER_VEHICLES`, keyed by the frozen VehicleConfig)."""
+        if vehicle == self.vehicle:
+            return self
+        expert = self._others.pop(vehicle, None)
+        if expert is None:
+            expert = MpcExpert(vehicle, self.sim, self.config)
+            if len(self._others) >= _OTHER_VEHICLES:
+                self._others.popitem(last=False)
+        self._others[vehicle] = expert
+        return expert
 
     # ------------------------------------------------------------------ Policy API
 

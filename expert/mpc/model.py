@@ -73,7 +73,7 @@ def model_derivative(phys: Physics, x: np.ndarray, u: np.ndarray) -> np.ndarray:
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
     quat = quat_from_euler(*x[_EULER])
-    rotor_n = (float(u[ModelInput.THRUST]) * phys.vehicle.max_total_thrust_n / 4.0,) * 4
+    rotor_n = (float(u[ModelInput.THRUST]) * phys.max_total_thrust_n / 4.0,) * 4
     x17 = make_state(
         pos_ned_m=x[ModelState.N : ModelState.D + 1],
         vel_ned_m_s=x[VEL],
@@ -119,7 +119,7 @@ def linearise_hover(phys: Physics, dt_s: float, eps: float = 1e-4) -> HoverModel
     """Central-difference Jacobians of :func:`model_derivative` at hover, then ZOH over ``dt_s``."""
     x0 = np.zeros(NX)
     u0 = np.zeros(NU)
-    u0[ModelInput.THRUST] = phys.mass * phys.g / phys.vehicle.max_total_thrust_n
+    u0[ModelInput.THRUST] = phys.mass * phys.g / phys.max_total_thrust_n
     a = np.empty((NX, NX))
     b = np.empty((NX, NU))
     for i in range(NX):

@@ -115,9 +115,7 @@ class MpcQp:
         tilt = np.full(2 * n, self.max_tilt_rad)
         soft_hi = np.tile([cfg.ground_margin_m, cfg.descent_limit_at_ground_m_s], n)
         u_hover = model.u_hover
-        thrust_max = min(
-            1.0, cfg.max_thrust_mg * phys.mass * phys.g / phys.vehicle.max_total_thrust_n
-        )
+        thrust_max = min(1.0, cfg.max_thrust_mg * phys.mass * phys.g / phys.max_total_thrust_n)
         rates = phys.vehicle.rate_controller.max_rate_rad_s
         u_lo = np.array([0.0, *(-r for r in rates)]) - u_hover
         u_hi = np.array([thrust_max, *rates]) - u_hover
