@@ -3,7 +3,8 @@
 ``sampler = "sobol+uniform"`` (the paper's hybrid): a scrambled Sobol sequence covers the six
 dimensions that shape a landing (north, east, altitude, and the three velocities) evenly; roll,
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
-An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts.
+An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts; an optional
+``[sensors]`` section (:mod:`sitl_sim.sensor_faults`) adds sensor faults.
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -22,6 +23,7 @@ from scipy.stats import qmc
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
+from sitl_sim.sensor_faults import SensorFaultsConfig, sensor_faults_config_from_table
 from sitl_sim.wind import WindConfig, wind_config_from_table
 
 __all__ = [
@@ -47,8 +49,8 @@ _SAMPLERS = ("sobol+uniform", "uniform")
 
 @dataclass(frozen=True)
 class Scenario:
-    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet and the wind (None:
-    still air)."""
+    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, the wind (None: still
+    air) and the sensor faults (None: the sensors of the sim config, no faults)."""
 
     roll_pitch_deg: tuple[float, float]
     yaw_deg: tuple[float, float]
@@ -61,6 +63,7 @@ class Scenario:
     world: Planet
     source: str = "<memory>"
     wind: WindConfig | None = None
+    sensors: SensorFaultsConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -88,10 +91,14 @@ class Scenario:
             del d["wind"]  # a still-air scenario's record (in every flight log) is unchanged
         else:
             d["wind"] = self.wind.to_dict()
+        if self.sensors is None:
+            del d["sensors"]  # likewise without [sensors]
+        else:
+            d["sensors"] = self.sensors.to_dict()
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind")
+SECTIONS = ("initial_state", "world", "wind", "sensors")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -145,7 +152,15 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     if name not in PLANETS:
         raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")
     wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
-    return Scenario(**ranges, sampler=str(sampler), world=planet(name), source=where, wind=wind)
+    sensors = sensor_faults_config_from_table(data["sensors"], where) if "sensors" in data else None
+    return Scenario(
+        **ranges,
+        sampler=str(sampler),
+        world=planet(name),
+        source=where,
+        wind=wind,
+        sensors=sensors,
+    )
 
 
 @dataclass(frozen=True)
