@@ -9,8 +9,9 @@ answers in sim ns). Per physics step:
    while the vehicle is frozen (HOLD: before the take-over, and whenever HOLD is selected);
 2. every stream whose interval is due (ATTITUDE, HIGHRES_IMU, ... at SET_MESSAGE_INTERVAL rates);
 3. at each control period (10 Hz): offboard/land checks, episode end, the camera frame (UDP
-   packet of :mod:`companion.camera_packet`), the ground-truth log record; in lockstep and
-   OFFBOARD, then wait for the companion's answer.
+   packet of :mod:`companion.camera_packet`, stamped with its exposure time; not sent when the
+   scenario's ``[sensors]`` loses it), the ground-truth log record; in lockstep and OFFBOARD,
+   then wait for the companion's answer to a frame that was sent.
 
 The flight log is a training record: for each control step the companion flies (in flight,
 before touchdown, armed in OFFBOARD) it also holds ``/observation`` (the attitude, IMU and range
