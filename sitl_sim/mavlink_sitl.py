@@ -9,8 +9,9 @@ answers in sim ns). Per physics step:
    while the vehicle is frozen (HOLD: before the take-over, and whenever HOLD is selected);
 2. every stream whose interval is due (ATTITUDE, HIGHRES_IMU, ... at SET_MESSAGE_INTERVAL rates);
 3. at each control period (10 Hz): offboard/land checks, episode end, the camera frame (UDP
-   packet of :mod:`companion.camera_packet`), the ground-truth log record; in lockstep and
-   OFFBOARD, then wait for the companion's answer.
+   packet of :mod:`companion.camera_packet`, stamped with its exposure time; not sent when the
+   scenario's ``[sensors]`` loses it), the ground-truth log record; in lockstep and OFFBOARD,
+   then wait for the companion's answer to a frame that was sent.
 
 The flight log is a training record: for each control step the companion flies (in flight,
 before touchdown, armed in OFFBOARD) it also holds ``/observation`` (the attitude, IMU and range
@@ -64,8 +65,6 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
-
-import numpy as np
 
 from companion.contract import Command, GroundTruth
 from companion.contract.camera_packet import encode_frame
@@ -171,6 +170,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
         self._camera_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._camera_addr = (config.camera_host, config.camera_port)
         self.camera_tx_errors = 0
+        self.camera_frames_dropped = 0
+        """Frames the scenario's ``frame_drop_prob`` lost (not sent)."""
         self._init_dispatch()
         self._init_streams()
         self._stop = threading.Event()
@@ -302,17 +303,19 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
             return  # the episode ended here; the next one starts at the next tick
         self._emit_streams()
         if boundary:
-            self._send_frame()
+            stamp_us = self._send_frame()
             ap = self.autopilot
             if (
-                self.config.lockstep
+                stamp_us is not None  # a lost frame has no answer to wait for
+                and self.config.lockstep
                 and self._physics_running()
                 and ap.mode is FlightMode.OFFBOARD
                 and ap.armed
             ):
+                # the companion stamps its answer with the frame's (exposure) time
                 self._wait = FrameWait(
                     frame_id=self._frame_id - 1,
-                    frame_time_ms=self.clock.time_us // 1000,
+                    frame_time_ms=stamp_us // 1000,
                     deadline_wall_s=time.monotonic() + self.config.lockstep_timeout_s,
                 )
 
@@ -392,24 +395,29 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
     def _send_heartbeat(self) -> None:
         self._send(self._build_heartbeat())
 
-    def _send_frame(self) -> None:
-        sample = self._sample_now()
-        gt = sample.truth
-        cam = self.sim.camera
-        if cam is not None:
-            image = cam.capture(gt.pos_ned_m, gt.quat_wxyz)
-        else:
-            c = self.sim_cfg.camera
-            image = np.zeros((c.height_px, c.width_px), dtype=np.uint8)
+    def _send_frame(self) -> int | None:
+        """Send this control period's camera frame; its ``time_us`` stamp, or None when the
+        episode's ``frame_drop_prob`` lost it (nothing is sent; its frame id is skipped, as a
+        camera's sequence number would be). With ``camera_latency_ms`` the frame goes out now
+        but shows, and is stamped with, the scene ``latency`` earlier (its exposure)."""
+        gt = self._sample_now().truth
+        frame = self.sim.capture_frame(gt)
         frame_id = self._frame_id
         self._frame_id += 1
-        time_us = self.clock.time_us
-        for datagram in encode_frame(image, frame_id % 2**32, time_us):
-            try:
-                self._camera_sock.sendto(datagram, self._camera_addr)
-            except OSError:
-                self.camera_tx_errors += 1
-        self._log_frame(frame_id, image, gt)
+        stamp_us = None
+        if frame.delivered:
+            exposure_tick = max(self.clock.tick - self.sim.camera_latency_steps, 0)
+            stamp_us = exposure_tick * 1_000_000 // self.clock.rate_hz
+            for datagram in encode_frame(frame.image, frame_id % 2**32, stamp_us):
+                try:
+                    self._camera_sock.sendto(datagram, self._camera_addr)
+                except OSError:
+                    self.camera_tx_errors += 1
+        else:
+            self.camera_frames_dropped += 1
+            self._event("camera_frame_dropped", f"frame {frame_id} lost (frame_drop_prob)")
+        self._log_frame(frame_id, frame, gt)
+        return stamp_us
 
 
 def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:

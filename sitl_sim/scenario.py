@@ -5,7 +5,8 @@ dimensions that shape a landing (north, east, altitude, and the three velocities
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
 An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts; an
 optional ``[vehicle]`` section (:mod:`sitl_sim.airframe`) scales the vehicle file per episode;
-``[visual]`` (:mod:`sitl_sim.visual`) draws ground families, sun, pad and camera effects.
+``[visual]`` (:mod:`sitl_sim.visual`) draws ground families, sun, pad and camera effects;
+``[sensors]`` (:mod:`sitl_sim.sensor_faults`) adds sensor faults.
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -25,6 +26,7 @@ from sitl_sim.airframe import AirframeConfig, airframe_config_from_table
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
+from sitl_sim.sensor_faults import SensorFaultsConfig, sensor_faults_config_from_table
 from sitl_sim.visual import VisualConfig, visual_config_from_table
 from sitl_sim.wind import WindConfig, wind_config_from_table
 
@@ -51,8 +53,10 @@ _SAMPLERS = ("sobol+uniform", "uniform")
 
 @dataclass(frozen=True)
 class Scenario:
-    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, the wind (None:
-    still air) and the airframe factors of ``[vehicle]`` (None: the vehicle file as is)."""
+    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, and the optional
+    sections: the wind (None: still air), the airframe factors of ``[vehicle]`` (None: the
+    vehicle file as is), the look of ``[visual]`` (None: the nominal ground and camera) and the
+    sensor faults (None: the sensors of the sim config, no faults)."""
 
     roll_pitch_deg: tuple[float, float]
     yaw_deg: tuple[float, float]
@@ -67,6 +71,7 @@ class Scenario:
     wind: WindConfig | None = None
     visual: VisualConfig | None = None
     vehicle: AirframeConfig | None = None
+    sensors: SensorFaultsConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -91,7 +96,7 @@ class Scenario:
         d = asdict(self)
         d["world"] = self.world.name
         # an absent section is left out: a nominal scenario's record (in every log) is unchanged
-        for key in ("wind", "vehicle", "visual"):
+        for key in ("wind", "vehicle", "visual", "sensors"):
             section = getattr(self, key)
             if section is None:
                 del d[key]
@@ -100,7 +105,7 @@ class Scenario:
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual")
+SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual", "sensors")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -156,6 +161,7 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
     airframe = airframe_config_from_table(data["vehicle"], where) if "vehicle" in data else None
     visual = visual_config_from_table(data["visual"], where) if "visual" in data else None
+    sensors = sensor_faults_config_from_table(data["sensors"], where) if "sensors" in data else None
     return Scenario(
         **ranges,
         sampler=str(sampler),
@@ -164,6 +170,7 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
         wind=wind,
         vehicle=airframe,
         visual=visual,
+        sensors=sensors,
     )
 
 

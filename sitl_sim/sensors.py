@@ -1,7 +1,9 @@
 """Sensor models with seeded noise: IMU, attitude estimate, radar altimeter.
 
 Each model takes the ground truth and a ``numpy.random.Generator`` it was given; none keeps a
-global random state, so a seed reproduces every reading bit for bit.
+global random state, so a seed reproduces every reading bit for bit. A scenario's ``[sensors]``
+faults (:mod:`sitl_sim.sensor_faults`) come in as the IMU's turn-on biases and the radar's
+``faults``; they draw from their own generators, never from these.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 
 from sitl_sim.config import AttitudeConfig, ImuConfig, RadarConfig
 from sitl_sim.dynamics import euler_from_quat, quat_to_rotation
+from sitl_sim.sensor_faults import SensorFaults
 
 __all__ = ["AttitudeReading", "AttitudeSensor", "Imu", "ImuReading", "RadarAltimeter"]
 
@@ -36,13 +39,20 @@ class AttitudeReading:
 
 
 class Imu:
-    """Accelerometer + gyro: white noise plus a bias that random-walks (per sqrt(s))."""
+    """Accelerometer + gyro: white noise plus a bias that random-walks (per sqrt(s)) from its
+    turn-on value (``accel_bias_frd_m_s2`` / ``gyro_bias_frd_rad_s``; None: zero)."""
 
-    def __init__(self, cfg: ImuConfig, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        cfg: ImuConfig,
+        rng: np.random.Generator,
+        accel_bias_frd_m_s2: np.ndarray | None = None,
+        gyro_bias_frd_rad_s: np.ndarray | None = None,
+    ) -> None:
         self._cfg = cfg
         self._rng = rng
-        self._accel_bias = np.zeros(3)
-        self._gyro_bias = np.zeros(3)
+        self._accel_bias = _turn_on(accel_bias_frd_m_s2)
+        self._gyro_bias = _turn_on(gyro_bias_frd_rad_s)
         self._last_t: float | None = None
 
     def read(
@@ -70,6 +80,10 @@ class Imu:
         return ImuReading(time_s, accel, gyro)
 
 
+def _turn_on(bias: np.ndarray | None) -> np.ndarray:
+    return np.zeros(3) if bias is None else np.array(bias, dtype=float).reshape(3)
+
+
 class AttitudeSensor:
     """The autopilot's attitude estimate: true Euler angles and rates plus white noise."""
 
@@ -91,12 +105,18 @@ class RadarAltimeter:
 
     ``range = altitude / cos(tilt)`` for the beam along body +z; the reading is NaN (invalid) when
     the beam does not hit the ground (tilt >= 90 deg) or the range exceeds ``max_range_m``.
-    Noise: ``noise_std_m + noise_fraction * range`` (1-sigma), never below zero.
+    Noise: ``noise_std_m + noise_fraction * range`` (1-sigma), never below zero. ``faults``
+    (the episode's :class:`~sitl_sim.sensor_faults.SensorFaults`, or None) then replaces a
+    reading by a dropout (NaN) or a spurious return; the noise is drawn as without faults, so
+    the readings a fault leaves alone are those of the same flight without it.
     """
 
-    def __init__(self, cfg: RadarConfig, rng: np.random.Generator) -> None:
+    def __init__(
+        self, cfg: RadarConfig, rng: np.random.Generator, faults: SensorFaults | None = None
+    ) -> None:
         self._cfg = cfg
         self._rng = rng
+        self._faults = faults
 
     @property
     def max_range_m(self) -> float:
@@ -112,6 +132,12 @@ class RadarAltimeter:
         return altitude / cos_tilt
 
     def read(self, pos_ned_m, quat_wxyz) -> float:
+        reading = self._read(pos_ned_m, quat_wxyz)
+        if self._faults is None:
+            return reading
+        return self._faults.radar_reading(reading, self._cfg.max_range_m)
+
+    def _read(self, pos_ned_m, quat_wxyz) -> float:
         rng_true = self.true_range(pos_ned_m, quat_wxyz)
         if not rng_true <= self._cfg.max_range_m:
             return math.nan

@@ -2,13 +2,18 @@
 
 One :class:`Simulator` is one vehicle in one world. It knows nothing of episodes' start or end
 rules beyond reporting the first ground contact; the gymnasium env and the MAVLink SITL build on
-it. Randomness comes from the seed given to :meth:`Simulator.reset` only (and, with wind, from the
-episode's :class:`~sitl_sim.wind.WindModel`, which carries its own generator). The vehicle given
-to the constructor is the vehicle file; each episode flies :attr:`Simulator.episode_vehicle`,
-that file scaled by the episode's airframe factors (a scenario's ``[vehicle]``), if any.
+it. Randomness comes from the seed given to :meth:`Simulator.reset` only (and, with wind,
+visual effects or sensor faults, from the episode's :class:`~sitl_sim.wind.WindModel`,
+:class:`~sitl_sim.visual.VisualSample` and :class:`~sitl_sim.sensor_faults.SensorFaults`, which
+carry their own generators). The vehicle given to the constructor is the vehicle file; each
+episode flies :attr:`Simulator.episode_vehicle`, that file scaled by the episode's airframe
+factors (a scenario's ``[vehicle]``), if any.
 """
 
 from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,12 +25,32 @@ from sitl_sim.ground import PadGeometry, nominal_ground
 from sitl_sim.rate_controller import RateController
 from sitl_sim.scenario import InitialState
 from sitl_sim.scene import Camera, Renderer, make_renderer
+from sitl_sim.sensor_faults import SensorFaults
 from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
 from sitl_sim.visual import CameraEffects, VisualSample
 from sitl_sim.wind import WindModel
 from sitl_sim.world import EpisodeWorld
 
-__all__ = ["Simulator"]
+__all__ = ["CameraFrame", "Simulator"]
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """The camera's output at one frame time (:meth:`Simulator.capture_frame`).
+
+    Attributes:
+        image: (H, W) uint8 mono8.
+        exposure_time_s: flight time the image shows (``t - latency``; before 0 for the first
+            frames of a flight with latency: the vehicle held its initial state then).
+        exposure_step: that time in physics steps (``exposure_time_s = exposure_step * dt``).
+        delivered: False when this frame was lost (``frame_drop_prob``): ``image`` and the
+            exposure are then the last delivered frame's, what a receiver still holds.
+    """
+
+    image: np.ndarray
+    exposure_time_s: float
+    exposure_step: int
+    delivered: bool = True
 
 
 class Simulator:
@@ -72,6 +97,14 @@ class Simulator:
         """The first ground contact since reset, if any."""
         self.wind: WindModel | None = None
         """This episode's wind (None: still air)."""
+        self.sensor_faults: SensorFaults | None = None
+        """This episode's sensor faults (None: the sensors of the sim config)."""
+        self._latency_steps = 0
+        # (step, position, attitude, body rates) of the last `latency` physics steps
+        self._poses: (
+            deque[tuple[int, tuple[float, ...], tuple[float, ...], tuple[float, ...]]] | None
+        ) = None
+        self._last_frame: CameraFrame | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -88,11 +121,15 @@ class Simulator:
         here at the initial position, then advanced once per physics step. Its airframe factors
         make :attr:`episode_vehicle`; the physics and the rate loop (tuned for the airframe it
         flies, as a tuned autopilot is) are rebuilt for it when it differs from the last
-        episode's, so nominal episodes keep the objects built once. The sensors' streams do not
-        depend on the world, so a windless, nominal-airframe flight is the flight it always was.
+        episode's, so nominal episodes keep the objects built once. Its visual sample sets the
+        ground, pad, light and camera effects. Its sensor faults set the IMU's turn-on biases,
+        the radar's faults and the camera's latency (rounded to whole physics steps) and frame
+        drops. The sensors' streams do not depend on the world, so a flight without any section
+        is the flight it always was.
         """
         world = world or EpisodeWorld()
         wind = world.wind
+        faults = world.sensors
         vehicle = world.vehicle(self.vehicle)
         if vehicle != self.episode_vehicle:
             self.phys = Physics(vehicle, self.sim.planet)
@@ -100,9 +137,14 @@ class Simulator:
             self.episode_vehicle = vehicle
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         imu_ss, att_ss, radar_ss, cam_ss = ss.spawn(4)
-        self.imu = Imu(self.sim.imu, np.random.default_rng(imu_ss))
+        self.imu = Imu(
+            self.sim.imu,
+            np.random.default_rng(imu_ss),
+            accel_bias_frd_m_s2=faults.accel_bias_frd_m_s2 if faults is not None else None,
+            gyro_bias_frd_rad_s=faults.gyro_bias_frd_rad_s if faults is not None else None,
+        )
         self.attitude_sensor = AttitudeSensor(self.sim.attitude, np.random.default_rng(att_ss))
-        self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss))
+        self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss), faults)
         self.camera = self._camera(world.visual, np.random.default_rng(cam_ss))
         hover = self.phys.hover_rotor_thrust_n
         self._x = make_state(
@@ -120,6 +162,16 @@ class Simulator:
         self.wind = wind
         if wind is not None:
             wind.start(initial.pos_ned_m)
+        self.sensor_faults = faults
+        self._latency_steps = (
+            round(faults.camera_latency_s * self.sim.physics_rate_hz) if faults is not None else 0
+        )
+        self._last_frame = None
+        self._poses = None
+        if self._latency_steps > 0:
+            # the poses of the last `latency` steps (oldest first): the camera shows _poses[0]
+            self._poses = deque(maxlen=self._latency_steps + 1)
+            self._record_pose()
 
     def _camera(self, visual: VisualSample | None, rng: np.random.Generator) -> Camera | None:
         """The episode's camera: its ground and pad shown on the renderer, its light and
@@ -172,9 +224,23 @@ class Simulator:
         self._step_count += 1
         self._t = self._step_count * dt  # integer count: no drift in sim time
         self._x = x_new
+        if self._poses is not None:
+            self._record_pose()
         if event is not None and self.contact is None:
             self.contact = event
         return event
+
+    def _record_pose(self) -> None:
+        assert self._poses is not None and self._x is not None
+        x = self._x
+        self._poses.append(
+            (
+                self._step_count,
+                tuple(x[LAYOUT.pos_ned_m]),
+                tuple(x[LAYOUT.quat_wxyz]),
+                tuple(x[LAYOUT.rate_frd_rad_s]),
+            )
+        )
 
     def step(self, command: Command | None) -> ContactEvent | None:
         """Advance one control period (``substeps`` physics steps) holding ``command``.
@@ -212,8 +278,58 @@ class Simulator:
             wind_ned_m_s=self.wind.wind_ned_m_s if self.wind is not None else None,
         )
 
+    @property
+    def camera_latency_steps(self) -> int:
+        """The episode's camera latency in physics steps (0 without ``camera_latency_ms``)."""
+        return self._latency_steps
+
+    def capture_frame(self, truth: GroundTruth | None = None) -> CameraFrame:
+        """The camera's frame now: the scene at ``now - latency`` (the episode's
+        ``camera_latency_ms``), or — when this frame is lost (``frame_drop_prob``) — the last
+        delivered frame again, marked ``delivered=False``. Call once per frame: each call
+        draws the frame's drop. A lost frame is rendered all the same, so the camera noise of
+        the frames after it is that of the same flight without drops.
+
+        Without sensor faults this is the render of the current pose at the current time,
+        exactly as before faults existed.
+        """
+        gt = truth or self.ground_truth()
+        if self._poses is None:
+            step, time_s = self._step_count, gt.time_s
+            pos, quat, rate = gt.pos_ned_m, gt.quat_wxyz, gt.rate_frd_rad_s
+        else:
+            # the oldest pose kept is `latency` steps ago, or the initial state (held before
+            # the flight: the SITL's HOLD) while the flight is younger than the latency
+            _, pos_t, quat_t, rate_t = self._poses[0]
+            pos, quat, rate = np.array(pos_t), np.array(quat_t), np.array(rate_t)
+            step = self._step_count - self._latency_steps
+            time_s = step * self.sim.physics_dt_s
+        if self.camera is not None:
+            image = self.camera.capture(pos, quat, rate)
+        else:
+            cam = self.sim.camera
+            image = np.zeros((cam.height_px, cam.width_px), dtype=np.uint8)
+        frame = CameraFrame(image, time_s, step)
+        faults = self.sensor_faults
+        if faults is not None and faults.frame_dropped() and self._last_frame is not None:
+            return CameraFrame(
+                self._last_frame.image,
+                self._last_frame.exposure_time_s,
+                self._last_frame.exposure_step,
+                delivered=False,
+            )
+        self._last_frame = frame
+        return frame
+
     def observe(self, frame_id: int = 0, truth: GroundTruth | None = None) -> Observation:
-        """Read every sensor now and render the camera: the deployable policy's input."""
+        """Read every sensor now and render the camera: the deployable policy's input.
+
+        With the episode's sensor faults, ``image_time_s`` is the image's exposure time (``t -
+        latency``), and a lost frame repeats the last delivered image with its old
+        ``image_time_s`` (a policy sees the staleness there); ``frame_id`` stays the caller's
+        control-step id either way: rollout logs and datasets key every record of a step by
+        it, and two steps must not share one. ``range_m`` is NaN on a radar dropout.
+        """
         gt = truth or self.ground_truth()
         t = gt.time_s
         imu = self.imu.read(
@@ -221,14 +337,10 @@ class Simulator:
         )
         att = self.attitude_sensor.read(t, gt.quat_wxyz, gt.rate_frd_rad_s)
         rng = self.radar.read(gt.pos_ned_m, gt.quat_wxyz)
-        if self.camera is not None:
-            image = self.camera.capture(gt.pos_ned_m, gt.quat_wxyz, gt.rate_frd_rad_s)
-        else:
-            cam = self.sim.camera
-            image = np.zeros((cam.height_px, cam.width_px), dtype=np.uint8)
+        frame = self.capture_frame(gt)
         return Observation(
-            image=image,
-            image_time_s=t,
+            image=frame.image,
+            image_time_s=frame.exposure_time_s,
             attitude_rad=att.attitude_rad,
             rate_frd_rad_s=att.rate_frd_rad_s,
             attitude_time_s=t,

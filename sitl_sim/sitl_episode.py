@@ -61,7 +61,7 @@ if TYPE_CHECKING:
     from sitl_sim.config import SimConfig, VehicleConfig
     from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint, RxError
     from sitl_sim.scenario import InitialStateSampler, Scenario
-    from sitl_sim.simulator import Simulator
+    from sitl_sim.simulator import CameraFrame, Simulator
     from sitl_sim.sitl_clock import SimClock
     from sitl_sim.sitl_config import SitlConfig
 
@@ -323,13 +323,15 @@ class EpisodeLifecycle:
                 command_msg(cmd, self._frame_id - 1, "offboard"),
             )
 
-    def _log_frame(self, frame_id: int, image: np.ndarray, gt: GroundTruth) -> None:
+    def _log_frame(self, frame_id: int, frame: CameraFrame, gt: GroundTruth) -> None:
         """The camera frame just sent, its pose and ground truth, and in a control step the
-        training record's ``/observation``."""
+        training record's ``/observation``. A lost frame (``frame_drop_prob``) is logged as what
+        the client still holds — the last delivered image and its exposure time —, as the
+        in-process record does, so the training record stays one entry per control step."""
         ep = self._episode
         if ep is None or ep.writer is None:
             return
-        ep.writer.write_image(self.clock.time_s, image, frame_id)
+        ep.writer.write_image(self.clock.time_s, frame.image, frame_id)
         ep.writer.write_pose(self.clock.time_s, gt.pos_ned_m, gt.quat_wxyz)
         ap = self.autopilot
         self._log(
@@ -343,7 +345,7 @@ class EpisodeLifecycle:
                 "armed": ap.armed,
             },
         )
-        obs = self._streamed_observation(frame_id, gt.time_s)
+        obs = self._streamed_observation(frame_id, frame.exposure_time_s)
         if obs is not None and self._control_step():
             self._log(TOPIC_OBSERVATION, SCHEMA_OBSERVATION, obs)
 

@@ -5,10 +5,10 @@ terrain families, sensor fault rates, ...); :func:`episode_world` draws the valu
 ``index`` of seed ``seed`` into an :class:`EpisodeWorld`, which :meth:`Simulator.reset
 <sitl_sim.simulator.Simulator.reset>` takes. Every section draws from its own generator, keyed by
 ``(seed, index, SECTION_STREAM)`` (a distinct constant per section: :data:`sitl_sim.wind.
-WIND_STREAM`, :data:`sitl_sim.airframe.AIRFRAME_STREAM`, :data:`sitl_sim.visual.VISUAL_STREAM`),
-so adding a section to a scenario never changes what another section draws, and the same (seed,
-episode) is the same world in every process (the gymnasium env, the MAVLink SITL, parallel
-evaluation workers, resumed runs).
+WIND_STREAM`, :data:`sitl_sim.airframe.AIRFRAME_STREAM`, :data:`sitl_sim.visual.VISUAL_STREAM`,
+:data:`sitl_sim.sensor_faults.SENSORS_STREAM`), so adding a section to a scenario never changes
+what another section draws, and the same (seed, episode) is the same world in every process (the
+gymnasium env, the MAVLink SITL, parallel evaluation workers, resumed runs).
 
 A scenario without a section gets that section's "as the config files say" value (None below),
 so the nominal scenario flies exactly the world it always did.
@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from sitl_sim.airframe import AirframeScales, draw_airframe
 from sitl_sim.config import VehicleConfig
 from sitl_sim.scenario import Scenario
+from sitl_sim.sensor_faults import SensorFaults
 from sitl_sim.visual import VisualSample
 from sitl_sim.wind import WindModel
 
@@ -31,7 +32,9 @@ __all__ = ["EpisodeWorld", "episode_world"]
 class EpisodeWorld:
     """The drawn world of one episode (None fields: the section is absent, nominal world).
 
-    ``wind`` is a fresh :class:`~sitl_sim.wind.WindModel` carrying its own generator; it is
+    ``wind`` is a fresh :class:`~sitl_sim.wind.WindModel` and ``sensors`` fresh
+    :class:`~sitl_sim.sensor_faults.SensorFaults` (the drawn latency and IMU biases, and the
+    generators of frame drops and radar faults), each carrying its own generator; they are
     stateful, so an EpisodeWorld is flown once (:func:`episode_world` again to re-fly).
     ``airframe`` holds the drawn factors of ``[vehicle]``, not a vehicle: the world does not
     depend on the vehicle file; :meth:`vehicle` applies them to one.
@@ -40,6 +43,7 @@ class EpisodeWorld:
     wind: WindModel | None = None
     airframe: AirframeScales | None = None
     visual: VisualSample | None = None
+    sensors: SensorFaults | None = None
 
     def vehicle(self, base: VehicleConfig) -> VehicleConfig:
         """The episode's vehicle: ``base`` (the vehicle file) itself without ``[vehicle]``,
@@ -65,4 +69,9 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
         draw_airframe(scenario.vehicle, seed, index) if scenario.vehicle is not None else None
     )
     visual = scenario.visual.draw(seed, index) if scenario.visual is not None else None
-    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual)
+    sensors = (
+        SensorFaults.for_episode(scenario.sensors, seed, index)
+        if scenario.sensors is not None
+        else None
+    )
+    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual, sensors=sensors)

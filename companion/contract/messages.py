@@ -90,7 +90,9 @@ class Observation:
 
     Attributes:
         image: (128, 128) uint8 mono8 image, row 0 = top = body forward, column 0 = body left.
-        image_time_s: sim time the frame was rendered.
+        image_time_s: exposure time of the image: the sim time of the scene it shows (earlier
+            than the other readings' times with camera latency; not advancing when a frame was
+            lost and the last one is repeated).
         attitude_rad: (3,) roll, pitch, yaw (rad), from ATTITUDE.
         rate_frd_rad_s: (3,) body rates from ATTITUDE.
         attitude_time_s: time stamp of the attitude sample.
