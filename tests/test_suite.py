@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from sitl_sim.errors import ConfigError
+from sitl_sim.scenario import load_scenario
 from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.suite import load_suite, plot_suite, run_suite
@@ -116,8 +117,26 @@ def test_relative_scenario_paths_resolve_against_the_repository(tmp_path, monkey
 def test_the_standard_suite_loads():
     suite = load_suite(REPO / "configs/suites/standard.toml")
     names = [c.name for c in suite.conditions]
-    assert names == ["nominal", "wide_initial_states", "wind_moderate_gusts", "wind_severe", "mars"]
+    assert names == [
+        "nominal",
+        "wide_initial_states",
+        "wind_moderate_gusts",
+        "wind_severe",
+        "mars",
+        "low_sun",
+        "unseen_terrain",
+        "heavy_vehicle",
+        "light_vehicle",
+        "sensor_latency_dropouts",
+    ]
     by = {c.name: c.scenario for c in suite.conditions}
+    assert by["low_sun"].visual.sun_elevation_deg[1] <= 12.0
+    # unseen terrain: seeds disjoint from the visual training scenario's
+    train = load_scenario(REPO / "configs/scenario_visual.toml").visual.texture_seed
+    assert by["unseen_terrain"].visual.texture_seed[0] > train[1]
+    assert by["heavy_vehicle"].vehicle.mass_scale[0] >= 1.2
+    assert by["light_vehicle"].vehicle.mass_scale[1] <= 0.8
+    assert by["sensor_latency_dropouts"].sensors is not None
     assert by["wind_severe"].wind.turbulence == "severe"
     assert by["wide_initial_states"].north_east_m == (-10.0, 10.0)
     assert by["mars"].world.name == "mars"
