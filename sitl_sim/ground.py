@@ -23,8 +23,10 @@ laid edge to edge over the whole ground, mapped texel for texel.
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -102,14 +104,11 @@ class GroundMap:
     periodic: bool
     name: str
     tile_m: float = 0.0
-    _mono: list = field(default_factory=list, repr=False)
 
-    @property
+    @functools.cached_property
     def mono(self) -> np.ndarray:
         """The texture in mono8 (computed once)."""
-        if not self._mono:
-            self._mono.append(luma(self.rgb))
-        return self._mono[0]
+        return luma(self.rgb)
 
     def png(self) -> Path:
         """The texture as a PNG file (for pybullet), written once per content."""
@@ -118,15 +117,13 @@ class GroundMap:
         digest = _digest(self.rgb)
         path = Path(tempfile.gettempdir()) / f"visland_ground_{digest}.png"
         if not path.exists():
-            tmp = path.with_suffix(f".{np.random.default_rng().integers(1 << 30)}.tmp.png")
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.png")
             Image.fromarray(self.rgb, "RGB").save(tmp)
             tmp.replace(path)  # atomic: parallel workers never read a half-written file
         return path
 
 
 def _digest(a: np.ndarray) -> str:
-    import hashlib
-
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
 
 
