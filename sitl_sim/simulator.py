@@ -21,7 +21,7 @@ from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
 from sitl_sim.errors import SimStateError
-from sitl_sim.ground import PadGeometry, nominal_ground
+from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
 from sitl_sim.rate_controller import RateController
 from sitl_sim.scenario import InitialState
 from sitl_sim.scene import Camera, Renderer, make_renderer
@@ -88,7 +88,7 @@ class Simulator:
         self.scene = (
             scene if scene is not None else (make_renderer(sim.camera.renderer) if render else None)
         )
-        self._visual: tuple[VisualSample | None, object] | None = None  # (sample, its ground)
+        self._visual: tuple[VisualSample | None, GroundMap] | None = None  # (sample, its ground)
         self._x: list[float] | None = None
         self._t = 0.0
         self._step_count = 0
