@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from types import SimpleNamespace
+
 import pytest
 
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.scene import Scene
+from sitl_sim.sitl_config import SitlConfig
+from training.fly import free_udp_port
 
 
 @pytest.fixture(scope="session")
@@ -52,3 +57,29 @@ def low_scenario(tmp_path_factory) -> str:
     path = tmp_path_factory.mktemp("scenario") / "low.toml"
     path.write_text(LOW_SCENARIO)
     return str(path)
+
+
+@pytest.fixture
+def loopback_sitl():
+    """A factory: ``make(scenario, log_dir, **overrides) -> (ports, SitlConfig)`` — fresh
+    loopback UDP ports (``ports.mavlink``, ``.remote``, ``.camera``) and an in-process SITL
+    config on them without GCS link or rendering, stopping after 60 s of wall time at most."""
+
+    def make(scenario, log_dir, **overrides) -> tuple[SimpleNamespace, SitlConfig]:
+        ports = SimpleNamespace(
+            mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port()
+        )
+        values = dict(
+            mavlink_port=ports.mavlink,
+            remote_port=ports.remote,
+            camera_port=ports.camera,
+            gcs=False,
+            scenario=str(scenario),
+            log_dir=str(Path(log_dir)),
+            render=False,
+            max_wall_s=60.0,
+        )
+        values.update(overrides)
+        return ports, SitlConfig(**values)
+
+    return make

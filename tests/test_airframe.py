@@ -10,7 +10,6 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -34,10 +33,8 @@ from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink_sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
-from sitl_sim.sitl_config import SitlConfig
 from sitl_sim.world import EpisodeWorld, episode_world
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.fly import free_udp_port
 from training.rollout import episode_pilot, fly_episode, make_policy
 
 EARTH, MARS = PLANETS["earth"], PLANETS["mars"]
@@ -331,7 +328,9 @@ def test_a_heavier_vehicle_at_the_nominal_hover_thrust_sinks_at_g_times_the_miss
 # --------------------------------------------------------------------------- MAVLink SITL
 
 
-def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(tmp_path, low_scenario):
+def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(
+    tmp_path, low_scenario, loopback_sitl
+):
     """Over real UDP: MPC_THR_HOVER read at episode 0 is that airframe's m g / T_max; when
     episode 0 has landed (AUTO.LAND, flown for the heavy airframe), episode 1's value arrives as
     an unrequested PARAM_VALUE; the logs record the factors."""
@@ -340,19 +339,7 @@ def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(tmp_path, 
         Path(low_scenario).read_text(),
         "mass_scale = [1.1, 1.3]\nthrust_scale = [0.9, 1.0]",
     )
-    p = SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
-    cfg = SitlConfig(
-        mavlink_port=p.mavlink,
-        remote_port=p.remote,
-        camera_port=p.camera,
-        gcs=False,
-        scenario=str(scenario),
-        log_dir=str(tmp_path / "logs"),
-        render=False,
-        seed=3,
-        episodes=2,
-        max_wall_s=60.0,
-    )
+    p, cfg = loopback_sitl(scenario, tmp_path / "logs", seed=3, episodes=2)
     airframe = load_scenario(scenario).vehicle
     expected = [
         draw_airframe(airframe, 3, i).apply(load_vehicle()).hover_thrust_norm(EARTH) for i in (0, 1)

@@ -9,7 +9,6 @@ import math
 import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -25,11 +24,9 @@ from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.scene import Camera
 from sitl_sim.sensor_faults import SensorFaults, SensorFaultsConfig
 from sitl_sim.simulator import Simulator
-from sitl_sim.sitl_config import SitlConfig
 from sitl_sim.wind import WindModel
 from sitl_sim.world import episode_world
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.fly import free_udp_port
 
 SENSORS = """
 [sensors]
@@ -371,27 +368,9 @@ def test_imu_turn_on_bias_shows_in_the_mean_accel_at_rest(vehicle, sim_cfg, tmp_
 # --------------------------------------------------------------------------- over MAVLink
 
 
-def _sitl_config(tmp_path: Path, scenario: Path, ports, **overrides) -> SitlConfig:
-    values = dict(
-        mavlink_port=ports.mavlink,
-        remote_port=ports.remote,
-        camera_port=ports.camera,
-        gcs=False,
-        scenario=str(scenario),
-        log_dir=str(tmp_path / "logs"),
-        render=False,
-        seed=6,
-        max_wall_s=60.0,
-    )
-    values.update(overrides)
-    return SitlConfig(**values)
-
-
-def _ports() -> SimpleNamespace:
-    return SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
-
-
-def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(tmp_path, low_scenario):
+def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(
+    tmp_path, low_scenario, loopback_sitl
+):
     """In HOLD (frozen at 5-6 m): DISTANCE_SENSOR is either no return (UINT16_MAX, quality 1,
     what the companion reads as invalid) or the 30 m spurious return, never the true ~5 m;
     HIGHRES_IMU's gyro averages to the drawn bias; camera frames carry the exposure time,
@@ -403,12 +382,12 @@ def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(tmp_path, lo
         "camera_latency_ms = [60.0, 60.0]\n",
         Path(low_scenario),
     )
-    p = _ports()
+    p, cfg = loopback_sitl(scenario, tmp_path / "logs", seed=6, hold_timeout_s=30.0)
     with (
         SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
         ThreadPoolExecutor(1) as pool,
     ):
-        sitl = MavlinkSitl(_sitl_config(tmp_path, scenario, p, hold_timeout_s=30.0))
+        sitl = MavlinkSitl(cfg)
         running = pool.submit(sitl.run)
         try:
             client.wait_for("HEARTBEAT", 5.0)
@@ -433,7 +412,9 @@ def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(tmp_path, lo
     assert all(s % 100_000 == 40_000 for s in stamps)  # boundaries at k x 100 ms, minus 60 ms
 
 
-def test_lockstep_flight_with_latency_and_drops_answers_every_sent_frame(tmp_path, low_scenario):
+def test_lockstep_flight_with_latency_and_drops_answers_every_sent_frame(
+    tmp_path, low_scenario, loopback_sitl
+):
     """A scripted privileged pilot answers each frame it receives with the frame's stamp (as the
     companion does): lockstep accepts the exposure-time stamp (no lockstep timeout), lost frames
     are not sent (their ids are skipped and logged as events), and the vehicle lands."""
@@ -442,13 +423,13 @@ def test_lockstep_flight_with_latency_and_drops_answers_every_sent_frame(tmp_pat
         "\n[sensors]\ncamera_latency_ms = [100.0, 150.0]\nframe_drop_prob = 0.2\n",
         Path(low_scenario),
     )
-    p = _ports()
+    p, cfg = loopback_sitl(scenario, tmp_path / "logs", seed=6, groundtruth=True)
     received: list[int] = []
     with (
         SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
         ThreadPoolExecutor(1) as pool,
     ):
-        sitl = MavlinkSitl(_sitl_config(tmp_path, scenario, p, groundtruth=True))
+        sitl = MavlinkSitl(cfg)
         running = pool.submit(sitl.run)
         try:
             lander = CascadeLander(sitl.vehicle, sitl.sim_cfg.planet)

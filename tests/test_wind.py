@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,7 +22,6 @@ from sitl_sim.flight_record import groundtruth_from_msg, groundtruth_msg
 from sitl_sim.mavlink_sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
-from sitl_sim.sitl_config import SitlConfig
 from sitl_sim.wind import (
     TURBULENCE_W20_M_S,
     WindConfig,
@@ -32,7 +30,6 @@ from sitl_sim.wind import (
 )
 from sitl_sim.world import EpisodeWorld
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.fly import free_udp_port
 
 EARTH = PLANETS["earth"]
 WIND = """
@@ -377,7 +374,7 @@ def test_env_flies_the_scenario_wind_of_seed_and_episode(tmp_path):
     assert all(g.wind_ned_m_s is None for g in still)
 
 
-def test_sitl_flies_in_the_scenario_wind_and_logs_it(tmp_path, low_scenario):
+def test_sitl_flies_in_the_scenario_wind_and_logs_it(tmp_path, low_scenario, loopback_sitl):
     """One lockstep MAVLink flight from 5-6 m in wind: the log's ground truth carries the wind of
     (seed, episode), restarted at the take-over, and its scenario record the [wind] section."""
     scenario = tmp_path / "low_wind.toml"
@@ -385,19 +382,7 @@ def test_sitl_flies_in_the_scenario_wind_and_logs_it(tmp_path, low_scenario):
         Path(low_scenario).read_text()
         + '\n[wind]\nspeed_m_s = [2.0, 3.0]\ndirection_deg = [0.0, 360.0]\nturbulence = "light"\n'
     )
-    p = SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
-    cfg = SitlConfig(
-        mavlink_port=p.mavlink,
-        remote_port=p.remote,
-        camera_port=p.camera,
-        gcs=False,
-        scenario=str(scenario),
-        log_dir=str(tmp_path / "logs"),
-        render=False,
-        groundtruth=True,
-        seed=6,
-        max_wall_s=60.0,
-    )
+    p, cfg = loopback_sitl(scenario, tmp_path / "logs", groundtruth=True, seed=6)
     with (
         SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
         ThreadPoolExecutor(1) as pool,
