@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from sitl_sim.config import load_sim, load_vehicle
-from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario, scenario_from_dict
+from sitl_sim.scenario import InitialState, InitialStateSampler, scenario_from_dict
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
+from training.provenance import REPO
 
 __all__ = ["VISUAL_ROWS", "draw_visual_conditions", "draw_wind_flight"]
 
@@ -103,31 +104,18 @@ def draw_visual_conditions(out_png: str | Path, seed: int = 3) -> Path:
 
 
 def draw_wind_flight(out_png: str | Path, seed: int = 1_000_000, episode: int = 0) -> Path:
-    """The expert's flight through episode ``episode`` of the severe-wind suite condition."""
+    """The expert's flight through episode ``episode`` of the standard suite's ``wind_severe``
+    condition."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from expert.mpc import MpcExpert
+    from training.suite import load_suite
 
-    base = load_scenario("configs/scenario_wind.toml")
-    scenario = scenario_from_dict(
-        {
-            "initial_state": {
-                k: list(v) if isinstance(v, tuple) else v
-                for k, v in base.to_dict().items()
-                if k not in ("world", "source", "wind", "visual")
-            },
-            "wind": {
-                "speed_m_s": [6.0, 10.0],
-                "direction_deg": [0.0, 360.0],
-                "turbulence": "severe",
-                "gust_m_s": [2.0, 4.0],
-            },
-        },
-        "wind_flight",
-    )
+    suite = load_suite(REPO / "configs/suites/standard.toml")
+    scenario = next(c.scenario for c in suite.conditions if c.name == "wind_severe")
     vehicle, sim_cfg = load_vehicle(), load_sim()
     sim = Simulator(vehicle, sim_cfg, render=False)
     expert = MpcExpert(vehicle, sim_cfg)
