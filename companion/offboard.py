@@ -402,7 +402,7 @@ class FlightController:
         if failsafe is not None:
             self._failsafe(failsafe)
             return
-        obs = assemble_observation(frame, self.store)
+        obs = assemble_observation(frame, self.store, self._hover_thrust(now))
         gt = self.store.odometry if self.runtime.privileged else None
         result = self.runtime.step(obs, gt)
         if result.command is None:
@@ -427,6 +427,7 @@ class FlightController:
                 "range_time_s": obs.range_time_s,
                 "accel_frd_m_s2": obs.accel_frd_m_s2,
                 "imu_time_s": obs.imu_time_s,
+                "hover_thrust_norm": obs.hover_thrust_norm,  # NaN (not reported) is null
                 "groundtruth_time_s": None if gt is None else gt.time_s,
             },
         )

@@ -167,20 +167,21 @@ def export_onnx(
         import onnxruntime  # noqa: F401
     except ImportError as exc:
         raise OnnxModelError(f"export to ONNX needs {exc.name}: {_INSTALL_HINT}") from None
-    from companion.policy_net import FEATURE_NAMES, load_policy
+    from companion.policy_net import feature_names, load_policy
 
     ckpt = Path(checkpoint)
     policy = load_policy(ckpt)
     sha = sha256_file(ckpt)
     perception_path, control_path = onnx_paths(ckpt)
     cfg = policy.config
+    names = feature_names(cfg.hover_input)
     base = {
         "visland.format": ONNX_FORMAT,
         "visland.version": str(ONNX_VERSION),
         "visland.checkpoint_sha256": sha,
         "visland.checkpoint_name": ckpt.name,
         "visland.net_config": json.dumps(cfg.to_dict()),
-        "visland.feature_names": json.dumps(list(FEATURE_NAMES)),
+        "visland.feature_names": json.dumps(list(names)),
         "visland.torch_version": torch.__version__,
     }
     rng = np.random.default_rng(seed)
@@ -204,7 +205,7 @@ def export_onnx(
     n_state = len(state)
     s_in = [f"state_in_{k}" for k in range(n_state)]
     s_out = [f"state_out_{k}" for k in range(n_state)]
-    features = torch.zeros(1, len(FEATURE_NAMES))
+    features = torch.zeros(1, len(names))
     dynamic = {"features": {0: "batch"}, "command": {0: "batch"}}
     for k, axes in enumerate(_batch_axes(policy.control)):
         dynamic[s_in[k]] = {a: "batch" for a in axes}
@@ -235,7 +236,7 @@ def export_onnx(
             # digits, not its absolute size (absolute below 1, relative above)
             pdiff = float(np.max(np.abs(ref - got) / np.maximum(1.0, np.abs(ref))))
         feats = torch.from_numpy(
-            rng.normal(0.0, 1.0, (1, check_samples, len(FEATURE_NAMES))).astype(np.float32)
+            rng.normal(0.0, 1.0, (1, check_samples, len(names))).astype(np.float32)
         )
         ref_cmd, _ = policy.control(feats, policy.control.zero_state(1))
         got_cmd, _ = onnx_policy.control(feats, onnx_policy.control.zero_state(1))

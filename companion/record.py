@@ -245,6 +245,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
     report = ReplayReport(log=str(path))
     store = TelemetryStore()
     frames: dict[int, ReceivedFrame] = {}
+    hovers: dict[int, float] = {}  # the hover thrust the policy was given, per frame
     for topic, msg in _raw_records(path):
         if topic.startswith(TOPIC_MAVLINK_IN):
             fields = {k: v for k, v in msg.items() if k not in ("time_s", "mavpackettype")}
@@ -258,6 +259,9 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
             )
             fid = int(msg["frame_number"])
             frames = {fid: ReceivedFrame(fid, float(msg["capture_time_s"]), img, msg["rx_s"])}
+        elif topic == TOPIC_OBSERVATION:
+            if msg.get("hover_thrust_norm") is not None:
+                hovers = {int(msg["frame_id"]): float(msg["hover_thrust_norm"])}
         elif topic == TOPIC_EVENTS and msg.get("kind") == EVENT_FLIGHT_START:
             runtime.reset()
         elif topic == TOPIC_COMMAND and msg.get("policy"):
@@ -266,7 +270,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
             if frame is None:
                 report.errors.append(f"frame {fid}: not in the log before its command")
                 continue
-            obs = assemble_observation(frame, store)
+            obs = assemble_observation(frame, store, hovers.get(fid))
             gt = store.odometry if runtime.privileged else None
             result = runtime.step(obs, gt)
             if result.command is None:

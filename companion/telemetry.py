@@ -265,8 +265,11 @@ class TelemetryStore:
         return self.age_s(worst, now_s), worst
 
 
-def assemble_observation(frame: ReceivedFrame, store: TelemetryStore) -> Observation:
-    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU.
+def assemble_observation(
+    frame: ReceivedFrame, store: TelemetryStore, hover_thrust_norm: float | None = None
+) -> Observation:
+    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU,
+    and the autopilot's hover thrust as read at connect time (None: not reported, NaN).
 
     Raises:
         ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
@@ -285,4 +288,5 @@ def assemble_observation(frame: ReceivedFrame, store: TelemetryStore) -> Observa
         accel_frd_m_s2=imu.accel_frd_m_s2,
         imu_time_s=imu.time_s,
         frame_id=frame.frame_id,
+        hover_thrust_norm=math.nan if hover_thrust_norm is None else hover_thrust_norm,
     )

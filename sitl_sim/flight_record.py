@@ -92,6 +92,8 @@ def observation_msg(obs: Observation) -> dict[str, Any]:
         "range_time_s": obs.range_time_s,
         "accel_frd_m_s2": obs.accel_frd_m_s2,
         "imu_time_s": obs.imu_time_s,
+        # not reported (NaN) is left out, as in logs written before the field existed
+        **({"hover_thrust_norm": obs.hover_thrust_norm} if obs.hover_thrust_norm > 0 else {}),
     }
 
 
@@ -108,6 +110,7 @@ def observation_from_msg(msg: dict[str, Any], image: np.ndarray) -> Observation:
         accel_frd_m_s2=np.asarray(msg["accel_frd_m_s2"], dtype=float),
         imu_time_s=float(msg["imu_time_s"]),
         frame_id=int(msg["frame_id"]),
+        hover_thrust_norm=float(msg.get("hover_thrust_norm", math.nan)),
     )
 
 

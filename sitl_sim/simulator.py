@@ -108,6 +108,12 @@ class Simulator:
 
     # ------------------------------------------------------------------ lifecycle
 
+    @property
+    def hover_thrust_norm(self) -> float:
+        """The episode vehicle's hover thrust on this planet: what the autopilot reports as
+        ``MPC_THR_HOVER`` and the Observation carries."""
+        return self.episode_vehicle.hover_thrust_norm(self.sim.planet)
+
     def reset(
         self,
         initial: InitialState,
@@ -349,4 +355,5 @@ class Simulator:
             accel_frd_m_s2=imu.accel_frd_m_s2,
             imu_time_s=t,
             frame_id=frame_id,
+            hover_thrust_norm=self.hover_thrust_norm,
         )

@@ -30,7 +30,7 @@ from companion.flightlog import FlightLogError, read_log
 
 __all__ = ["DatasetError", "Episode", "load_episode", "load_episodes"]
 
-_CACHE_VERSION = 2
+_CACHE_VERSION = 3
 
 
 class DatasetError(ValueError):
@@ -59,6 +59,12 @@ class Episode:
     label: np.ndarray
     flown: np.ndarray
     """(T, 4) the command that was actually sent (the learner's, in DAgger rollouts)."""
+    image_time_s: np.ndarray | None = None
+    """(T,) the Observation's image exposure time (None: a dataset built without it)."""
+    attitude_time_s: np.ndarray | None = None
+    """(T,) the Observation's ATTITUDE time stamp."""
+    hover_thrust_norm: np.ndarray | None = None
+    """(T,) the Observation's hover thrust (NaN where the log has none)."""
     images: np.ndarray | None = None
     result: dict[str, Any] = field(default_factory=dict)
 
@@ -82,9 +88,16 @@ class Episode:
                 "flown",
             )
         }
+        for key in _OPTIONAL:
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
         if self.images is not None:
             out["images"] = self.images
         return out
+
+
+_OPTIONAL = ("image_time_s", "attitude_time_s", "hover_thrust_norm")
+"""Per-step arrays an Episode may lack (built by hand, e.g. in tests); NaN allowed in them."""
 
 
 def _validate(ep: Episode, where: str) -> Episode:
@@ -113,6 +126,10 @@ def _validate(ep: Episode, where: str) -> Episode:
         if not finite.all():
             bad = int(ep.frame_id[np.argwhere(~finite)[0][0]])
             raise DatasetError(f"{where}: {key} is not finite at frame {bad}")
+    for key in _OPTIONAL:
+        arr = getattr(ep, key)
+        if arr is not None and arr.shape != (n,):
+            raise DatasetError(f"{where}: {key} has shape {arr.shape}, expected {(n,)}")
     if ep.images is not None and ep.images.shape[0] != n:
         raise DatasetError(f"{where}: {ep.images.shape[0]} images for {n} control steps")
     for arr in ep.arrays().values():
@@ -195,6 +212,11 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             quat_wxyz=_vec(t, "quat_wxyz", 4),
             label=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in lab], dtype=float),
             flown=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in fl], dtype=float),
+            image_time_s=np.array([m["image_time_s"] for m in o], dtype=float),
+            attitude_time_s=np.array([m["attitude_time_s"] for m in o], dtype=float),
+            hover_thrust_norm=np.array(
+                [m.get("hover_thrust_norm", math.nan) for m in o], dtype=float
+            ),
             images=images,
             result=(log.topic(TOPIC_RESULT) or [{}])[-1],
         )

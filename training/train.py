@@ -74,8 +74,18 @@ def net_config_for(
 # ----------------------------------------------------------------------------- features
 
 
-def privileged_episode(ep: Episode) -> BufferedEpisode:
-    """Controller inputs from ground-truth position/velocity (the privileged variant)."""
+def _per_step(ep: Episode, key: str) -> np.ndarray:
+    """An optional per-step array of ``ep``, NaN where the episode has none."""
+    arr = getattr(ep, key)
+    return np.full(len(ep), math.nan) if arr is None else arr
+
+
+def privileged_episode(ep: Episode, cfg: NetConfig | None = None) -> BufferedEpisode:
+    """Controller inputs from ground-truth position/velocity (the privileged variant).
+
+    ``cfg``: the config of the controller to feed (its ``hover_input``); None: without it.
+    """
+    hover = _per_step(ep, "hover_thrust_norm")
     feats = np.stack(
         [
             control_features(
@@ -85,6 +95,7 @@ def privileged_episode(ep: Episode) -> BufferedEpisode:
                 ep.rate_frd_rad_s[t],
                 ep.accel_frd_m_s2[t],
                 1.0,
+                None if cfg is None else cfg.hover_feature(float(hover[t])),
             )
             for t in range(len(ep))
         ]
@@ -110,6 +121,9 @@ def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
         ).astype(float)
     state = policy.initial_state()
     feats = []
+    hover = _per_step(ep, "hover_thrust_norm")
+    image_t = _per_step(ep, "image_time_s")
+    attitude_t = _per_step(ep, "attitude_time_s")
     for t in range(len(ep)):
         f, state = policy.vision_features(
             raw[t],
@@ -118,6 +132,9 @@ def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
             ep.accel_frd_m_s2[t],
             float(ep.range_m[t]),
             state,
+            hover_thrust_norm=float(hover[t]),
+            image_time_s=float(image_t[t]),
+            attitude_time_s=float(attitude_t[t]),
         )
         feats.append(f)
     return BufferedEpisode(ep.name, np.stack(feats), ep.label.astype(np.float32))

@@ -100,6 +100,10 @@ class Observation:
         range_time_s: time stamp of the range sample.
         accel_frd_m_s2: (3,) specific force from HIGHRES_IMU (about (0, 0, -g) at hover).
         imu_time_s: time stamp of the IMU sample.
+        hover_thrust_norm: the vehicle's hover thrust (thrust_norm that holds altitude), as the
+            autopilot reports it (PX4 ``MPC_THR_HOVER``, ArduPilot ``MOT_THST_HOVER``, read at
+            connect time); NaN when it has not reported one. It is how one policy knows a
+            heavier or lighter airframe, or Mars.
     """
 
     image: np.ndarray
@@ -112,6 +116,7 @@ class Observation:
     accel_frd_m_s2: np.ndarray
     imu_time_s: float
     frame_id: int = field(default=0)
+    hover_thrust_norm: float = math.nan
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)
@@ -126,6 +131,12 @@ class Observation:
         if not (math.isnan(rng) or rng >= 0.0):
             raise ContractError(f"range_m: expected >= 0 or NaN (invalid), got {rng}")
         object.__setattr__(self, "range_m", rng)
+        hover = float(self.hover_thrust_norm)
+        if not (math.isnan(hover) or 0.0 < hover < 1.0):
+            raise ContractError(
+                f"hover_thrust_norm: expected in (0, 1) or NaN (not reported), got {hover}"
+            )
+        object.__setattr__(self, "hover_thrust_norm", hover)
 
 
 def _vec(name: str, value: object, n: int) -> np.ndarray:

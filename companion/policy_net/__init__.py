@@ -49,6 +49,7 @@ from companion.policy_net.estimator import EstimatorState, PadEstimator
 from companion.policy_net.geometry import (
     FEATURE_NAMES,
     control_features,
+    feature_names,
     position_from_bearing,
     rotation_zyx,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "PadEstimator",
     "PerceptionCNN",
     "control_features",
+    "feature_names",
     "load_networks",
     "load_policy",
     "position_from_bearing",

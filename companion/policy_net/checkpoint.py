@@ -13,7 +13,7 @@ from typing import Any
 import torch
 
 from companion.policy_net.config import CheckpointError, NetConfig
-from companion.policy_net.geometry import FEATURE_NAMES
+from companion.policy_net.geometry import feature_names
 from companion.policy_net.networks import ControlLSTM, PerceptionCNN
 from companion.policy_net.policy import LearnedPolicy
 
@@ -44,7 +44,7 @@ def save_checkpoint(
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "net_config": config.to_dict(),
-        "feature_names": list(FEATURE_NAMES),
+        "feature_names": list(feature_names(config.hover_input)),
         "control": control.state_dict(),
         "perception": perception.state_dict() if perception is not None else None,
         "metadata": metadata,
@@ -73,8 +73,6 @@ def _load_blob(path: Path) -> dict[str, Any]:
             f"{path}: checkpoint version {blob.get('version')!r}, this code reads "
             f"{CHECKPOINT_VERSION}"
         )
-    if list(blob.get("feature_names", [])) != list(FEATURE_NAMES):
-        raise CheckpointError(f"{path}: feature_names differ from this code's controller inputs")
     return blob
 
 
@@ -88,6 +86,12 @@ def load_networks(path: str | Path) -> tuple[NetConfig, ControlLSTM, PerceptionC
         raise CheckpointError(f"{path}: net_config: {exc}") from None
     except CheckpointError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
+    expected = list(feature_names(cfg.hover_input))
+    if list(blob.get("feature_names", [])) != expected:
+        raise CheckpointError(
+            f"{path}: feature_names {blob.get('feature_names')!r} differ from this code's "
+            f"controller inputs {expected!r}"
+        )
     control = ControlLSTM(cfg)
     perception = PerceptionCNN(cfg) if blob.get("perception") is not None else None
     try:

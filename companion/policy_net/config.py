@@ -6,6 +6,7 @@ in every checkpoint. No torch here: the estimator reads it too.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -49,6 +50,24 @@ class NetConfig:
     min_fix_altitude_m: float = 1.5
     """Below this the view is a piece of one cross arm and the bearing is a guess: the
     horizontal estimate flies on the IMU prediction (the radar altitude is still used)."""
+    # Robustness (issue 16). The defaults are the paper-world model's behaviour, so a checkpoint
+    # saved before these keys existed loads and flies exactly as it did.
+    hover_input: bool = False
+    """The controller reads the autopilot's hover thrust (``Observation.hover_thrust_norm``) as
+    an input and centres its thrust output on it: one model for heavier and lighter airframes
+    and for Mars. False: ``hover_thrust_norm`` above is baked in."""
+    accel_bias_states: bool = False
+    """The estimator carries an acceleration-bias state per axis (position, velocity, bias):
+    an IMU turn-on bias, and on another planet the difference between its gravity and
+    ``gravity_m_s2``, are estimated from the radar and camera fixes instead of integrated."""
+    accel_bias_sigma_m_s2: tuple[float, float, float] = (0.3, 0.3, 7.0)
+    """Initial 1-sigma of the bias states (north, east, down): down spans Earth to Mars."""
+    accel_bias_walk_m_s2: float = 0.02
+    """Random walk of the bias states (m/s^2 per sqrt(s))."""
+    latency_compensation: bool = False
+    """The camera fix is computed with the attitude at the image's exposure time
+    (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward
+    to now with the estimated velocity; a repeated image (a lost frame) gives no new fix."""
 
     def __post_init__(self) -> None:
         if self.kind not in ("vision", "privileged"):
@@ -59,15 +78,30 @@ class NetConfig:
             raise CheckpointError(
                 f"net config hover_thrust_norm: expected in (0, 1), got {self.hover_thrust_norm}"
             )
+        if len(self.accel_bias_sigma_m_s2) != 3 or min(self.accel_bias_sigma_m_s2) <= 0:
+            raise CheckpointError(
+                "net config accel_bias_sigma_m_s2: expected 3 positive values, got "
+                f"{self.accel_bias_sigma_m_s2}"
+            )
         if len(self.max_rate_rad_s) != 3 or min(self.max_rate_rad_s) <= 0:
             raise CheckpointError(
                 f"net config max_rate_rad_s: expected 3 positive values, got {self.max_rate_rad_s}"
             )
 
+    def hover_feature(self, hover_thrust_norm: float) -> float | None:
+        """The hover thrust a ``hover_input`` controller is given: the autopilot's, or this
+        config's when it reported none (NaN); None for a controller without the input."""
+        if not self.hover_input:
+            return None
+        if math.isfinite(hover_thrust_norm) and 0.0 < hover_thrust_norm < 1.0:
+            return float(hover_thrust_norm)
+        return self.hover_thrust_norm
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["cnn_channels"] = list(self.cnn_channels)
         d["max_rate_rad_s"] = list(self.max_rate_rad_s)
+        d["accel_bias_sigma_m_s2"] = list(self.accel_bias_sigma_m_s2)
         return d
 
     @classmethod
@@ -79,6 +113,7 @@ class NetConfig:
         d = dict(d)
         if "cnn_channels" in d:
             d["cnn_channels"] = tuple(int(c) for c in d["cnn_channels"])
-        if "max_rate_rad_s" in d:
-            d["max_rate_rad_s"] = tuple(float(v) for v in d["max_rate_rad_s"])
+        for key in ("max_rate_rad_s", "accel_bias_sigma_m_s2"):
+            if key in d:
+                d[key] = tuple(float(v) for v in d[key])
         return cls(**d)

@@ -14,7 +14,8 @@ __all__ = ["EstimatorState", "PadEstimator"]
 
 @dataclass(frozen=True)
 class EstimatorState:
-    """Kalman state per NED axis: ``x`` (3, 2) = (position, velocity), ``cov`` (3, 2, 2)."""
+    """Kalman state per NED axis: ``x`` (3, n) = (position, velocity[, acceleration bias]),
+    ``cov`` (3, n, n); n = 3 with ``NetConfig.accel_bias_states``, else 2."""
 
     x: np.ndarray
     cov: np.ndarray
@@ -34,22 +35,50 @@ class PadEstimator:
     refused — one confidently wrong CNN answer (a tilted view without the pad) would otherwise
     move the estimate by tens of metres —, and after ``gate_reset_steps`` refusals in a row the
     estimate re-acquires from the fix (the prediction, not the camera, was wrong).
+
+    With ``accel_bias_states`` each axis also carries a bias added to the measured acceleration
+    (a random walk): an IMU turn-on bias, and on Mars the 6.1 m/s^2 between its gravity and the
+    configured Earth gravity, which a two-state filter would integrate into a velocity error.
     """
 
     def __init__(self, cfg: NetConfig) -> None:
         self.cfg = cfg
         dt = cfg.control_dt_s
-        self._f = np.array([[1.0, dt], [0.0, 1.0]])
-        self._b = np.array([0.5 * dt * dt, dt])
         q = cfg.accel_noise_m_s2**2
-        self._q = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt * dt]])
+        q_pv = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt * dt]])
+        if cfg.accel_bias_states:
+            self._n = 3
+            self._f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+            self._b = np.array([0.5 * dt * dt, dt, 0.0])
+            self._q = np.zeros((3, 3))
+            self._q[:2, :2] = q_pv
+            self._q[2, 2] = cfg.accel_bias_walk_m_s2**2 * dt
+        else:
+            self._n = 2
+            self._f = np.array([[1.0, dt], [0.0, 1.0]])
+            self._b = np.array([0.5 * dt * dt, dt])
+            self._q = q_pv
 
     def initial_state(self) -> EstimatorState:
+        n = self._n
         return EstimatorState(
-            x=np.zeros((3, 2)),
-            cov=np.tile(np.eye(2) * 1e6, (3, 1, 1)),
+            x=np.zeros((3, n)),
+            cov=np.tile(np.eye(n) * 1e6, (3, 1, 1)),
             initialised=np.zeros(3, bool),
         )
+
+    def _acquire(self, axis: int, z: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """State and covariance of an axis started from a fix ``z`` (velocity 0 +- 2 m/s)."""
+        if self._n == 2:
+            return np.array([z, 0.0]), np.diag([sigma**2, 4.0])
+        bias_sigma = self.cfg.accel_bias_sigma_m_s2[axis]
+        return np.array([z, 0.0, 0.0]), np.diag([sigma**2, 4.0, bias_sigma**2])
+
+    def carry(self, state: EstimatorState, lag_s: float) -> np.ndarray:
+        """How far the vehicle moved over the last ``lag_s`` seconds by the velocity estimate
+        (NED; zero on an axis not yet initialised): what carries a fix from an image's exposure
+        time to now."""
+        return np.where(state.initialised, state.x[:, 1] * lag_s, 0.0)
 
     def step(
         self,
@@ -93,8 +122,7 @@ class PadEstimator:
             for axis in axes:
                 z = float(fix_ned_m[axis])
                 if not init[axis]:
-                    x[axis] = (z, 0.0)
-                    cov[axis] = np.diag([sigmas[axis] ** 2, 4.0])
+                    x[axis], cov[axis] = self._acquire(axis, z, sigmas[axis])
                     init[axis] = True
                     continue
                 p = cov[axis]

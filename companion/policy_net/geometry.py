@@ -12,7 +12,16 @@ import math
 
 import numpy as np
 
-__all__ = ["FEATURE_NAMES", "control_features", "position_from_bearing", "rotation_zyx"]
+__all__ = [
+    "FEATURE_NAMES",
+    "HOVER_FEATURE",
+    "HOVER_FEATURE_SCALE",
+    "control_features",
+    "feature_names",
+    "position_at_altitude",
+    "position_from_bearing",
+    "rotation_zyx",
+]
 
 FEATURE_NAMES = (
     "x_h/10",
@@ -37,6 +46,17 @@ FEATURE_NAMES = (
 """The controller's inputs, in order (``x_h``/``y_h``: vehicle position relative to the pad in
 the heading frame — NED rotated by the current yaw —, ``alt`` above the pad, velocities in the
 same frame, attitude and rates from ATTITUDE, specific force from HIGHRES_IMU in g0 units)."""
+
+HOVER_FEATURE = "hover_thrust/0.4"
+HOVER_FEATURE_SCALE = 0.4
+"""The input a ``hover_input`` controller adds after :data:`FEATURE_NAMES`: the autopilot's hover
+thrust over 0.4 (about 1 for the Table 1 vehicle on Earth, 0.38 on Mars)."""
+
+
+def feature_names(hover_input: bool) -> tuple[str, ...]:
+    """The controller's inputs, in order, for a config with or without ``hover_input``."""
+    return (*FEATURE_NAMES, HOVER_FEATURE) if hover_input else FEATURE_NAMES
+
 
 _G0 = 9.80665
 
@@ -68,7 +88,20 @@ def position_from_bearing(
     if not math.isfinite(range_m) or range_m < 0:
         return None
     rot = rotation_zyx(*(float(a) for a in attitude_rad))
-    alt = range_m * rot[2, 2]
+    return _on_ray(rot, tan_right, tan_forward, range_m * rot[2, 2])
+
+
+def position_at_altitude(
+    tan_right: float, tan_forward: float, attitude_rad: np.ndarray, altitude_m: float
+) -> np.ndarray | None:
+    """As :func:`position_from_bearing`, with the altitude above the pad given (e.g. the radar's
+    altitude carried back to an image's exposure time) instead of the range along body down."""
+    if not math.isfinite(altitude_m):
+        return None
+    return _on_ray(rotation_zyx(*(float(a) for a in attitude_rad)), tan_right, tan_forward, altitude_m)
+
+
+def _on_ray(rot: np.ndarray, tan_right: float, tan_forward: float, alt: float) -> np.ndarray | None:
     ray = rot @ np.array([tan_forward, tan_right, 1.0])
     if ray[2] <= 1e-3 or alt <= 0:
         return None
@@ -83,8 +116,10 @@ def control_features(
     rate_frd_rad_s: np.ndarray,
     accel_frd_m_s2: np.ndarray,
     visibility: float,
+    hover_thrust_norm: float | None = None,
 ) -> np.ndarray:
-    """The controller's input vector (:data:`FEATURE_NAMES`), float32."""
+    """The controller's input vector, float32: :data:`FEATURE_NAMES`, then
+    :data:`HOVER_FEATURE` when ``hover_thrust_norm`` is given (a ``hover_input`` controller)."""
     roll, pitch, yaw = (float(a) for a in attitude_rad)
     c, s = math.cos(yaw), math.sin(yaw)
     x_h = c * pos_ned_m[0] + s * pos_ned_m[1]
@@ -93,6 +128,7 @@ def control_features(
     vy_h = -s * vel_ned_m_s[0] + c * vel_ned_m_s[1]
     alt = -float(pos_ned_m[2])
     inv = 1.0 / (max(alt, 0.0) + 1.0)
+    extra = () if hover_thrust_norm is None else (hover_thrust_norm / HOVER_FEATURE_SCALE,)
     return np.array(
         [
             x_h / 10,
@@ -113,6 +149,7 @@ def control_features(
             float(accel_frd_m_s2[1]) / _G0,
             float(accel_frd_m_s2[2]) / _G0,
             float(visibility),
+            *extra,
         ],
         dtype=np.float32,
     )

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from companion.policy_net.config import NetConfig
-from companion.policy_net.geometry import FEATURE_NAMES
+from companion.policy_net.geometry import HOVER_FEATURE_SCALE, feature_names
 
 __all__ = ["ControlLSTM", "PerceptionCNN"]
 
@@ -72,12 +72,15 @@ class ControlLSTM(nn.Module):
     """Features -> Command with explicit LSTM state; outputs always inside the Command ranges.
 
     ``thrust_norm = sigmoid(z0 + logit(hover))`` (zero output = hover) and
-    ``rates = max_rate * tanh(z)``.
+    ``rates = max_rate * tanh(z)``. ``hover`` is the config's, or with ``hover_input`` the
+    autopilot's hover thrust given as the last input feature (so one model centres its thrust
+    on the vehicle it flies).
     """
 
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__()
-        n_in = len(FEATURE_NAMES)
+        n_in = len(feature_names(cfg.hover_input))
+        self.hover_input = cfg.hover_input
         self.encoder = nn.Sequential(nn.Linear(n_in, cfg.mlp_hidden), nn.Tanh())
         self.lstm = nn.LSTM(cfg.mlp_hidden, cfg.lstm_hidden, batch_first=True)
         self.head = nn.Sequential(
@@ -108,6 +111,11 @@ class ControlLSTM(nn.Module):
             state = self.zero_state(features.shape[0])
         h, state = self.lstm(e, state)
         z = self.head(torch.cat([h, e], dim=-1))
-        thrust = torch.sigmoid(z[..., :1] + self.hover_logit)
+        if self.hover_input:
+            hover = (features[..., -1:] * HOVER_FEATURE_SCALE).clamp(0.02, 0.98)
+            hover_logit = torch.log(hover / (1.0 - hover))
+        else:
+            hover_logit = self.hover_logit
+        thrust = torch.sigmoid(z[..., :1] + hover_logit)
         rates = self.max_rate * torch.tanh(z[..., 1:])
         return torch.cat([thrust, rates], dim=-1), state

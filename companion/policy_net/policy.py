@@ -12,7 +12,11 @@ import torch
 from companion.contract import Command, Observation
 from companion.policy_net.config import CheckpointError, NetConfig
 from companion.policy_net.estimator import EstimatorState, PadEstimator
-from companion.policy_net.geometry import control_features, position_from_bearing
+from companion.policy_net.geometry import (
+    control_features,
+    position_at_altitude,
+    position_from_bearing,
+)
 from companion.policy_net.networks import ControlLSTM, PerceptionCNN
 
 __all__ = ["LearnedPolicy", "PolicyState"]
@@ -26,6 +30,33 @@ class PolicyState:
     estimator: EstimatorState | None = None
     last_perception: np.ndarray | None = None
     """The CNN's last raw output (tan_right, tan_forward, visibility logit), for logs."""
+    attitudes: tuple[tuple[float, np.ndarray], ...] = ()
+    """The last few (ATTITUDE time, attitude) samples, oldest first (``latency_compensation``:
+    the attitude at an image's exposure time is interpolated from them)."""
+    last_image_time_s: float | None = None
+    """Exposure time of the newest image used for a fix (a repeated image gives none)."""
+
+
+_MAX_CAMERA_LAG_S = 0.5
+"""A camera lag (ATTITUDE time minus image exposure time) beyond this, or negative, is taken as
+clocks that do not compare (e.g. a companion-clock camera): the fix is used as of now."""
+_ATTITUDE_HISTORY = 4
+
+
+def _angle_lerp(a0: np.ndarray, a1: np.ndarray, w: float) -> np.ndarray:
+    d = (a1 - a0 + math.pi) % (2 * math.pi) - math.pi
+    return a0 + w * d
+
+
+def attitude_at(history: tuple[tuple[float, np.ndarray], ...], t: float) -> np.ndarray:
+    """The attitude at time ``t``, linearly interpolated (angles wrapped) between the samples of
+    ``history`` (oldest first) that bracket it; the oldest / newest sample outside them."""
+    if t <= history[0][0]:
+        return history[0][1]
+    for (t0, a0), (t1, a1) in zip(history, history[1:], strict=False):
+        if t <= t1:
+            return a0 if t1 <= t0 else _angle_lerp(a0, a1, (t - t0) / (t1 - t0))
+    return history[-1][1]
 
 
 @dataclass
@@ -82,6 +113,7 @@ class LearnedPolicy:
                 observation.rate_frd_rad_s,
                 observation.accel_frd_m_s2,
                 1.0,
+                self.config.hover_feature(observation.hover_thrust_norm),
             )
             return feats, state
         raw = self.perceive(observation.image)
@@ -92,7 +124,50 @@ class LearnedPolicy:
             observation.accel_frd_m_s2,
             observation.range_m,
             state,
+            hover_thrust_norm=observation.hover_thrust_norm,
+            image_time_s=observation.image_time_s,
+            attitude_time_s=observation.attitude_time_s,
         )
+
+    def _fix(
+        self,
+        raw: np.ndarray,
+        attitude_rad: np.ndarray,
+        range_m: float,
+        state: PolicyState,
+        image_time_s: float,
+        attitude_time_s: float,
+    ) -> tuple[np.ndarray | None, bool, PolicyState]:
+        """The position fix of this step, whether its horizontal part is new, and the state
+        with the attitude history advanced."""
+        cfg = self.config
+        fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
+        if not (
+            cfg.latency_compensation
+            and math.isfinite(image_time_s)
+            and math.isfinite(attitude_time_s)
+        ):
+            return fix, True, state
+        history = (*state.attitudes, (float(attitude_time_s), np.asarray(attitude_rad, float)))
+        state = replace(state, attitudes=history[-_ATTITUDE_HISTORY:])
+        last = state.last_image_time_s
+        if last is not None and image_time_s <= last:
+            return fix, False, state  # the same image again (a lost frame): radar only
+        state = replace(state, last_image_time_s=float(image_time_s))
+        lag = attitude_time_s - image_time_s
+        if fix is None or not 0.0 < lag <= _MAX_CAMERA_LAG_S:
+            return fix, True, state
+        assert state.estimator is not None
+        moved = self._estimator.carry(state.estimator, lag)
+        seen_from = position_at_altitude(
+            float(raw[0]),
+            float(raw[1]),
+            attitude_at(history, image_time_s),
+            -float(fix[2]) + float(moved[2]),  # the altitude at exposure
+        )
+        if seen_from is None:
+            return fix, False, state
+        return np.array([seen_from[0] + moved[0], seen_from[1] + moved[1], fix[2]]), True, state
 
     def vision_features(
         self,
@@ -102,19 +177,31 @@ class LearnedPolicy:
         accel_frd_m_s2: np.ndarray,
         range_m: float,
         state: PolicyState,
+        hover_thrust_norm: float = math.nan,
+        image_time_s: float = math.nan,
+        attitude_time_s: float = math.nan,
     ) -> tuple[np.ndarray, PolicyState]:
         """Controller input from the CNN's output (``perceive``) and the sensors; estimator step.
 
         Split from :meth:`features` so training can batch the CNN over a recorded flight and
-        still run exactly this code for the rest.
+        still run exactly this code for the rest. The times are the Observation's (used with
+        ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
         """
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
-        fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
-        seen = vis >= self.config.visibility_threshold
+        fix, fresh, state = self._fix(
+            raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
+        )
+        seen = fresh and vis >= self.config.visibility_threshold
         assert state.estimator is not None
         est = self._estimator.step(state.estimator, fix, seen, attitude_rad, accel_frd_m_s2)
         feats = control_features(
-            est.x[:, 0], est.x[:, 1], attitude_rad, rate_frd_rad_s, accel_frd_m_s2, vis
+            est.x[:, 0],
+            est.x[:, 1],
+            attitude_rad,
+            rate_frd_rad_s,
+            accel_frd_m_s2,
+            vis,
+            self.config.hover_feature(hover_thrust_norm),
         )
         return feats, replace(state, estimator=est, last_perception=raw)
 

@@ -18,7 +18,7 @@ def run(r: Run) -> BcRecord:
     torch.manual_seed(p.seed)
     cfg = r.net_config("privileged")
     control = ControlLSTM(cfg)
-    buf, names = privileged_buffer(r, 0)
+    buf, names = privileged_buffer(r, 0, cfg)
     fit = fit_controller(r, control, buf, p.bc_steps, p.lr, "bc", p.seed)
     path = save_checkpoint(
         r.root / "checkpoints" / "bc.pt",

@@ -27,9 +27,9 @@ def _round(r: Run, k: int, ckpt: Path) -> DaggerRoundRecord:
     pairs = relabel(r, logs, name)
     cfg, control, _, _ = load_networks(ckpt)
     # expert flights, earlier rounds, then this round (FIFO at capacity)
-    buf, names = privileged_buffer(r, k)
+    buf, names = privileged_buffer(r, k, cfg)
     for ep in episodes(r, pairs, images=False):
-        buf.add(privileged_episode(ep))
+        buf.add(privileged_episode(ep, cfg))
         names.append(ep.name)
     fit = fit_controller(r, control, buf, p.dagger_steps, p.finetune_lr, name, p.seed + 1 + k)
     out = save_checkpoint(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from companion.policy_net import ControlLSTM
+from companion.policy_net import ControlLSTM, NetConfig
 from training.replay import ReplayBuffer
 from training.run_folder import Run
 from training.stages.flights import episodes, expert_pairs
@@ -15,19 +15,22 @@ from training.train import privileged_episode, train_controller
 __all__ = ["fit_controller", "privileged_buffer"]
 
 
-def privileged_buffer(run: Run, rounds_done: int) -> tuple[ReplayBuffer, list[str]]:
-    """The stage-1 buffer: expert flights then each finished DAgger round, FIFO."""
+def privileged_buffer(
+    run: Run, rounds_done: int, cfg: NetConfig
+) -> tuple[ReplayBuffer, list[str]]:
+    """The stage-1 buffer: expert flights then each finished DAgger round, FIFO, as inputs of
+    a controller of config ``cfg``."""
     p = run.profile
     buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed)
     names = []
     for ep in episodes(run, expert_pairs(run), images=False):
-        buf.add(privileged_episode(ep))
+        buf.add(privileged_episode(ep, cfg))
         names.append(ep.name)
     for k in range(rounds_done):
         rec = run.need(f"dagger_r{k}", DaggerRoundRecord)
         pairs = [(Path(a), Path(b)) for a, b in rec.pairs]
         for ep in episodes(run, pairs, images=False):
-            buf.add(privileged_episode(ep))
+            buf.add(privileged_episode(ep, cfg))
             names.append(ep.name)
     return buf, names
 
