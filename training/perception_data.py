@@ -10,8 +10,14 @@ Each sample draws an attitude, an altitude (log-uniform, so the last metres are 
 as the first hundred) and the bearing at which the pad centre should appear — inside the view for
 most samples, outside it for the rest — and places the vehicle where that bearing holds. Labels
 come from the same :func:`training.train.bearing_labels` as flight frames. Images go through
-:class:`sitl_sim.scene.Camera` (pybullet TinyRenderer + the configured pixel noise), the camera
+:class:`sitl_sim.scene.Camera` (the configured renderer + the configured pixel noise), the camera
 that flies, and are cached as one ``.npz`` per (seed, count) in the run folder.
+
+With ``visuals`` (the ``[visual]`` sections of a run's training worlds), every chunk of
+:data:`CHUNK` frames is rendered in a world drawn from them by weight — its ground family and
+texture seed, sun, pad, haze and camera effects (``VisualConfig.draw(seed, chunk)``) — so the CNN
+learns the pad on every ground and in every light the worlds fly, not only in the frames the
+expert happened to see. ``None`` stands for the nominal ground and camera.
 """
 
 from __future__ import annotations
@@ -25,7 +31,12 @@ import numpy as np
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
-from sitl_sim.scene import Camera, Scene
+from sitl_sim.ground import PadGeometry, nominal_ground
+from sitl_sim.scene import Camera, make_renderer
+from sitl_sim.visual import CameraEffects, VisualConfig
+
+CHUNK = 256
+"""Frames per rendering job, and per drawn visual world."""
 
 __all__ = ["PoseSampling", "render_pose_frames", "sample_poses"]
 
@@ -88,17 +99,36 @@ def sample_poses(
 _WORKER: dict = {}
 
 
-def _init(cfg: dict, seed: int) -> None:
-    _WORKER["scene"] = Scene()
-    _WORKER["cfg"] = CameraConfig(**cfg)
+def _init(cfg: dict, seed: int, visuals: tuple, weights: tuple) -> None:
+    camera = CameraConfig(**cfg)
+    _WORKER["scene"] = make_renderer(camera.renderer)
+    _WORKER["cfg"] = camera
     _WORKER["seed"] = seed
+    _WORKER["visuals"] = visuals
+    _WORKER["weights"] = np.asarray(weights, float) / float(np.sum(weights))
 
 
 def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
     chunk, pos, quat = args
-    rng = np.random.default_rng([_WORKER["seed"], chunk])
-    cam = Camera(_WORKER["scene"], _WORKER["cfg"], rng)
-    return np.stack([cam.capture(p, q) for p, q in zip(pos, quat, strict=True)])
+    seed, cfg, scene = _WORKER["seed"], _WORKER["cfg"], _WORKER["scene"]
+    rng = np.random.default_rng([seed, chunk])
+    pick = np.random.default_rng([seed, chunk, 1])
+    visual: VisualConfig | None = _WORKER["visuals"][
+        int(pick.choice(len(_WORKER["visuals"]), p=_WORKER["weights"]))
+    ]
+    if visual is None:
+        scene.configure(nominal_ground(), PadGeometry())
+        cam = Camera(scene, cfg, rng)
+        rates = np.zeros((len(pos), 3))
+    else:
+        sample = visual.draw(seed, chunk)
+        scene.configure(sample.ground(), sample.pad())
+        effects = CameraEffects(sample, cfg, sample.light)
+        cam = Camera(scene, cfg, rng, light=sample.light, effects=effects)
+        rates = pick.uniform(-0.5, 0.5, (len(pos), 3))  # motion blur as a manoeuvre smears
+    return np.stack(
+        [cam.capture(p, q, r) for p, q, r in zip(pos, quat, rates, strict=True)]
+    )
 
 
 def render_pose_frames(
@@ -108,14 +138,28 @@ def render_pose_frames(
     cache_dir: str | Path | None = None,
     workers: int = 1,
     sampling: PoseSampling = PoseSampling(),
+    visuals: tuple[VisualConfig | None, ...] = (None,),
+    weights: tuple[float, ...] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` rendered frames: images (n, H, W) uint8, poses (n, 3) NED and quaternions (n, 4).
 
-    With ``cache_dir`` the result is stored as ``poses_s<seed>_n<n>.npz`` and reloaded when its
-    camera and sampling match; a damaged cache file is rendered again.
+    ``visuals`` / ``weights``: the looks to render in, one drawn per chunk (module docstring);
+    the default is the nominal ground and camera. With ``cache_dir`` the result is stored as
+    ``poses_s<seed>_n<n>.npz`` and reloaded when its camera, sampling and visuals match; a
+    damaged cache file is rendered again.
     """
+    if not visuals:
+        raise ValueError("visuals: expected at least one (None: the nominal look)")
+    weights = tuple(weights) if weights is not None else (1.0,) * len(visuals)
+    if len(weights) != len(visuals) or min(weights) <= 0:
+        raise ValueError(f"weights {weights}: expected one positive weight per visual")
     pos, quat = sample_poses(n, seed, camera.fov_deg, sampling)
-    key = {"camera": asdict(camera), "sampling": asdict(sampling)}
+    key = {
+        "camera": asdict(camera),
+        "sampling": asdict(sampling),
+        "visuals": [None if v is None else v.to_dict() for v in visuals],
+        "weights": list(weights),
+    }
     path = Path(cache_dir) / f"poses_s{seed}_n{n}.npz" if cache_dir is not None else None
     if path is not None and path.exists():
         try:
@@ -124,14 +168,14 @@ def render_pose_frames(
                     return z["images"], z["pos"], z["quat"]
         except (OSError, ValueError, KeyError):
             pass  # damaged or foreign cache: render again
-    chunk = 256
-    jobs = [(k, pos[s : s + chunk], quat[s : s + chunk]) for k, s in enumerate(range(0, n, chunk))]
+    jobs = [(k, pos[s : s + CHUNK], quat[s : s + CHUNK]) for k, s in enumerate(range(0, n, CHUNK))]
+    initargs = (asdict(camera), seed, tuple(visuals), weights)
     if workers > 1:
         ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init, initargs=(asdict(camera), seed)) as pool:
+        with ctx.Pool(workers, initializer=_init, initargs=initargs) as pool:
             parts = pool.map(_render_chunk, jobs)
     else:
-        _init(asdict(camera), seed)
+        _init(*initargs)
         try:
             parts = [_render_chunk(j) for j in jobs]
         finally:

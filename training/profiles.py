@@ -61,6 +61,15 @@ class Profile(Record):
     logs relabelled; ``inprocess`` — the gymnasium env in worker processes (faster, same
     physics). Expert collection, validation and evaluation fly in process either way."""
     seed: int = 0
+    worlds: str | None = None
+    """A training-worlds file (``training.worlds``): every stage that flies splits its
+    episodes over its scenarios by share. None: the run's one scenario."""
+    hover_input: bool = False
+    """The controller reads the autopilot's hover thrust (``NetConfig.hover_input``)."""
+    accel_bias_states: bool = False
+    """The pad estimator estimates acceleration biases (``NetConfig.accel_bias_states``)."""
+    latency_compensation: bool = False
+    """Camera fixes at the image's exposure time (``NetConfig.latency_compensation``)."""
 
     def __post_init__(self) -> None:
         if self.rollouts not in ROLLOUT_TRANSPORTS:
@@ -108,5 +117,34 @@ PROFILES: dict[str, Profile] = {
         vision_steps=2500,
         eval_episodes=300,
         validation_episodes=12,
+    ),
+    # One model for the worlds of issue 16: expert flights and DAgger rollouts across the
+    # training worlds of configs/train/robust.toml (Earth and Mars, wind and gusts, +-35 % mass,
+    # every ground family and light, camera effects, sensor faults), perception on frames from
+    # all of them, the hover-thrust input, estimator bias states and latency compensation.
+    # Rollouts in process (the worlds change planet per world; the SITL takes one per process).
+    # <= 90 min on 2 cores (docs/results.md has the measured stage times).
+    "robust": Profile(
+        name="robust",
+        collect_episodes=600,
+        bc_steps=8000,
+        dagger_rounds=2,
+        dagger_rollouts=150,
+        dagger_steps=4000,
+        perception_epochs=6,
+        perception_frame_stride=2,
+        perception_pose_frames=60000,
+        vision_bc_steps=3000,
+        vision_rounds=3,
+        vision_rollouts=150,
+        vision_steps=3000,
+        eval_episodes=300,
+        validation_episodes=40,
+        buffer_capacity=1500,
+        rollouts=Transport.INPROCESS.value,
+        worlds="configs/train/robust.toml",
+        hover_input=True,
+        accel_bias_states=True,
+        latency_compensation=True,
     ),
 }

@@ -19,11 +19,11 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 from companion.flightlog import jsonable
-from sitl_sim.config import load_sim, load_vehicle
-from sitl_sim.scenario import load_scenario
+from sitl_sim.config import load_sim, load_vehicle, planet
 from training.profiles import PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
+from training.worlds import load_worlds, single_world
 from training.stages.records import StageRecord, record_type
 
 __all__ = ["Run"]
@@ -49,9 +49,17 @@ class Run:
         self.say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.vehicle = load_vehicle()
         self.sim = load_sim()
-        self.scenario = load_scenario(scenario) if scenario else load_scenario()
-        planet = self.scenario.planet if getattr(self.scenario, "planet", None) else None
-        self.planet = planet or self.sim.planet
+        if profile.worlds is not None and scenario is not None:
+            raise PipelineError(
+                f"profile {profile.name!r} trains across the worlds of {profile.worlds}; "
+                f"it takes no --scenario (got {scenario})"
+            )
+        self.worlds = load_worlds(profile.worlds) if profile.worlds else single_world(scenario)
+        self.scenario = self.worlds.worlds[0].scenario
+        # one planet: the net config's gravity and hover are that planet's; a mix of planets
+        # flies on the sim config's (the estimator's bias states take up the difference)
+        planets = self.worlds.planets
+        self.planet = planet(planets[0]) if len(planets) == 1 else self.sim.planet
         self.commit = git_commit()
         for sub in ("stages", "checkpoints", "flights", "labels", "cache"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
@@ -156,7 +164,16 @@ class Run:
         """The ``companion.policy_net.NetConfig`` of a ``privileged`` or ``vision`` policy."""
         from training.train import net_config_for  # torch: only where a stage trains
 
-        return net_config_for(self.vehicle, self.sim, kind, self.planet)
+        p = self.profile
+        return net_config_for(
+            self.vehicle,
+            self.sim,
+            kind,
+            self.planet,
+            hover_input=p.hover_input,
+            accel_bias_states=p.accel_bias_states,
+            latency_compensation=p.latency_compensation,
+        )
 
     def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:
         """What a checkpoint of ``stage`` records about how it was made."""
@@ -165,7 +182,13 @@ class Run:
             "profile": self.profile.name,
             "run": str(self.root),
             "git_commit": self.commit,
-            "scenario": self.scenario_path or "configs/scenario.toml",
+            "scenario": self.worlds.path or self.scenario_path or "configs/scenario.toml",
+            "worlds": [
+                {"name": w.name, "scenario": w.file, "share": w.share, "seed_offset": w.seed_offset}
+                for w in self.worlds.worlds
+            ]
+            if self.worlds.path
+            else None,
             "data": data,
             "created_unix": time.time(),
         }

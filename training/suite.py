@@ -46,6 +46,7 @@ __all__ = [
     "load_suite",
     "plot_suite",
     "run_suite",
+    "scenario_file",
 ]
 
 DEFAULT_EPISODES = 50
@@ -110,16 +111,22 @@ def _condition(where: str, name: str, table: Any) -> Condition:
         )
     value = table["scenario"]
     if isinstance(value, str):
-        path = _resolve(value)
-        if not path.is_file():
-            raise ConfigError(f"{where}: {tag} scenario = {value!r}: file not found ({path})")
-        return Condition(name=name, scenario=load_scenario(path), file=value)
+        return Condition(name=name, scenario=scenario_file(where, tag, value), file=value)
     if isinstance(value, dict):
         return Condition(name=name, scenario=scenario_from_dict(value, f"{where}: {tag}"))
     raise ConfigError(
         f"{where}: {tag} scenario = {value!r}; expected a file path (string) or a table of "
         "scenario sections"
     )
+
+
+def scenario_file(where: str, tag: str, value: str) -> Scenario:
+    """The checked scenario of ``scenario = "FILE"`` in table ``tag`` of file ``where`` (a path
+    relative to the repository root, or absolute)."""
+    path = _resolve(value)
+    if not path.is_file():
+        raise ConfigError(f"{where}: {tag} scenario = {value!r}: file not found ({path})")
+    return load_scenario(path)
 
 
 def load_suite(path: str | Path) -> SuiteConfig:

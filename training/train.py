@@ -54,12 +54,23 @@ def _no_log(name: str, value: float, step: int) -> None:
 
 
 def net_config_for(
-    vehicle: VehicleConfig, sim: SimConfig, kind: str, planet: Planet | None = None
+    vehicle: VehicleConfig,
+    sim: SimConfig,
+    kind: str,
+    planet: Planet | None = None,
+    *,
+    hover_input: bool = False,
+    accel_bias_states: bool = False,
+    latency_compensation: bool = False,
 ) -> NetConfig:
-    """The network config matching a vehicle and world (hover thrust, rate limits, gravity)."""
+    """The network config matching a vehicle and world (hover thrust, rate limits, gravity),
+    with the robustness options of the profile (``NetConfig``)."""
     planet = planet or sim.planet
     g = planet.gravity_m_s2
     return NetConfig(
+        hover_input=hover_input,
+        accel_bias_states=accel_bias_states,
+        latency_compensation=latency_compensation,
         kind=kind,
         hover_thrust_norm=vehicle.hover_thrust_norm(planet),
         max_rate_rad_s=tuple(float(v) for v in vehicle.rate_controller.max_rate_rad_s),

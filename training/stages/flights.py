@@ -29,37 +29,44 @@ def fly(
     transport: str | None = None,
 ) -> list[Path]:
     """Rollouts of episodes ``0..count-1`` of ``seed`` with their flight logs in
-    ``flights/<folder>/``; resumable (complete logs are not flown again).
+    ``flights/<folder>/``; resumable (complete logs are not flown again). A run across worlds
+    (``training.worlds``) splits ``count`` over them: world ``w`` flies its share of episodes
+    on ``seed + w.seed_offset`` into ``flights/<folder>/<w.name>/``.
 
     ``transport`` (default: the profile's ``rollouts``): ``mavlink`` flies the policy
     through ``visland sitl`` + ``visland companion`` processes (``training.fly.fly_many``,
     lockstep, ``workers`` pairs) and returns the SITL's logs — the training record;
     ``inprocess`` flies the gymnasium env in ``workers`` processes."""
     transport = transport or run.profile.rollouts
-    flights = run.root / "flights" / folder
-    flights.mkdir(parents=True, exist_ok=True)
-    if transport == Transport.MAVLINK:
-        from training.fly import sitl_log_name
-
-        paths = [flights / sitl_log_name(seed, i) for i in range(count)]
-    else:
-        paths = [flights / log_name(seed, i) for i in range(count)]
-    todo = [i for i, path in enumerate(paths) if not completed_episode(path)]
-    if not todo:
-        return paths
-    with run.bar(len(todo), f"fly {folder} ({transport})") as bar:
+    out: list[Path] = []
+    for world, n in run.worlds.split(count):
+        flights = run.root / "flights" / folder / world.name  # name "": a one-scenario run
+        flights.mkdir(parents=True, exist_ok=True)
+        wseed = seed + world.seed_offset
         if transport == Transport.MAVLINK:
-            _fly_mavlink(run, checkpoint, seed, todo, flights, camera, bar.update)
+            from training.fly import sitl_log_name
+
+            paths = [flights / sitl_log_name(wseed, i) for i in range(n)]
         else:
-            spec = RolloutSpec(
-                policy=checkpoint,
-                seed=seed,
-                scenario=run.scenario_path,
-                render_camera=camera,
-                log_dir=str(flights),
-            )
-            run_episodes(spec, todo, run.profile.workers, on_done=lambda _: bar.update())
-    return paths
+            paths = [flights / log_name(wseed, i) for i in range(n)]
+        out += paths
+        todo = [i for i, path in enumerate(paths) if not completed_episode(path)]
+        if not todo:
+            continue
+        desc = f"fly {folder}{'/' + world.name if world.name else ''} ({transport})"
+        with run.bar(len(todo), desc) as bar:
+            if transport == Transport.MAVLINK:
+                _fly_mavlink(run, checkpoint, wseed, todo, flights, camera, bar.update, world.file)
+            else:
+                spec = RolloutSpec(
+                    policy=checkpoint,
+                    seed=wseed,
+                    scenario=world.file,
+                    render_camera=camera,
+                    log_dir=str(flights),
+                )
+                run_episodes(spec, todo, run.profile.workers, on_done=lambda _: bar.update())
+    return out
 
 
 def _fly_mavlink(
@@ -70,6 +77,7 @@ def _fly_mavlink(
     flights: Path,
     camera: bool,
     progress: Callable[[int], Any],
+    scenario: str | None,
 ) -> None:
     """SITL + companion pairs; a failed pair's episodes are flown once more, then a
     PipelineError names what failed (the logs that finished stay: a rerun resumes)."""
@@ -78,7 +86,7 @@ def _fly_mavlink(
     cfg = FlyConfig(
         policy=checkpoint,
         seed=seed,
-        scenario=run.scenario_path,
+        scenario=scenario,
         render=camera,
         out=str(flights / "mavlink"),
         sitl_log_dir=str(flights),

@@ -27,12 +27,15 @@ def run(r: Run) -> PerceptionRecord:
     extra = None
     if p.perception_pose_frames > 0:
         t0 = time.perf_counter()
+        worlds = r.worlds.worlds
         extra = render_pose_frames(
             p.perception_pose_frames,
             p.seed + 7,
             r.sim.camera,
             cache_dir=r.root / "cache",
             workers=p.workers,
+            visuals=tuple(w.scenario.visual for w in worlds),
+            weights=tuple(w.share for w in worlds),
         )
         r.say(
             f"perception: {p.perception_pose_frames} pose-sampled frames "

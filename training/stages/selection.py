@@ -15,21 +15,50 @@ __all__ = ["evaluate", "select", "validate"]
 def evaluate(
     run: Run, policy: str, episodes: int, seed: int, camera: bool, progress: bool
 ) -> dict[str, Any]:
-    """``training.evaluate.evaluate`` on this run's scenario and workers."""
+    """``training.evaluate.evaluate`` on this run's scenario and workers; across worlds, each
+    world flies its share of ``episodes`` on its seed and the report pools every episode
+    (``worlds``: each world's own report)."""
     from training.evaluate import EvalConfig
     from training.evaluate import evaluate as evaluate_policy
 
-    return evaluate_policy(
-        EvalConfig(
-            policy=policy,
-            episodes=episodes,
-            seed=seed,
-            scenario=run.scenario_path,
-            workers=run.profile.workers,
-            render_camera=camera,
-            progress=progress,
+    reports = {
+        world.name: evaluate_policy(
+            EvalConfig(
+                policy=policy,
+                episodes=n,
+                seed=seed + world.seed_offset,
+                scenario=world.file,
+                workers=run.profile.workers,
+                render_camera=camera,
+                progress=progress,
+            )
         )
-    )
+        for world, n in run.worlds.split(episodes)
+        if n > 0
+    }
+    if len(reports) == 1:
+        return next(iter(reports.values()))
+    return pooled_report(policy, seed, reports)
+
+
+def pooled_report(policy: str, seed: int, reports: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """One report of every episode of several (per-world) reports: the statistics of the pooled
+    episodes, and the reports themselves under ``worlds``."""
+    from sitl_sim.metrics import EpisodeResult, summarize
+
+    fields = EpisodeResult.__dataclass_fields__
+    rows = [row for r in reports.values() for row in r["per_episode"]]
+    results = [EpisodeResult(**{k: row[k] for k in fields}) for row in rows]
+    return {
+        "policy": policy,
+        "seed": seed,
+        "scenario": "worlds",
+        **summarize(results),
+        "per_episode": rows,
+        "worlds": {
+            name: {k: v for k, v in r.items() if k != "per_episode"} for name, r in reports.items()
+        },
+    }
 
 
 def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
@@ -38,10 +67,13 @@ def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
     rep = evaluate(run, checkpoint, p.validation_episodes, p.validation_seed, camera, False)
     mean = rep["landing_error_m"]["mean"]
     score = (mean if mean is not None else 100.0) + 10.0 * (1.0 - rep["success_rate"])
+    per_world = "".join(
+        f"; {name} {100 * w['success_rate']:.0f} %" for name, w in rep.get("worlds", {}).items()
+    )
     run.say(
         f"validation {Path(checkpoint).name}: score {score:.3f} (mean error "
         f"{mean if mean is not None else float('nan'):.3f} m, success "
-        f"{100 * rep['success_rate']:.0f} %)"
+        f"{100 * rep['success_rate']:.0f} %{per_world})"
     )
     return ValidationScore(
         checkpoint=checkpoint,
