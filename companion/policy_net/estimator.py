@@ -74,12 +74,6 @@ class PadEstimator:
         bias_sigma = self.cfg.accel_bias_sigma_m_s2[axis]
         return np.array([z, 0.0, 0.0]), np.diag([sigma**2, 4.0, bias_sigma**2])
 
-    def carry(self, state: EstimatorState, lag_s: float) -> np.ndarray:
-        """How far the vehicle moved over the last ``lag_s`` seconds by the velocity estimate
-        (NED; zero on an axis not yet initialised): what carries a fix from an image's exposure
-        time to now."""
-        return np.where(state.initialised, state.x[:, 1] * lag_s, 0.0)
-
     def step(
         self,
         state: EstimatorState,
@@ -87,8 +81,13 @@ class PadEstimator:
         horizontal_fix: bool,
         attitude_rad: np.ndarray,
         accel_frd_m_s2: np.ndarray,
+        fix_lag_s: float = 0.0,
     ) -> EstimatorState:
-        """One control period: predict from the last period's acceleration, then update."""
+        """One control period: predict from the last period's acceleration, then update.
+
+        ``fix_lag_s``: the horizontal fix is where the vehicle was that long ago (a camera
+        image's exposure time): it is measured as ``position - lag * velocity``, so the filter
+        itself carries it to now (the vertical fix, from the radar, is current)."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
         rejected = state.rejected
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
@@ -105,9 +104,14 @@ class PadEstimator:
             sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes = (0, 1, 2) if horizontal_fix else (2,)
+            h_lag = np.zeros(self._n)
+            h_lag[:2] = (1.0, -float(fix_lag_s))
+            h_now = np.zeros(self._n)
+            h_now[0] = 1.0
             if horizontal_fix and self.cfg.gate_sigma > 0 and init[0] and init[1]:
                 d2 = sum(
-                    (float(fix_ned_m[a]) - x[a, 0]) ** 2 / (cov[a, 0, 0] + sigma_h**2)
+                    (float(fix_ned_m[a]) - h_lag @ x[a]) ** 2
+                    / (h_lag @ cov[a] @ h_lag + sigma_h**2)
                     for a in (0, 1)
                 )
                 if d2 > self.cfg.gate_sigma**2:
@@ -125,9 +129,11 @@ class PadEstimator:
                     x[axis], cov[axis] = self._acquire(axis, z, sigmas[axis])
                     init[axis] = True
                     continue
+                h = h_now if axis == 2 else h_lag
                 p = cov[axis]
-                s = p[0, 0] + sigmas[axis] ** 2
-                k = p[:, 0] / s
-                x[axis] = x[axis] + k * (z - x[axis, 0])
-                cov[axis] = p - np.outer(k, p[0, :])
+                ph = p @ h
+                s = h @ ph + sigmas[axis] ** 2
+                k = ph / s
+                x[axis] = x[axis] + k * (z - h @ x[axis])
+                cov[axis] = p - np.outer(k, ph)
         return EstimatorState(x=x, cov=cov, initialised=init, rejected=rejected)

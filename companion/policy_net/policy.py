@@ -137,9 +137,14 @@ class LearnedPolicy:
         state: PolicyState,
         image_time_s: float,
         attitude_time_s: float,
-    ) -> tuple[np.ndarray | None, bool, PolicyState]:
-        """The position fix of this step, whether its horizontal part is new, and the state
-        with the attitude history advanced."""
+    ) -> tuple[np.ndarray | None, bool, float, PolicyState]:
+        """The position fix of this step, whether its horizontal part is new, how old that
+        horizontal part is (s), and the state with the attitude history advanced.
+
+        With ``latency_compensation`` the horizontal fix is where the vehicle was at the
+        image's exposure: the bearing through the attitude then, scaled by the altitude then
+        (the radar's, less the estimated descent since); the estimator takes it as a delayed
+        measurement. The vertical fix is the radar's, now."""
         cfg = self.config
         fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
         if not (
@@ -147,27 +152,25 @@ class LearnedPolicy:
             and math.isfinite(image_time_s)
             and math.isfinite(attitude_time_s)
         ):
-            return fix, True, state
+            return fix, True, 0.0, state
         history = (*state.attitudes, (float(attitude_time_s), np.asarray(attitude_rad, float)))
         state = replace(state, attitudes=history[-_ATTITUDE_HISTORY:])
         last = state.last_image_time_s
         if last is not None and image_time_s <= last:
-            return fix, False, state  # the same image again (a lost frame): radar only
+            return fix, False, 0.0, state  # the same image again (a lost frame): radar only
         state = replace(state, last_image_time_s=float(image_time_s))
         lag = attitude_time_s - image_time_s
         if fix is None or not 0.0 < lag <= _MAX_CAMERA_LAG_S:
-            return fix, True, state
-        assert state.estimator is not None
-        moved = self._estimator.carry(state.estimator, lag)
+            return fix, True, 0.0, state
+        est = state.estimator
+        assert est is not None
+        descent = float(est.x[2, 1]) * lag if est.initialised[2] else 0.0
         seen_from = position_at_altitude(
-            float(raw[0]),
-            float(raw[1]),
-            attitude_at(history, image_time_s),
-            -float(fix[2]) + float(moved[2]),  # the altitude at exposure
+            float(raw[0]), float(raw[1]), attitude_at(history, image_time_s), -float(fix[2]) + descent
         )
         if seen_from is None:
-            return fix, False, state
-        return np.array([seen_from[0] + moved[0], seen_from[1] + moved[1], fix[2]]), True, state
+            return fix, False, 0.0, state
+        return np.array([seen_from[0], seen_from[1], fix[2]]), True, lag, state
 
     def vision_features(
         self,
@@ -188,12 +191,14 @@ class LearnedPolicy:
         ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
         """
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
-        fix, fresh, state = self._fix(
+        fix, fresh, lag, state = self._fix(
             raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
         )
         seen = fresh and vis >= self.config.visibility_threshold
         assert state.estimator is not None
-        est = self._estimator.step(state.estimator, fix, seen, attitude_rad, accel_frd_m_s2)
+        est = self._estimator.step(
+            state.estimator, fix, seen, attitude_rad, accel_frd_m_s2, fix_lag_s=lag
+        )
         feats = control_features(
             est.x[:, 0],
             est.x[:, 1],

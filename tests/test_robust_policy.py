@@ -1,0 +1,328 @@
+"""The robust policy's inputs and training worlds (issue 16): the hover-thrust input, the
+estimator's acceleration-bias states, camera-latency compensation, worlds files, and frames
+rendered in the worlds' looks."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from companion.contract import ContractError, Observation
+from companion.policy_net import (
+    ControlLSTM,
+    LearnedPolicy,
+    NetConfig,
+    PadEstimator,
+    PerceptionCNN,
+    load_networks,
+    load_policy,
+    save_checkpoint,
+)
+from companion.policy_net.geometry import HOVER_FEATURE, feature_names, rotation_zyx
+from companion.policy_net.policy import attitude_at
+from sitl_sim.config import load_sim
+from sitl_sim.errors import ConfigError
+from training.dataset import load_episode
+from training.perception_data import render_pose_frames
+from training.profiles import PROFILES, PipelineError
+from training.run_folder import Run
+from training.train import privileged_episode, vision_episode
+from training.worlds import WORLD_SEED_STRIDE, load_worlds, single_world, split_count
+
+REPO = Path(__file__).resolve().parents[1]
+ROBUST = dict(hover_input=True, accel_bias_states=True, latency_compensation=True)
+
+
+def _obs(**kw) -> Observation:
+    base = dict(
+        image=np.zeros((128, 128), np.uint8),
+        image_time_s=1.0,
+        attitude_rad=np.zeros(3),
+        rate_frd_rad_s=np.zeros(3),
+        attitude_time_s=1.0,
+        range_m=20.0,
+        range_time_s=1.0,
+        accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
+        imu_time_s=1.0,
+    )
+    return Observation(**{**base, **kw})
+
+
+# ----------------------------------------------------------------------------- hover input
+
+
+def test_observation_hover_thrust_is_checked_and_optional():
+    assert math.isnan(_obs().hover_thrust_norm)
+    assert _obs(hover_thrust_norm=0.15).hover_thrust_norm == 0.15
+    for bad in (0.0, 1.0, 1.7, -0.2, math.inf):
+        with pytest.raises(ContractError, match="hover_thrust_norm"):
+            _obs(hover_thrust_norm=bad)
+
+
+def test_hover_input_centres_the_thrust_on_the_vehicles_hover():
+    cfg = NetConfig(kind="privileged", hover_input=True)
+    control = ControlLSTM(cfg)
+    with torch.no_grad():
+        control.head[-1].weight.zero_()
+        control.head[-1].bias.zero_()  # zero output: hover, whatever the inputs
+    assert feature_names(True)[-1] == HOVER_FEATURE
+    for hover in (0.148, 0.27, 0.39, 0.55):
+        feats = torch.zeros(1, 1, len(feature_names(True)))
+        feats[..., -1] = hover / 0.4
+        out, _ = control(feats)
+        assert out[0, 0, 0].item() == pytest.approx(hover, abs=1e-5)
+    # the fallback when the autopilot reports none: the config's hover thrust
+    assert cfg.hover_feature(math.nan) == cfg.hover_thrust_norm
+    assert cfg.hover_feature(0.2) == 0.2
+    assert NetConfig().hover_feature(0.2) is None  # a controller without the input
+
+
+def test_old_checkpoints_load_without_the_new_inputs(tmp_path):
+    """The shipped paper-world checkpoint predates the robustness keys: it loads with them off
+    and its inputs are the 18 it was trained on."""
+    shipped = REPO / "models" / "visland_vision.pt"
+    cfg, control, _, _ = load_networks(shipped)
+    assert not (cfg.hover_input or cfg.accel_bias_states or cfg.latency_compensation)
+    assert control.encoder[0].in_features == len(feature_names(False))
+    robust = NetConfig(kind="vision", **ROBUST)
+    path = save_checkpoint(
+        tmp_path / "r.pt", robust, ControlLSTM(robust), PerceptionCNN(robust), {"t": 1}
+    )
+    policy = load_policy(path)
+    assert policy.config == robust
+    assert policy.control.encoder[0].in_features == len(feature_names(True))
+
+
+# ----------------------------------------------------------------------------- estimator
+
+
+def _hover_on_mars(cfg: NetConfig, steps: int, seed: int = 0) -> np.ndarray:
+    """The estimator's vertical velocity while hovering still at 30 m on Mars (IMU reads
+    -3.71 m/s^2 up), with radar fixes; the config's gravity is Earth's."""
+    est = PadEstimator(cfg)
+    state = est.initial_state()
+    rng = np.random.default_rng(seed)
+    vz = []
+    for _ in range(steps):
+        fix = np.array([0.0, 0.0, -30.0 + rng.normal(0.0, 0.05)])
+        state = est.step(state, fix, False, np.zeros(3), np.array([0.0, 0.0, -3.71]))
+        vz.append(state.x[2, 1])
+    return np.array(vz), state
+
+
+def test_bias_states_take_up_another_planets_gravity():
+    base = NetConfig(gravity_m_s2=9.80665)
+    vz_plain, _ = _hover_on_mars(base, 200)
+    vz_bias, state = _hover_on_mars(replace(base, accel_bias_states=True), 200)
+    # two states: the 6.1 m/s^2 gravity error becomes a standing velocity error
+    assert abs(vz_plain[-50:].mean()) > 0.2
+    # three states: the bias is estimated and the velocity is right within seconds
+    assert np.all(np.abs(vz_bias[-150:]) < 0.1)
+    assert state.x[2, 2] == pytest.approx(3.71 - 9.80665, abs=0.2)  # cancels the excess g
+
+
+def test_attitude_at_interpolates_with_wrapped_angles():
+    hist = ((0.0, np.array([0.0, 0.0, 3.1])), (0.1, np.array([0.2, 0.0, -3.1])))
+    mid = attitude_at(hist, 0.05)
+    assert mid[0] == pytest.approx(0.1)
+    assert abs(abs(mid[2]) - math.pi) < 0.01  # through +-pi, not through 0
+    assert np.array_equal(attitude_at(hist, -1.0), hist[0][1])
+    assert np.array_equal(attitude_at(hist, 5.0), hist[1][1])
+
+
+def _pad_bearing(pos: np.ndarray, att: np.ndarray) -> tuple[float, float]:
+    """(tan_right, tan_forward) at which a camera at ``pos`` (NED, pad at 0) sees the pad."""
+    body = rotation_zyx(*att).T @ (-pos)
+    return body[1] / body[2], body[0] / body[2]
+
+
+def _fly_delayed(cfg: NetConfig, lag_s: float) -> float:
+    """A vehicle rolling back and forth while it drifts east at 2 m/s at 20 m; each image shows
+    (and is stamped) ``lag_s`` earlier. Returns the mean horizontal estimate error (m)."""
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    state = policy.initial_state()
+    errors = []
+    dt = cfg.control_dt_s
+    for k in range(80):
+        t = k * dt
+
+        def truth(s):
+            return (
+                np.array([1.0, -4.0 + 2.0 * s, -20.0]),
+                np.array([0.25 * math.sin(2.0 * s), 0.0, 0.3]),
+            )
+
+        pos, att = truth(t)
+        pos_img, att_img = truth(t - lag_s)
+        tr, tf = _pad_bearing(pos_img, att_img)
+        # level specific force of the drift (no acceleration): -g along body down
+        accel = rotation_zyx(*att).T @ np.array([0.0, 0.0, -cfg.gravity_m_s2])
+        range_m = 20.0 / (math.cos(att[0]) * math.cos(att[1]))
+        _, state = policy.vision_features(
+            np.array([tr, tf, 10.0]),
+            att,
+            np.zeros(3),
+            accel,
+            range_m,
+            state,
+            image_time_s=t - lag_s,
+            attitude_time_s=t,
+        )
+        if k >= 40:
+            errors.append(np.hypot(*(state.estimator.x[:2, 0] - pos[:2])))
+    return float(np.mean(errors))
+
+
+def test_latency_compensation_fixes_at_the_exposure_time():
+    plain = NetConfig(bearing_noise_rad=0.002, bearing_noise_floor_m=0.01)
+    comp = replace(plain, latency_compensation=True)
+    # an image 100 ms old while rolling +-0.25 rad: metres of error without compensation
+    assert _fly_delayed(plain, 0.1) > 0.5
+    assert _fly_delayed(comp, 0.1) < 0.1
+    # no latency: compensation changes nothing
+    assert _fly_delayed(comp, 0.0) == pytest.approx(_fly_delayed(plain, 0.0), abs=1e-9)
+
+
+def test_a_repeated_image_gives_no_new_fix():
+    cfg = NetConfig(**ROBUST)
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    raw = np.array([0.1, -0.05, 10.0])
+    att = np.zeros(3)
+    accel = np.array([0.0, 0.0, -9.80665])
+    _, s1 = policy.vision_features(raw, att, np.zeros(3), accel, 20.0, policy.initial_state(),
+                                   image_time_s=1.0, attitude_time_s=1.0)
+    # a far-off bearing in the repeated (same exposure time) image must not move the estimate
+    far = np.array([0.9, 0.9, 10.0])
+    _, s2 = policy.vision_features(far, att, np.zeros(3), accel, 20.0, s1,
+                                   image_time_s=1.0, attitude_time_s=1.1)
+    predicted = PadEstimator(cfg).step(s1.estimator, None, False, att, accel)
+    assert np.allclose(s2.estimator.x[:2], predicted.x[:2])
+    assert s2.last_image_time_s == 1.0
+
+
+# ----------------------------------------------------------------------------- real flights
+
+
+@pytest.fixture(scope="module")
+def mars_logs(tmp_path_factory) -> list[Path]:
+    """Two expert flights with camera in the Mars training world (latency, lost frames,
+    another airframe), flown in process."""
+    from training.rollout import RolloutSpec, log_name, run_episodes
+
+    out = tmp_path_factory.mktemp("mars_flights")
+    spec = RolloutSpec(
+        policy="expert",
+        seed=7,
+        scenario=str(REPO / "configs" / "train" / "mars_mixed.toml"),
+        log_dir=str(out),
+    )
+    run_episodes(spec, [0, 1], workers=1)
+    return [out / log_name(7, i) for i in (0, 1)]
+
+
+def test_logged_flights_carry_hover_and_times_and_train_as_they_fly(mars_logs):
+    from sitl_sim.config import load_vehicle
+    from sitl_sim.scenario import load_scenario
+    from sitl_sim.world import episode_world
+
+    ep = load_episode(mars_logs[0], None, with_images=True)
+    sc = load_scenario(REPO / "configs" / "train" / "mars_mixed.toml")
+    vehicle = episode_world(sc, 7, 0).vehicle(load_vehicle())
+    assert np.allclose(ep.hover_thrust_norm, vehicle.hover_thrust_norm(sc.world))
+    assert 0.1 < ep.hover_thrust_norm[0] < 0.25  # Mars: well below Earth's 0.39
+    lag = ep.attitude_time_s - ep.image_time_s
+    assert np.all(lag >= 0) and lag.max() > 0  # camera latency, stamped at exposure
+    # training's batched features are what the policy computes in flight, step by step
+    cfg = NetConfig(kind="vision", **ROBUST, cnn_context_layers=1)
+    torch.manual_seed(0)
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    batched = vision_episode(policy, ep).features
+    state = policy.initial_state()
+    for t in range(40):
+        obs = Observation(
+            image=np.ascontiguousarray(ep.images[t]),
+            image_time_s=float(ep.image_time_s[t]),
+            attitude_rad=ep.attitude_rad[t],
+            rate_frd_rad_s=ep.rate_frd_rad_s[t],
+            attitude_time_s=float(ep.attitude_time_s[t]),
+            range_m=float(ep.range_m[t]),
+            range_time_s=float(ep.attitude_time_s[t]),
+            accel_frd_m_s2=ep.accel_frd_m_s2[t],
+            imu_time_s=float(ep.attitude_time_s[t]),
+            frame_id=int(ep.frame_id[t]),
+            hover_thrust_norm=float(ep.hover_thrust_norm[t]),
+        )
+        feats, state = policy.features(obs, None, state)
+        assert np.allclose(feats, batched[t], atol=1e-5), t
+    assert batched[0, -1] == pytest.approx(ep.hover_thrust_norm[0] / 0.4, rel=1e-5)
+    priv = privileged_episode(ep, replace(cfg, kind="privileged")).features
+    assert priv.shape == (len(ep), len(feature_names(True)))
+
+
+# ----------------------------------------------------------------------------- worlds
+
+
+def test_split_count_adds_up_in_proportion():
+    assert split_count(10, [0.2, 0.4, 0.25, 0.15]) == [2, 4, 3, 1]
+    for n in (0, 1, 7, 40, 599):
+        parts = split_count(n, [0.2, 0.4, 0.25, 0.15])
+        assert sum(parts) == n and min(parts) >= 0
+
+
+def test_the_robust_worlds_file_loads_with_disjoint_seeds():
+    mix = load_worlds(REPO / PROFILES["robust"].worlds)
+    assert [w.name for w in mix.worlds] == ["nominal", "earth_mixed", "mars_mixed", "mars"]
+    assert mix.planets == ("earth", "mars")
+    offsets = [w.seed_offset for w in mix.worlds]
+    assert offsets == [k * WORLD_SEED_STRIDE for k in range(4)]
+    one = single_world(None)
+    assert one.worlds[0].name == "" and one.worlds[0].seed_offset == 0  # old runs unchanged
+    # the suite's unseen terrain stays unseen: training texture seeds end below 900
+    for w in mix.worlds:
+        if w.scenario.visual is not None:
+            assert w.scenario.visual.texture_seed[1] < 900
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ('[world.a]\nscenario = "configs/scenario.toml"\nshare = 1\n', "unknown top-level"),
+        ("", "no \\[worlds.NAME\\]"),
+        ('[worlds.a]\nscenario = "configs/scenario.toml"\nshare = 0\n', "share = 0"),
+        ('[worlds.a]\nscenario = "configs/scenario.toml"\nshare = true\n', "share = True"),
+        ('[worlds.a]\nscenario = "configs/nope.toml"\nshare = 1\n', "file not found"),
+        ('[worlds.a]\nscenario = "configs/scenario.toml"\nweight = 1\n', "unknown key"),
+        ("[worlds.a]\nshare = 1\n", "scenario = None"),
+        ('[worlds."a/b"]\nscenario = "configs/scenario.toml"\nshare = 1\n', "folder name"),
+    ],
+)
+def test_bad_worlds_files_name_the_file_and_key(tmp_path, text, match):
+    path = tmp_path / "worlds.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match) as info:
+        load_worlds(path)
+    assert "worlds.toml" in str(info.value)
+
+
+def test_a_worlds_profile_refuses_a_scenario(tmp_path):
+    with pytest.raises(PipelineError, match="takes no --scenario"):
+        Run(tmp_path / "run", PROFILES["robust"], "configs/scenario_mars.toml", progress=False)
+
+
+def test_pose_frames_in_the_worlds_looks_are_seeded_and_differ_from_nominal():
+    mix = load_worlds(REPO / PROFILES["robust"].worlds)
+    visuals = tuple(w.scenario.visual for w in mix.worlds if w.scenario.visual is not None)
+    cam = load_sim().camera
+    a, pos, _ = render_pose_frames(300, 3, cam, visuals=visuals)
+    b, _, _ = render_pose_frames(300, 3, cam, visuals=visuals)
+    nominal, pos_n, _ = render_pose_frames(300, 3, cam)
+    assert np.array_equal(a, b)  # same seed, same frames
+    assert np.array_equal(pos, pos_n)  # the poses do not depend on the look
+    assert np.mean(np.abs(a.astype(float) - nominal.astype(float))) > 5.0
+    with pytest.raises(ValueError, match="one positive weight"):
+        render_pose_frames(4, 3, cam, visuals=visuals, weights=(1.0,))
