@@ -194,12 +194,21 @@ def test_a_repeated_image_gives_no_new_fix():
     raw = np.array([0.1, -0.05, 10.0])
     att = np.zeros(3)
     accel = np.array([0.0, 0.0, -9.80665])
-    _, s1 = policy.vision_features(raw, att, np.zeros(3), accel, 20.0, policy.initial_state(),
-                                   image_time_s=1.0, attitude_time_s=1.0)
+    _, s1 = policy.vision_features(
+        raw,
+        att,
+        np.zeros(3),
+        accel,
+        20.0,
+        policy.initial_state(),
+        image_time_s=1.0,
+        attitude_time_s=1.0,
+    )
     # a far-off bearing in the repeated (same exposure time) image must not move the estimate
     far = np.array([0.9, 0.9, 10.0])
-    _, s2 = policy.vision_features(far, att, np.zeros(3), accel, 20.0, s1,
-                                   image_time_s=1.0, attitude_time_s=1.1)
+    _, s2 = policy.vision_features(
+        far, att, np.zeros(3), accel, 20.0, s1, image_time_s=1.0, attitude_time_s=1.1
+    )
     predicted = PadEstimator(cfg).step(s1.estimator, None, False, att, accel)
     assert np.allclose(s2.estimator.x[:2], predicted.x[:2])
     assert s2.last_image_time_s == 1.0

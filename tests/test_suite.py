@@ -153,7 +153,11 @@ def test_the_standard_suite_loads():
         ("[sutie]\nepisodes = 2\n", ["top level unknown key(s) ['sutie']"]),
         (
             '[conditions.a]\nscenario = "configs/scenario.toml"\nweight = 2\n',
-            ["[conditions.a] unknown key(s) ['weight']", "expected ['scenario']"],
+            ["[conditions.a] unknown key(s) ['weight']", "expected ['scenario', 'episodes']"],
+        ),
+        (
+            '[conditions.a]\nscenario = "configs/scenario.toml"\nepisodes = 0\n',
+            ["[conditions.a] episodes = 0", "expected an integer >= 1"],
         ),
         (
             "[conditions.b.scenario.initial_state]\n"
@@ -236,3 +240,28 @@ def test_cli_suite_refuses_scenario_and_mavlink(extra, flag):
 def test_cli_plot_without_suite_is_a_usage_error():
     proc = _visland("eval", "--plot", "x.png", "--episodes", "1")
     assert proc.returncode == 2 and "--plot and --markdown need --suite" in proc.stderr
+
+
+def test_a_condition_may_have_its_own_episode_count(tmp_path, low_file):
+    suite_path = _write(
+        tmp_path / "suite.toml",
+        f"""
+[suite]
+episodes = 1
+
+[conditions.many]
+scenario = "{low_file}"
+episodes = 2
+
+[conditions.default]
+scenario = "{low_file}"
+""",
+    )
+    suite = load_suite(suite_path)
+    assert [c.episodes for c in suite.conditions] == [2, None]
+    report = run_suite(suite, "expert", render_camera=False, progress=False)
+    assert [r["episodes"] for r in report["conditions"].values()] == [2, 1]
+    # --episodes overrides every condition, its own count included
+    report = run_suite(suite, "expert", episodes=1, render_camera=False, progress=False)
+    assert [r["episodes"] for r in report["conditions"].values()] == [1, 1]
+    assert load_suite(REPO / "configs/suites/standard.toml").conditions[0].episodes == 300

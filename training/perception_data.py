@@ -126,9 +126,7 @@ def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
         effects = CameraEffects(sample, cfg, sample.light)
         cam = Camera(scene, cfg, rng, light=sample.light, effects=effects)
         rates = pick.uniform(-0.5, 0.5, (len(pos), 3))  # motion blur as a manoeuvre smears
-    return np.stack(
-        [cam.capture(p, q, r) for p, q, r in zip(pos, quat, rates, strict=True)]
-    )
+    return np.stack([cam.capture(p, q, r) for p, q, r in zip(pos, quat, rates, strict=True)])
 
 
 def render_pose_frames(

@@ -70,6 +70,9 @@ class Profile(Record):
     """The pad estimator estimates acceleration biases (``NetConfig.accel_bias_states``)."""
     latency_compensation: bool = False
     """Camera fixes at the image's exposure time (``NetConfig.latency_compensation``)."""
+    eval_suite: str | None = None
+    """A benchmark suite (``training.suite``) the eval stage also flies the vision policy on,
+    beside the Table 3 rows (which fly the run's scenario, or the paper's for a worlds run)."""
 
     def __post_init__(self) -> None:
         if self.rollouts not in ROLLOUT_TRANSPORTS:
@@ -143,6 +146,7 @@ PROFILES: dict[str, Profile] = {
         buffer_capacity=1500,
         rollouts=Transport.INPROCESS.value,
         worlds="configs/train/robust.toml",
+        eval_suite="configs/suites/standard.toml",
         hover_input=True,
         accel_bias_states=True,
         latency_compensation=True,

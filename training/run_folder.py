@@ -23,8 +23,8 @@ from sitl_sim.config import load_sim, load_vehicle, planet
 from training.profiles import PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
-from training.worlds import load_worlds, single_world
 from training.stages.records import StageRecord, record_type
+from training.worlds import load_worlds, single_world
 
 __all__ = ["Run"]
 

@@ -9,6 +9,7 @@ A suite file (TOML, e.g. ``configs/suites/standard.toml``)::
 
     [conditions.nominal]
     scenario = "configs/scenario.toml"   # a scenario file: relative to the repository root
+    episodes = 300                       # optional: this condition's own count
 
     [conditions.windy.scenario.initial_state]   # or inline: the sections of a scenario file
     roll_pitch_deg = [-1.5, 1.5]
@@ -53,7 +54,7 @@ DEFAULT_EPISODES = 50
 
 _TOP_LEVEL = ("suite", "conditions")
 _SUITE_KEYS = ("episodes", "seed")
-_CONDITION_KEYS = ("scenario",)
+_CONDITION_KEYS = ("scenario", "episodes")
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,8 @@ class Condition:
     scenario: Scenario
     file: str | None = None
     """The scenario file as written in the suite (None: an inline table)."""
+    episodes: int | None = None
+    """This condition's episode count (None: the suite's)."""
 
 
 @dataclass(frozen=True)
@@ -110,10 +113,17 @@ def _condition(where: str, name: str, table: Any) -> Condition:
             "of a scenario file"
         )
     value = table["scenario"]
+    n = table.get("episodes")
+    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 1):
+        raise ConfigError(f"{where}: {tag} episodes = {n!r}; expected an integer >= 1")
     if isinstance(value, str):
-        return Condition(name=name, scenario=scenario_file(where, tag, value), file=value)
+        return Condition(
+            name=name, scenario=scenario_file(where, tag, value), file=value, episodes=n
+        )
     if isinstance(value, dict):
-        return Condition(name=name, scenario=scenario_from_dict(value, f"{where}: {tag}"))
+        return Condition(
+            name=name, scenario=scenario_from_dict(value, f"{where}: {tag}"), episodes=n
+        )
     raise ConfigError(
         f"{where}: {tag} scenario = {value!r}; expected a file path (string) or a table of "
         "scenario sections"
@@ -163,8 +173,10 @@ def run_suite(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
-    processes). ``episodes``/``seed`` override the suite file's. Returns ``{"suite", "policy",
-    "seed", "episodes", "conditions": {name: eval report}}``."""
+    processes). ``episodes``/``seed`` override the suite file's (``episodes`` every
+    condition's, its own count included). Returns ``{"suite", "policy", "seed", "episodes",
+    "conditions": {name: eval report}}`` (``episodes``: the suite's default count; each
+    report says its own)."""
     n = suite.episodes if episodes is None else episodes
     s = suite.seed if seed is None else seed
     reports: dict[str, dict[str, Any]] = {}
@@ -174,7 +186,7 @@ def run_suite(
         reports[cond.name] = evaluate(
             EvalConfig(
                 policy=policy,
-                episodes=n,
+                episodes=cond.episodes if episodes is None and cond.episodes else n,
                 seed=s,
                 scenario=cond.scenario,
                 workers=workers,
@@ -236,7 +248,8 @@ def suite_markdown(report: dict[str, Any], command: str, plot: str | None = None
         "```",
         "",
         f"Commit `{git_commit()}`, {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}; "
-        f"{report['episodes']} episodes per condition, evaluation seed {report['seed']} "
+        f"{report['episodes']} episodes per condition (the table says where a condition has "
+        f"its own count), evaluation seed {report['seed']} "
         "(disjoint from every training and selection seed). Success: touched down within "
         "the pad's success radius, upright and slow (training/evaluate.py).",
         "",

@@ -69,7 +69,9 @@ class WorldMix:
 
     def split(self, count: int) -> list[tuple[TrainingWorld, int]]:
         """``count`` episodes shared out over the worlds (each world with its share)."""
-        return list(zip(self.worlds, split_count(count, [w.share for w in self.worlds]), strict=True))
+        return list(
+            zip(self.worlds, split_count(count, [w.share for w in self.worlds]), strict=True)
+        )
 
     @property
     def planets(self) -> tuple[str, ...]:

@@ -98,7 +98,9 @@ def position_at_altitude(
     altitude carried back to an image's exposure time) instead of the range along body down."""
     if not math.isfinite(altitude_m):
         return None
-    return _on_ray(rotation_zyx(*(float(a) for a in attitude_rad)), tan_right, tan_forward, altitude_m)
+    return _on_ray(
+        rotation_zyx(*(float(a) for a in attitude_rad)), tan_right, tan_forward, altitude_m
+    )
 
 
 def _on_ray(rot: np.ndarray, tan_right: float, tan_forward: float, alt: float) -> np.ndarray | None:

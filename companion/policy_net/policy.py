@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -53,7 +54,7 @@ def attitude_at(history: tuple[tuple[float, np.ndarray], ...], t: float) -> np.n
     ``history`` (oldest first) that bracket it; the oldest / newest sample outside them."""
     if t <= history[0][0]:
         return history[0][1]
-    for (t0, a0), (t1, a1) in zip(history, history[1:], strict=False):
+    for (t0, a0), (t1, a1) in pairwise(history):
         if t <= t1:
             return a0 if t1 <= t0 else _angle_lerp(a0, a1, (t - t0) / (t1 - t0))
     return history[-1][1]
@@ -166,7 +167,10 @@ class LearnedPolicy:
         assert est is not None
         descent = float(est.x[2, 1]) * lag if est.initialised[2] else 0.0
         seen_from = position_at_altitude(
-            float(raw[0]), float(raw[1]), attitude_at(history, image_time_s), -float(fix[2]) + descent
+            float(raw[0]),
+            float(raw[1]),
+            attitude_at(history, image_time_s),
+            -float(fix[2]) + descent,
         )
         if seen_from is None:
             return fix, False, 0.0, state

@@ -5,11 +5,14 @@ evaluation seed (disjoint from training and validation) — and the inference ti
 from __future__ import annotations
 
 import json
+import sys
 from typing import Any
 
 import torch
 
 from companion.flightlog import jsonable
+from training.evaluate import EvalConfig
+from training.evaluate import evaluate as evaluate_policy
 from training.run_folder import Run
 from training.stages.records import (
     STAGES,
@@ -22,7 +25,6 @@ from training.stages.records import (
     StageRecords,
     VisionRecord,
 )
-from training.stages.selection import evaluate
 
 __all__ = ["inference_timing", "run"]
 
@@ -49,13 +51,42 @@ def run(r: Run) -> EvalRecord:
     ]
     rows = {}
     for row, policy, camera in policies:
-        report = evaluate(r, policy, p.eval_episodes, p.eval_seed, camera, r.progress)
+        # the run's scenario (a worlds run: the paper's, configs/scenario.toml), never pooled
+        # over training worlds: Table 3 rows compare with the paper's
+        report = evaluate_policy(
+            EvalConfig(
+                policy=policy,
+                episodes=p.eval_episodes,
+                seed=p.eval_seed,
+                scenario=r.scenario_path,
+                workers=p.workers,
+                render_camera=camera,
+                progress=r.progress,
+            )
+        )
         rows[row] = report
         r.say(
             f"eval {row}: mean error {report['landing_error_m']['mean']:.3f} m, "
             f"max {report['landing_error_m']['max']:.3f} m, success "
             f"{100 * report['success_rate']:.1f} %"
         )
+    suite = None
+    if p.eval_suite is not None:
+        from training.provenance import REPO
+        from training.suite import format_suite_table, load_suite, run_suite
+
+        report = run_suite(
+            load_suite(REPO / p.eval_suite),
+            vision,
+            seed=p.eval_seed,
+            workers=p.workers,
+            render_camera=True,
+            progress=r.progress,
+        )
+        format_suite_table(report, sys.stderr)
+        suite_path = r.root / "suite.json"
+        suite_path.write_text(json.dumps(jsonable(report), indent=1))
+        suite = str(suite_path)
     path = r.root / "metrics.json"
     metrics = Metrics(
         profile=p,
@@ -65,6 +96,7 @@ def run(r: Run) -> EvalRecord:
         rows=Rows(**{k: EvalRow.from_dict(jsonable(v), f"eval {k}") for k, v in rows.items()}),
         timing=inference_timing(vision),
         stages=StageRecords(**{s: r.done(s) for s in STAGES if s != "eval"}),
+        suite=suite,
     )
     path.write_text(json.dumps(jsonable(metrics.to_dict()), indent=2))
     return r.finish(EvalRecord(stage="eval", git_commit=r.commit, metrics=str(path)))

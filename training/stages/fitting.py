@@ -15,9 +15,7 @@ from training.train import privileged_episode, train_controller
 __all__ = ["fit_controller", "privileged_buffer"]
 
 
-def privileged_buffer(
-    run: Run, rounds_done: int, cfg: NetConfig
-) -> tuple[ReplayBuffer, list[str]]:
+def privileged_buffer(run: Run, rounds_done: int, cfg: NetConfig) -> tuple[ReplayBuffer, list[str]]:
     """The stage-1 buffer: expert flights then each finished DAgger round, FIFO, as inputs of
     a controller of config ``cfg``."""
     p = run.profile

@@ -278,3 +278,6 @@ class Metrics(Record):
     """``{"policy": training.bench_policy.bench_policy(...), "mpc": expert.bench.bench_mpc()}``,
     kept as those benchmarks write it (the report reads what it shows defensively)."""
     stages: StageRecords
+    suite: str | None = field(default=None, metadata={"omit_none": True})
+    """The profile's benchmark suite flown by the vision policy: the file of its report
+    (``suite.json`` in the run folder, ``training.suite.run_suite``'s JSON); absent without."""
