@@ -83,9 +83,9 @@ def test_hover_input_centres_the_thrust_on_the_vehicles_hover():
 
 
 def test_old_checkpoints_load_without_the_new_inputs(tmp_path):
-    """The shipped paper-world checkpoint predates the robustness keys: it loads with them off
+    """The paper-world checkpoint predates the robustness keys: it loads with them off
     and its inputs are the 18 it was trained on."""
-    shipped = REPO / "models" / "visland_vision.pt"
+    shipped = REPO / "models" / "visland_vision_paper.pt"
     cfg, control, _, _ = load_networks(shipped)
     assert not (cfg.hover_input or cfg.accel_bias_states or cfg.latency_compensation)
     assert control.encoder[0].in_features == len(feature_names(False))

@@ -73,6 +73,9 @@ class Profile(Record):
     eval_suite: str | None = None
     """A benchmark suite (``training.suite``) the eval stage also flies the vision policy on,
     beside the Table 3 rows (which fly the run's scenario, or the paper's for a worlds run)."""
+    eval_suite_baseline: str | None = None
+    """A checkpoint the eval stage flies on ``eval_suite`` too, for the comparison (the
+    paper-world model for the robust profile)."""
 
     def __post_init__(self) -> None:
         if self.rollouts not in ROLLOUT_TRANSPORTS:
@@ -147,6 +150,7 @@ PROFILES: dict[str, Profile] = {
         rollouts=Transport.INPROCESS.value,
         worlds="configs/train/robust.toml",
         eval_suite="configs/suites/standard.toml",
+        eval_suite_baseline="models/visland_vision_paper.pt",
         hover_input=True,
         accel_bias_states=True,
         latency_compensation=True,

@@ -40,6 +40,33 @@ def inference_timing(vision_checkpoint: str, steps: int = 300) -> dict[str, Any]
     return {"policy": policy, "mpc": mpc}
 
 
+def _fly_suite(r: Run, policy: str, name: str) -> str:
+    """The profile's suite flown by ``policy`` (a checkpoint) into ``<run>/<name>``; a finished
+    file of the same policy and suite is kept (the stage resumes past it)."""
+    from training.provenance import REPO
+    from training.suite import format_suite_table, load_suite, run_suite
+
+    p = r.profile
+    assert p.eval_suite is not None
+    path = r.root / name
+    suite = load_suite(REPO / p.eval_suite)
+    if path.exists():
+        try:
+            done = json.loads(path.read_text())
+            if done.get("policy") == policy and done.get("suite") == suite.path:
+                return str(path)
+        except ValueError:
+            pass  # half-written: fly it again
+    report = run_suite(
+        suite, policy, seed=p.eval_seed, workers=p.workers, render_camera=True, progress=r.progress
+    )
+    format_suite_table(report, sys.stderr)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(jsonable(report), indent=1))
+    tmp.replace(path)
+    return str(path)
+
+
 def run(r: Run) -> EvalRecord:
     p = r.profile
     vision = r.need("vision", VisionRecord).checkpoint
@@ -70,23 +97,13 @@ def run(r: Run) -> EvalRecord:
             f"max {report['landing_error_m']['max']:.3f} m, success "
             f"{100 * report['success_rate']:.1f} %"
         )
-    suite = None
+    suite = suite_baseline = None
     if p.eval_suite is not None:
-        from training.provenance import REPO
-        from training.suite import format_suite_table, load_suite, run_suite
+        suite = _fly_suite(r, vision, "suite.json")
+        if p.eval_suite_baseline is not None:
+            from training.provenance import REPO
 
-        report = run_suite(
-            load_suite(REPO / p.eval_suite),
-            vision,
-            seed=p.eval_seed,
-            workers=p.workers,
-            render_camera=True,
-            progress=r.progress,
-        )
-        format_suite_table(report, sys.stderr)
-        suite_path = r.root / "suite.json"
-        suite_path.write_text(json.dumps(jsonable(report), indent=1))
-        suite = str(suite_path)
+            suite_baseline = _fly_suite(r, str(REPO / p.eval_suite_baseline), "suite_baseline.json")
     path = r.root / "metrics.json"
     metrics = Metrics(
         profile=p,
@@ -97,6 +114,7 @@ def run(r: Run) -> EvalRecord:
         timing=inference_timing(vision),
         stages=StageRecords(**{s: r.done(s) for s in STAGES if s != "eval"}),
         suite=suite,
+        suite_baseline=suite_baseline,
     )
     path.write_text(json.dumps(jsonable(metrics.to_dict()), indent=2))
     return r.finish(EvalRecord(stage="eval", git_commit=r.commit, metrics=str(path)))

@@ -281,3 +281,5 @@ class Metrics(Record):
     suite: str | None = field(default=None, metadata={"omit_none": True})
     """The profile's benchmark suite flown by the vision policy: the file of its report
     (``suite.json`` in the run folder, ``training.suite.run_suite``'s JSON); absent without."""
+    suite_baseline: str | None = field(default=None, metadata={"omit_none": True})
+    """The same suite flown by the profile's ``eval_suite_baseline`` (``suite_baseline.json``)."""
