@@ -49,6 +49,94 @@ def table3(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
+    """The suite table beside the baseline's and issue 16's targets, when the eval stage flew
+    the profile's suite (empty otherwise)."""
+    if not metrics.get("suite"):
+        return ""
+    from training.suite_report import suite_comparison, suite_standing
+
+    report = json.loads(Path(metrics["suite"]).read_text())
+    baseline = None
+    if metrics.get("suite_baseline"):
+        baseline = json.loads(Path(metrics["suite_baseline"]).read_text())
+    base_name = Path(baseline["policy"]).name if baseline else ""
+    standing, met, total = suite_standing(report)
+    base_line = (
+        f"The baseline is the paper-world model (`{base_name}`), flown on the same episodes."
+        if baseline
+        else ""
+    )
+    verdict = "All targets are met." if met == total else "Targets not met are marked **no**."
+    which = _which_model(report, baseline, shipped, base_name) if baseline else ""
+    return f"""## Results on the benchmark suite (`{report["suite"]}`, seed {report["seed"]})
+
+{suite_comparison(report, baseline, (shipped, base_name))}
+
+Each cell: success (episodes), mean and max landing error, mean touchdown speed.
+{base_line}
+
+### Issue 16's targets: {met} of {total} met
+
+{verdict}
+
+{standing}
+
+{which}"""
+
+
+def _which_model(
+    report: dict[str, Any], baseline: dict[str, Any], shipped: str, base_name: str
+) -> str:
+    """Which model to fly where, from the two suite reports: the conditions where the baseline
+    lands more often, or as often and at least 10 % closer on average."""
+    better = []
+    for name, r in report["conditions"].items():
+        b = baseline["conditions"].get(name)
+        if b is None:
+            continue
+        ours_e = (r.get("landing_error_m") or {}).get("mean")
+        base_e = (b.get("landing_error_m") or {}).get("mean")
+        if b["success_rate"] > r["success_rate"] or (
+            b["success_rate"] == r["success_rate"]
+            and ours_e is not None
+            and base_e is not None
+            and base_e < 0.9 * ours_e
+        ):
+            better.append(
+                f"{name} ({100 * b['success_rate']:.1f} % vs {100 * r['success_rate']:.1f} %, "
+                f"mean {base_e if base_e is None else round(base_e, 3)} m vs "
+                f"{ours_e if ours_e is None else round(ours_e, 3)} m)"
+            )
+    if not better:
+        return (
+            f"### Which model\n\n`{shipped}` everywhere: the paper-world model `{base_name}` is "
+            "not better in any condition of the suite.\n\n"
+        )
+    return (
+        f"### Which model\n\n`{shipped}` is the default. The paper-world model `{base_name}` "
+        f"is better in: {'; '.join(better)} — fly it only in that world (still air, the paper's "
+        "ground and vehicle).\n\n"
+    )
+
+
+def _limits(robust: bool) -> str:
+    if robust:
+        return (
+            "Trained and evaluated only in visland's simulator: one pad design (4 m square with a\n"
+            "cross, sized and tinted per episode), procedural grounds, a pinhole camera with\n"
+            "simulated effects, the Table 1 vehicle scaled ±35 %, Earth and Mars. A real camera,\n"
+            "real light and a real pad need new perception data before flight; start on hardware\n"
+            "in the companion's shadow mode (`docs/deploy.md`)."
+        )
+    return (
+        "Trained and evaluated only in visland's simulator: one pad design (4 m green square, red\n"
+        "cross), one procedurally textured ground, the Table 1 vehicle, Earth gravity. A real\n"
+        "camera, real lighting and a real pad need new perception data before flight; start on\n"
+        "hardware in the companion's shadow mode (`docs/deploy.md`)."
+    )
+
+
 def ship(run: str | Path, out: str | Path = "models", name: str = "visland_vision.pt") -> Path:
     """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>`` and write ``MODEL_CARD.md``."""
     run, out = Path(run), Path(out)
@@ -71,18 +159,46 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
         session_times = json.loads(tpath.read_text()).get("sessions", [])
     total_s = sum(s["seconds"] for s in session_times)
     perception = stages.get("perception") or {}
-    collect = stages.get("collect") or {}
     n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
         p.numel() for p in policy.perception.parameters()
     )
     paper_mpc_ms = 1000 * PAPER_RUNTIME_S["mpc_mean"]
     paper_pol_ms = 1000 * PAPER_RUNTIME_S["policy_mean"]
+    cfg = policy.config
+    inputs = (
+        "128×128 mono8 downward camera (45° FOV), ATTITUDE, body rates, HIGHRES_IMU specific "
+        "force, radar range"
+    )
+    if cfg.hover_input:
+        inputs += (
+            ", and the autopilot's hover thrust (PX4 `MPC_THR_HOVER` / ArduPilot "
+            "`MOT_THST_HOVER`, read at connect time) — one model for heavier and lighter "
+            "airframes and for Mars"
+        )
+    extras = [
+        text
+        for on, text in (
+            (
+                cfg.accel_bias_states,
+                "acceleration-bias states (IMU bias, another planet's gravity)",
+            ),
+            (cfg.latency_compensation, "camera fixes at the image's exposure time"),
+        )
+        if on
+    ]
+    estimator = "Kalman pad estimator" + (f" ({'; '.join(extras)})" if extras else "")
+    worlds = prof.get("worlds")
+    data_where = (
+        f"across the training worlds of `{worlds}` (each stage's flights split by share)"
+        if worlds
+        else "paper 4.1 initial states (`configs/scenario.toml`)"
+    )
+    suite_section = _suite_section(metrics, dst.name)
     card = f"""# visland vision landing policy — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
-parameters): CNN pad-bearing regressor + Kalman pad estimator + LSTM controller
-(`companion/policy_net/`). Inputs: 128×128 mono8 downward camera (45° FOV), ATTITUDE, body
-rates, HIGHRES_IMU specific force, radar range. Output: `Command` (thrust_norm ∈ [0, 1], FRD body
+parameters): CNN pad-bearing regressor + {estimator} + LSTM controller
+(`companion/policy_net/`). Inputs: {inputs}. Output: `Command` (thrust_norm ∈ [0, 1], FRD body
 rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hardware.
 
 ## How it was made
@@ -92,8 +208,8 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
 
 - commit: `{metrics.get("git_commit", "unknown")}`
 - data: {prof["collect_episodes"]} expert (MPC) flights, seed {prof["collect_seed"]}
-  (`{collect.get("logs", ["?"])[0].rsplit("/", 2)[0] if collect.get("logs") else "?"}`),
-  paper 4.1 initial states (`configs/scenario.toml`); {prof["dagger_rounds"]} privileged DAgger
+  (`{run}/flights/expert`),
+  {data_where}; {prof["dagger_rounds"]} privileged DAgger
   rounds × {prof["dagger_rollouts"]} learner rollouts (seeds {prof["dagger_seed"]}+k);
   {prof["vision_rounds"]} vision DAgger rounds × {prof["vision_rollouts"]} rollouts (seeds
   {prof["vision_seed"]}+k), {rollouts_text(prof)}; every learner flight relabelled offline
@@ -107,8 +223,8 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
 - pipeline wall time recorded in `pipeline_time.json` (2 CPU cores): {total_s / 60:.1f} min
   over {len(session_times)} completed session(s); an interrupted session is not recorded.
 
-## Results ({metrics["episodes"]} evaluation episodes, seed {metrics["eval_seed"]}, disjoint from
-training)
+{suite_section}## Results in the paper's world ({metrics["episodes"]} evaluation episodes,
+seed {metrics["eval_seed"]}, disjoint from training)
 
 {table3(metrics)}
 
@@ -126,10 +242,7 @@ reports means only.
 
 ## Limits
 
-Trained and evaluated only in visland's simulator: one pad design (4 m green square, red cross),
-one procedurally textured ground, pybullet's TinyRenderer lighting, the Table 1 vehicle, Earth
-gravity. A real camera, real lighting and a real pad need new perception data before flight;
-start on hardware in the companion's shadow mode (`docs/deploy.md`).
+{_limits(bool(worlds))}
 """
     (out / "MODEL_CARD.md").write_text(card)
     return dst
