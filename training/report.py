@@ -18,6 +18,7 @@ positions.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ from training.report_figures import (
 from training.report_markdown import (
     fmt,
     header,
+    pct,
     regenerate_eval,
     rollouts_text,
     runtime,
@@ -171,6 +173,63 @@ def _add_trajectories(
     return mismatches
 
 
+def suite_section(metrics: Metrics) -> str:
+    """The benchmark suite beside the baseline's, issue 16's targets and the vision stage's
+    validation of its candidates (what the DAgger rounds bought), when the eval stage flew the
+    profile's suite; empty otherwise."""
+    if not metrics.suite:
+        return ""
+    from training.suite_report import suite_comparison, suite_standing
+
+    report = json.loads(Path(metrics.suite).read_text())
+    baseline = (
+        json.loads(Path(metrics.suite_baseline).read_text()) if metrics.suite_baseline else None
+    )
+    ours = Path(metrics.stages.vision.checkpoint).name if metrics.stages.vision else "vision"
+    base = Path(baseline["policy"]).name if baseline else ""
+    standing_md, met, total = suite_standing(report)
+    lines = [
+        f"## Benchmark suite — `{report['suite']}`, seed {report['seed']}",
+        "",
+        f"The run's vision policy (`{ours}`)"
+        + (
+            f" beside the paper-world model (`{base}`, the baseline: no domain randomisation, "
+            "no hover input), flown on the same episodes."
+            if baseline
+            else "."
+        ),
+        "Each cell: success (episodes), mean and max landing error, mean touchdown speed.",
+        "",
+        suite_comparison(report, baseline, (ours, base)),
+        "",
+        f"### Issue 16's targets: {met} of {total} met",
+        "",
+        standing_md,
+        "",
+    ]
+    vision = metrics.stages.vision
+    if vision is not None and vision.validation:
+        lines += [
+            "### Ablation: what each vision candidate scored on validation",
+            "",
+            "Validation episodes (seed "
+            f"{metrics.profile.validation_seed}, pooled over the training worlds) of every "
+            "candidate the vision stage made: the privileged controllers fed by CNN + estimator "
+            "(`vision_prior_*`), vision BC on the expert's flights, and each vision DAgger round "
+            "— what the rounds bought. The lowest score is shipped.",
+            "",
+            "| candidate | score | success | mean error (m) | touchdown mean (m/s) |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for v in vision.validation:
+            lines.append(
+                f"| {Path(v.checkpoint).stem} | {v.score:.3f} | {pct(v.success_rate)} "
+                f"| {fmt(v.mean_error_m)} | {fmt(v.touchdown_speed_mean_m_s)} |"
+            )
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
 def write_report(cfg: ReportConfig) -> ReportResult:
     """Write ``cfg.out`` and its figures from ``<cfg.run>/metrics.json``; see the module doc.
 
@@ -249,7 +308,7 @@ def write_report(cfg: ReportConfig) -> ReportResult:
 
 {stand}
 
-## Table 3 — landing performance, ours beside the paper (paper §5.4)
+{suite_section(metrics)}## Table 3 — landing performance, ours beside the paper (paper §5.4)
 
 {table3(metrics)}
 
