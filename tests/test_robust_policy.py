@@ -335,3 +335,49 @@ def test_pose_frames_in_the_worlds_looks_are_seeded_and_differ_from_nominal():
     assert np.mean(np.abs(a.astype(float) - nominal.astype(float))) > 5.0
     with pytest.raises(ValueError, match="one positive weight"):
         render_pose_frames(4, 3, cam, visuals=visuals, weights=(1.0,))
+
+
+# ----------------------------------------------------------------------------- acceptance tables
+
+
+def _cond(success: float, mean: float | None, mx: float | None, touch: float, n: int = 50):
+    return {
+        "episodes": n,
+        "success_rate": success,
+        "timeouts": 0,
+        "landing_error_m": {"mean": mean, "max": mx},
+        "touchdown_speed_m_s": {"mean": touch},
+    }
+
+
+def test_suite_targets_and_which_model_read_the_reports():
+    from training.ship import _which_model
+    from training.suite_report import SUITE_TARGETS, suite_comparison, suite_standing
+
+    names = [
+        "nominal",
+        "mars",
+        "wind_moderate_gusts",
+        "unseen_terrain",
+        "low_sun",
+        "sensor_latency_dropouts",
+        "heavy_vehicle",
+        "light_vehicle",
+    ]
+    good = {"conditions": {n: _cond(1.0, 0.1, 0.3, 0.4) for n in names}}
+    good["conditions"]["nominal"]["episodes"] = 300
+    table, met, total = suite_standing(good)
+    per_condition = sum(1 for t in SUITE_TARGETS if t.condition != "*")
+    assert (met, total) == (per_condition + len(names), per_condition + len(names))
+    bad = {"conditions": {**good["conditions"], "mars": _cond(0.0, None, None, 0.4)}}
+    table, met, total = suite_standing(bad)
+    assert met == total - 2  # Mars success and Mars mean error (no touchdown: n/a)
+    assert "| mars: success ≥ 99 % | 0.0 % | **no** |" in table
+    assert "| mars: error mean ≤ 0.3 m | n/a | **no** |" in table
+    side = suite_comparison(good, bad, ("robust.pt", "paper.pt"))
+    assert "| mars | 100.0 % (50) | 0.100 m | 0.300 m | 0.400 m/s | 0.0 % (50) | n/a |" in side
+    # the baseline is better only where it lands more often or as often and >= 10 % closer
+    base = {"conditions": {**good["conditions"], "nominal": _cond(1.0, 0.05, 0.2, 0.4, 300)}}
+    text = _which_model(good, base, "robust.pt", "paper.pt")
+    assert "better in: nominal (100.0 % vs 100.0 %, mean 0.05 m vs 0.1 m)" in text
+    assert "not better in any" in _which_model(good, good, "robust.pt", "paper.pt")
