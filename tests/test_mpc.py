@@ -228,6 +228,11 @@ def _write_config(tmp_path: Path, old: str, new: str) -> Path:
             "max_descent_m_s = 0.1",
             r"touchdown_descent_m_s = 0.3 exceeds max_descent_m_s = 0.1",
         ),
+        (
+            r"^touchdown_tilt_deg = .*$",
+            "touchdown_tilt_deg = 35.0",
+            r"touchdown_tilt_deg = 35.0 exceeds max_tilt_deg = 30.0",
+        ),
     ],
 )
 def test_bad_config_values_name_file_and_field(tmp_path, old, new, match):
@@ -303,6 +308,40 @@ def test_expert_feeds_the_true_wind_forward():
     hidden_m = [r.landing_error_m for r in hidden]
     assert max(told_m) < 0.1 and np.mean(told_m) < 0.05, told_m
     assert np.mean(told_m) < 0.5 * np.mean(hidden_m), (told_m, hidden_m)
+    assert expert.stats.failed == 0
+
+
+def test_the_tilt_bound_closes_over_the_last_decimetres(vehicle, sim_cfg, mpc_cfg):
+    """In a 20 m/s wind the plan leans to the 30 deg limit up high; at 5 cm it may lean at most
+    touchdown_tilt_deg (the success criterion is tilt <= 20 deg at contact)."""
+    expert = MpcExpert(vehicle, sim_cfg)
+    level = quat_from_euler(0.0, 0.0, 0.0)
+    wind = np.array([20.0, 0.0, 0.0])
+    high = expert.plan(np.array([0.0, 0.0, -5.0]), np.zeros(3), level, wind_ned_m_s=wind)
+    low = expert.plan(np.array([0.0, 0.0, -0.05]), np.zeros(3), level, wind_ned_m_s=wind)
+    lean = ModelState.PITCH  # into a wind from the north: nose down, pitch < 0
+    assert math.degrees(np.abs(high.states[:, lean]).max()) > 25.0
+    limit = math.radians(mpc_cfg.touchdown_tilt_deg)
+    assert np.abs(low.states[2:, ModelState.ROLL : ModelState.PITCH + 1]).max() <= limit + 1e-3
+    off = MpcExpert(vehicle, sim_cfg, replace(mpc_cfg, touchdown_tilt_height_m=0.0))
+    free = off.plan(np.array([0.0, 0.0, -0.05]), np.zeros(3), level, wind_ned_m_s=wind)
+    assert math.degrees(np.abs(free.states[:, lean]).max()) > 25.0
+
+
+def test_the_severe_wind_touchdown_that_used_to_lean_too_far():
+    """Episode 35 of the standard suite's wind_severe condition (seed 1 000 000) touched down
+    at 20.1 deg before the touchdown tilt bound; now it lands within the criterion."""
+    from training.rollout import fly_episode
+    from training.suite import load_suite
+
+    suite = load_suite(CONFIG_DIR / "suites" / "standard.toml")
+    scenario = next(c.scenario for c in suite.conditions if c.name == "wind_severe")
+    env = LandingEnv(scenario=scenario, render_camera=False)
+    expert = MpcExpert(env.vehicle, env.sim_config)
+    result = fly_episode(env, expert, 1_000_000, 35).result
+    env.close()
+    assert result.success and result.tilt_deg < 19.0, result
+    assert result.landing_error_m < 0.5, result
     assert expert.stats.failed == 0
 
 

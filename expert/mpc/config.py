@@ -58,6 +58,12 @@ class MpcConfig:
     )
     max_thrust_mg: float = _param("limits", 1.0, 10.0, "m g", "collective thrust limit")
     max_tilt_deg: float = _param("limits", 1.0, 80.0, "deg", "roll and pitch limit")
+    touchdown_tilt_deg: float = _param(
+        "limits", 1.0, 80.0, "deg", "roll and pitch limit of the plan's steps at the ground"
+    )
+    touchdown_tilt_height_m: float = _param(
+        "limits", 0.0, 10.0, "m", "reference altitude below which the tilt limit closes (0: off)"
+    )
     ground_margin_m: float = _param(
         "limits", 0.0, 1.0, "m", "predicted altitude may go this far below 0"
     )
@@ -115,6 +121,11 @@ def _check_config(cfg: MpcConfig, source: str) -> None:
         raise ConfigError(
             f"{source}: touchdown_descent_m_s = {cfg.touchdown_descent_m_s} exceeds "
             f"max_descent_m_s = {cfg.max_descent_m_s}; expected touchdown <= max"
+        )
+    if cfg.touchdown_tilt_deg > cfg.max_tilt_deg:
+        raise ConfigError(
+            f"{source}: touchdown_tilt_deg = {cfg.touchdown_tilt_deg} exceeds "
+            f"max_tilt_deg = {cfg.max_tilt_deg}; expected touchdown <= max"
         )
 
 

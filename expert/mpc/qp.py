@@ -10,7 +10,9 @@ once; per step only the vectors ``q``, ``l``, ``u`` change. Constraints:
 * dynamics;
 * ``0 <= thrust <= max_thrust_mg * m g``, body rates within the autopilot's ``max_rate_rad_s``;
 * ``|roll|, |pitch| <= max_tilt_deg`` (hard; from a state already beyond it, a funnel back to it
-  that the rate limits can follow, so the QP is feasible from any attitude);
+  that the rate limits can follow, so the QP is feasible from any attitude), closing to
+  ``touchdown_tilt_deg`` over the steps whose reference altitude is in the last
+  ``touchdown_tilt_height_m`` (set per solve by ``MpcExpert.plan``);
 * soft, with an exact (linear + quadratic) slack penalty so they hold whenever they can and a
   state a learner drove too low or too fast still gets a best-effort label: altitude
   ``>= -ground_margin_m`` (paper: ``z >= 0``; touchdown is an event the plan flies through, not
