@@ -70,6 +70,11 @@ class Profile(Record):
     """The pad estimator estimates acceleration biases (``NetConfig.accel_bias_states``)."""
     latency_compensation: bool = False
     """Camera fixes at the image's exposure time (``NetConfig.latency_compensation``)."""
+    vision_dagger_from_prior: bool = False
+    """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
+    (by validation) instead of vision BC, and train on the learner's relabelled flights only
+    (not the expert's, whose near-perfect vision features teach the controller to ignore the
+    position estimate: regression dilution). False: the paper profile's schedule."""
     eval_suite: str | None = None
     """A benchmark suite (``training.suite``) the eval stage also flies the vision policy on,
     beside the Table 3 rows (which fly the run's scenario, or the paper's for a worlds run)."""
@@ -149,6 +154,7 @@ PROFILES: dict[str, Profile] = {
         buffer_capacity=1500,
         rollouts=Transport.INPROCESS.value,
         worlds="configs/train/robust.toml",
+        vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",
         hover_input=True,

@@ -85,13 +85,19 @@ def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
 
 
 def select(
-    run: Run, candidates: list[str], camera: bool, out: str
+    run: Run,
+    candidates: list[str],
+    camera: bool,
+    out: str,
+    known: dict[str, ValidationScore] | None = None,
 ) -> tuple[str, str, tuple[ValidationScore, ...]]:
     """Copy the candidate with the best validation score to ``checkpoints/<out>.pt``; returns
-    (that file, the candidate chosen, every candidate's score)."""
+    (that file, the candidate chosen, every candidate's score). ``known``: scores already
+    flown this stage (same episodes), by checkpoint, not flown again."""
     from companion.policy_net import load_networks, save_checkpoint
 
-    scores = tuple(validate(run, c, camera=camera) for c in candidates)
+    known = known or {}
+    scores = tuple(known.get(c) or validate(run, c, camera=camera) for c in candidates)
     best = min(scores, key=lambda r: r.score)
     final = run.root / "checkpoints" / f"{out}.pt"
     cfg, control, cnn, meta = load_networks(best.checkpoint)

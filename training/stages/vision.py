@@ -20,8 +20,13 @@ from training.replay import ReplayBuffer
 from training.run_folder import Run
 from training.stages.fitting import fit_controller
 from training.stages.flights import episodes, expert_pairs, fly, relabel
-from training.stages.records import DaggerRecord, PerceptionRecord, VisionRecord
-from training.stages.selection import select
+from training.stages.records import (
+    DaggerRecord,
+    PerceptionRecord,
+    ValidationScore,
+    VisionRecord,
+)
+from training.stages.selection import select, validate
 from training.train import vision_episode
 
 __all__ = ["privileged_controllers", "run"]
@@ -97,6 +102,18 @@ def run(r: Run) -> VisionRecord:
             )
         )
     candidates = [*priors, str(ckpt)]
+    known: dict[str, ValidationScore] = {}
+    if p.vision_dagger_from_prior and p.vision_rounds:
+        # the rounds start from the prior that flies best with the camera, and learn from the
+        # learner's own flights only (module docstring of training.profiles, the profile key)
+        known = {c: validate(r, c, camera=True) for c in priors}
+        best = min(known.values(), key=lambda v: v.score).checkpoint
+        _, prior_control, _, _ = load_networks(best)
+        control.load_state_dict(prior_control.state_dict())
+        ckpt = Path(best)
+        buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 51)
+        names = []
+        r.say(f"vision rounds start from {ckpt.name} (learner flights only)")
     for k in range(p.vision_rounds):
         name = f"vision_r{k}"
         logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
@@ -116,7 +133,7 @@ def run(r: Run) -> VisionRecord:
             r.metadata(name, {"episodes": list(names), "fit": fits[-1].to_dict()}),
         )
         candidates.append(str(ckpt))
-    final, selected, scores = select(r, candidates, camera=True, out="vision")
+    final, selected, scores = select(r, candidates, camera=True, out="vision", known=known)
     return r.finish(
         VisionRecord(
             stage="vision",
