@@ -381,3 +381,42 @@ def test_suite_targets_and_which_model_read_the_reports():
     text = _which_model(good, base, "robust.pt", "paper.pt")
     assert "better in: nominal (100.0 % vs 100.0 %, mean 0.05 m vs 0.1 m)" in text
     assert "not better in any" in _which_model(good, good, "robust.pt", "paper.pt")
+
+
+def test_the_radar_gate_refuses_a_spurious_return_and_follows_a_real_change():
+    def descend(cfg: NetConfig, readings: dict[int, float]) -> list[float]:
+        est = PadEstimator(cfg)
+        state = est.initial_state()
+        alt = []
+        for k in range(60):
+            z = readings.get(k, 2.0)
+            state = est.step(
+                state, np.array([0.0, 0.0, -z]), False, np.zeros(3), np.array([0, 0, -9.80665])
+            )
+            alt.append(-state.x[2, 0])
+        return alt
+
+    spike = {30: 52.0}  # one spurious return 50 m off at 2 m altitude
+    plain = descend(NetConfig(), spike)
+    gated = descend(NetConfig(radar_gate_sigma=5.0), spike)
+    assert plain[30] > 10.0  # the estimate jumps toward the spike (the controller would dive)
+    assert abs(gated[30] - 2.0) < 0.05
+    # a change that persists (the ground really is nearer: a roof, a slope) is taken after
+    # gate_reset_steps refusals, not ignored forever
+    step = {k: 1.0 for k in range(30, 60)}
+    gated = descend(NetConfig(radar_gate_sigma=5.0), step)
+    assert abs(gated[-1] - 1.0) < 0.05
+    with pytest.raises(Exception, match="radar_gate_sigma"):
+        NetConfig(radar_gate_sigma=-1.0)
+
+
+def test_estimator_fields_are_config_fields_that_no_weight_depends_on(tmp_path):
+    from companion.policy_net import ESTIMATOR_FIELDS
+
+    assert set(ESTIMATOR_FIELDS) <= set(NetConfig.__dataclass_fields__)
+    # a network saved with one estimator setting loads into a config with another
+    cfg = NetConfig(kind="vision", **ROBUST)
+    other = replace(cfg, radar_gate_sigma=5.0, gate_sigma=3.0, accel_bias_walk_m_s2=0.05)
+    control, cnn = ControlLSTM(cfg), PerceptionCNN(cfg)
+    path = save_checkpoint(tmp_path / "a.pt", other, control, cnn, {})
+    assert load_policy(path).config == other

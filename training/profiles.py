@@ -70,6 +70,8 @@ class Profile(Record):
     """The pad estimator estimates acceleration biases (``NetConfig.accel_bias_states``)."""
     latency_compensation: bool = False
     """Camera fixes at the image's exposure time (``NetConfig.latency_compensation``)."""
+    radar_gate_sigma: float = 0.0
+    """The estimator's radar innovation gate (``NetConfig.radar_gate_sigma``; 0: none)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -154,6 +156,7 @@ PROFILES: dict[str, Profile] = {
         buffer_capacity=1500,
         rollouts=Transport.INPROCESS.value,
         worlds="configs/train/robust.toml",
+        radar_gate_sigma=5.0,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

@@ -173,6 +173,7 @@ class Run:
             hover_input=p.hover_input,
             accel_bias_states=p.accel_bias_states,
             latency_compensation=p.latency_compensation,
+            radar_gate_sigma=p.radar_gate_sigma,
         )
 
     def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:

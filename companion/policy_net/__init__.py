@@ -44,7 +44,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from companion.policy_net.config import CheckpointError, NetConfig
+from companion.policy_net.config import ESTIMATOR_FIELDS, CheckpointError, NetConfig
 from companion.policy_net.estimator import EstimatorState, PadEstimator
 from companion.policy_net.geometry import (
     FEATURE_NAMES,
@@ -67,6 +67,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CHECKPOINT_FORMAT",
+    "ESTIMATOR_FIELDS",
     "FEATURE_NAMES",
     "CheckpointError",
     "ControlLSTM",

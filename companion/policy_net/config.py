@@ -12,7 +12,25 @@ from typing import Any
 
 from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
 
-__all__ = ["CheckpointError", "NetConfig"]
+__all__ = ["ESTIMATOR_FIELDS", "CheckpointError", "NetConfig"]
+
+ESTIMATOR_FIELDS = (
+    "accel_noise_m_s2",
+    "bearing_noise_rad",
+    "bearing_noise_floor_m",
+    "alt_noise_m",
+    "visibility_threshold",
+    "gate_sigma",
+    "gate_reset_steps",
+    "min_fix_altitude_m",
+    "accel_bias_states",
+    "accel_bias_sigma_m_s2",
+    "accel_bias_walk_m_s2",
+    "radar_gate_sigma",
+    "latency_compensation",
+)
+"""The :class:`NetConfig` fields that shape only the pad estimator and the fix, not a network's
+weights: a trained network flies with any values of them."""
 
 
 class CheckpointError(ValueError):
@@ -64,6 +82,11 @@ class NetConfig:
     """Initial 1-sigma of the bias states (north, east, down): down spans Earth to Mars."""
     accel_bias_walk_m_s2: float = 0.02
     """Random walk of the bias states (m/s^2 per sqrt(s))."""
+    radar_gate_sigma: float = 0.0
+    """Innovation gate of the altitude fix (Mahalanobis, 1 dof; 0: none, every radar reading is
+    taken). A spurious radar return (a bird, dust, a multipath echo) 50 m off at 2 m altitude
+    otherwise moves the altitude estimate by 50 m, and the controller dives at the ground. After
+    ``gate_reset_steps`` refusals in a row the estimate re-acquires from the radar."""
     latency_compensation: bool = False
     """The camera fix is computed with the attitude at the image's exposure time
     (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward
@@ -77,6 +100,10 @@ class NetConfig:
         if not 0.0 < self.hover_thrust_norm < 1.0:
             raise CheckpointError(
                 f"net config hover_thrust_norm: expected in (0, 1), got {self.hover_thrust_norm}"
+            )
+        if not (math.isfinite(self.radar_gate_sigma) and self.radar_gate_sigma >= 0):
+            raise CheckpointError(
+                f"net config radar_gate_sigma: expected >= 0 (0: off), got {self.radar_gate_sigma}"
             )
         if len(self.accel_bias_sigma_m_s2) != 3 or min(self.accel_bias_sigma_m_s2) <= 0:
             raise CheckpointError(

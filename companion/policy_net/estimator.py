@@ -22,6 +22,8 @@ class EstimatorState:
     initialised: np.ndarray
     """(3,) bool: the axis has had a measurement."""
     rejected: int = 0
+    rejected_altitude: int = 0
+    """Consecutive altitude (radar) fixes refused by ``radar_gate_sigma``."""
     """Consecutive horizontal fixes refused by the innovation gate."""
 
 
@@ -89,7 +91,7 @@ class PadEstimator:
         image's exposure time): it is measured as ``position - lag * velocity``, so the filter
         itself carries it to now (the vertical fix, from the radar, is current)."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
-        rejected = state.rejected
+        rejected, rejected_alt = state.rejected, state.rejected_altitude
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
         acc = rot @ np.asarray(accel_frd_m_s2, float) + np.array([0.0, 0.0, self.cfg.gravity_m_s2])
         if not np.all(np.isfinite(acc)):
@@ -103,7 +105,19 @@ class PadEstimator:
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
             sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
-            axes = (0, 1, 2) if horizontal_fix else (2,)
+            axes: tuple[int, ...] = (0, 1, 2) if horizontal_fix else (2,)
+            if self.cfg.radar_gate_sigma > 0 and init[2]:
+                innov = float(fix_ned_m[2]) - x[2, 0]
+                if innov**2 > self.cfg.radar_gate_sigma**2 * (cov[2, 0, 0] + sigmas[2] ** 2):
+                    rejected_alt += 1
+                    if rejected_alt >= self.cfg.gate_reset_steps:
+                        init[2] = False  # the radar, not the prediction, is right: re-acquire
+                        rejected_alt = 0
+                    else:
+                        # the whole fix goes: its horizontal part is scaled by that altitude
+                        axes, horizontal_fix = (), False
+                else:
+                    rejected_alt = 0
             h_lag = np.zeros(self._n)
             h_lag[:2] = (1.0, -float(fix_lag_s))
             h_now = np.zeros(self._n)
@@ -136,4 +150,6 @@ class PadEstimator:
                 k = ph / s
                 x[axis] = x[axis] + k * (z - h @ x[axis])
                 cov[axis] = p - np.outer(k, ph)
-        return EstimatorState(x=x, cov=cov, initialised=init, rejected=rejected)
+        return EstimatorState(
+            x=x, cov=cov, initialised=init, rejected=rejected, rejected_altitude=rejected_alt
+        )

@@ -6,9 +6,11 @@ validation with the camera picks among those and every privileged controller tha
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from companion.policy_net import (
+    ESTIMATOR_FIELDS,
     ControlLSTM,
     LearnedPolicy,
     NetConfig,
@@ -36,6 +38,9 @@ def _vision_policy(r: Run) -> tuple[NetConfig, ControlLSTM, PerceptionCNN]:
     _, control, _, _ = load_networks(r.need("dagger", DaggerRecord).checkpoint)
     cfg, _, cnn, _ = load_networks(r.need("perception", PerceptionRecord).checkpoint)
     assert cnn is not None
+    # the estimator as the profile sets it now (no weights depend on it)
+    run_cfg = r.net_config("vision")
+    cfg = replace(cfg, **{k: getattr(run_cfg, k) for k in ESTIMATOR_FIELDS})
     fresh = ControlLSTM(cfg)
     fresh.load_state_dict(control.state_dict())
     return cfg, fresh, cnn
