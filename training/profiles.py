@@ -72,6 +72,8 @@ class Profile(Record):
     """Camera fixes at the image's exposure time (``NetConfig.latency_compensation``)."""
     radar_gate_sigma: float = 0.0
     """The estimator's radar innovation gate (``NetConfig.radar_gate_sigma``; 0: none)."""
+    alt_noise_fraction: float = 0.0
+    """The radar noise that grows with range (``NetConfig.alt_noise_fraction``)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -157,6 +159,7 @@ PROFILES: dict[str, Profile] = {
         rollouts=Transport.INPROCESS.value,
         worlds="configs/train/robust.toml",
         radar_gate_sigma=5.0,
+        alt_noise_fraction=0.002,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

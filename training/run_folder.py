@@ -174,6 +174,7 @@ class Run:
             accel_bias_states=p.accel_bias_states,
             latency_compensation=p.latency_compensation,
             radar_gate_sigma=p.radar_gate_sigma,
+            alt_noise_fraction=p.alt_noise_fraction,
         )
 
     def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:

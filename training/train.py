@@ -63,6 +63,7 @@ def net_config_for(
     accel_bias_states: bool = False,
     latency_compensation: bool = False,
     radar_gate_sigma: float = 0.0,
+    alt_noise_fraction: float = 0.0,
 ) -> NetConfig:
     """The network config matching a vehicle and world (hover thrust, rate limits, gravity),
     with the robustness options of the profile (``NetConfig``)."""
@@ -73,6 +74,7 @@ def net_config_for(
         accel_bias_states=accel_bias_states,
         latency_compensation=latency_compensation,
         radar_gate_sigma=radar_gate_sigma,
+        alt_noise_fraction=alt_noise_fraction,
         kind=kind,
         hover_thrust_norm=vehicle.hover_thrust_norm(planet),
         max_rate_rad_s=tuple(float(v) for v in vehicle.rate_controller.max_rate_rad_s),

@@ -19,6 +19,7 @@ ESTIMATOR_FIELDS = (
     "bearing_noise_rad",
     "bearing_noise_floor_m",
     "alt_noise_m",
+    "alt_noise_fraction",
     "visibility_threshold",
     "gate_sigma",
     "gate_reset_steps",
@@ -82,6 +83,9 @@ class NetConfig:
     """Initial 1-sigma of the bias states (north, east, down): down spans Earth to Mars."""
     accel_bias_walk_m_s2: float = 0.02
     """Random walk of the bias states (m/s^2 per sqrt(s))."""
+    alt_noise_fraction: float = 0.0
+    """Radar noise that grows with range: the altitude fix's 1-sigma is ``alt_noise_m +
+    alt_noise_fraction * altitude`` (Table 1's radar: 2 cm + 0.2 % of range)."""
     radar_gate_sigma: float = 0.0
     """Innovation gate of the altitude fix (Mahalanobis, 1 dof; 0: none, every radar reading is
     taken). A spurious radar return (a bird, dust, a multipath echo) 50 m off at 2 m altitude

@@ -103,7 +103,7 @@ class PadEstimator:
         if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
-            sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m)
+            sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes: tuple[int, ...] = (0, 1, 2) if horizontal_fix else (2,)
             if self.cfg.radar_gate_sigma > 0 and init[2]:
@@ -111,11 +111,15 @@ class PadEstimator:
                 if innov**2 > self.cfg.radar_gate_sigma**2 * (cov[2, 0, 0] + sigmas[2] ** 2):
                     rejected_alt += 1
                     if rejected_alt >= self.cfg.gate_reset_steps:
-                        init[2] = False  # the radar, not the prediction, is right: re-acquire
+                        # the radar, not the prediction, is right: the altitude re-acquires
+                        # from it; the velocity and bias estimates stay
+                        x[2, 0] = float(fix_ned_m[2])
+                        cov[2, 0, :] = 0.0
+                        cov[2, :, 0] = 0.0
+                        cov[2, 0, 0] = sigmas[2] ** 2
                         rejected_alt = 0
-                    else:
-                        # the whole fix goes: its horizontal part is scaled by that altitude
-                        axes, horizontal_fix = (), False
+                    # the whole fix goes: its horizontal part is scaled by that altitude
+                    axes, horizontal_fix = (), False
                 else:
                     rejected_alt = 0
             h_lag = np.zeros(self._n)
