@@ -509,7 +509,7 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help="with --suite: write the results page (command, commit, table, plot) to this file, "
-        "e.g. docs/suite_shipped.md",
+        "e.g. docs/suite_expert.md",
     )
     e.add_argument(
         "--workers",
