@@ -411,10 +411,10 @@ def test_the_radar_gate_refuses_a_spurious_return_and_follows_a_real_change():
     est = PadEstimator(NetConfig(radar_gate_sigma=5.0, accel_bias_states=True))
     state = est.initial_state()
     level = np.array([0.0, 0.0, -3.71])  # Mars hover: the bias settles near -6.1 m/s^2
-    for k in range(100):
+    for _ in range(100):
         state = est.step(state, np.array([0.0, 0.0, -30.0]), False, np.zeros(3), level)
     bias = state.x[2, 2]
-    for k in range(12):  # the ground steps 5 m nearer for good
+    for _ in range(12):  # the ground steps 5 m nearer for good
         state = est.step(state, np.array([0.0, 0.0, -25.0]), False, np.zeros(3), level)
     assert abs(-state.x[2, 0] - 25.0) < 0.3
     assert abs(state.x[2, 2] - bias) < 0.5 and abs(state.x[2, 1]) < 0.5

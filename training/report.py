@@ -189,7 +189,8 @@ def suite_section(metrics: Metrics) -> str:
     base = Path(baseline["policy"]).name if baseline else ""
     standing_md, met, total = suite_standing(report)
     lines = [
-        f"## Benchmark suite — `{report['suite']}`, seed {report['seed']}",
+        f"## Benchmark suite — `{metrics.profile.eval_suite or report['suite']}`, "
+        f"seed {report['seed']}",
         "",
         f"The run's vision policy (`{ours}`)"
         + (

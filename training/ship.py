@@ -69,7 +69,8 @@ def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
     )
     verdict = "All targets are met." if met == total else "Targets not met are marked **no**."
     which = _which_model(report, baseline, shipped, base_name) if baseline else ""
-    return f"""## Results on the benchmark suite (`{report["suite"]}`, seed {report["seed"]})
+    suite_name = metrics["profile"].get("eval_suite") or report["suite"]
+    return f"""## Results on the benchmark suite (`{suite_name}`, seed {report["seed"]})
 
 {suite_comparison(report, baseline, (shipped, base_name))}
 
@@ -183,6 +184,7 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
                 "acceleration-bias states (IMU bias, another planet's gravity)",
             ),
             (cfg.latency_compensation, "camera fixes at the image's exposure time"),
+            (cfg.radar_gate_sigma > 0, f"a {cfg.radar_gate_sigma:g}-sigma radar gate"),
         )
         if on
     ]
