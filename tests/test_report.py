@@ -169,7 +169,7 @@ def test_report_from_a_small_real_run(tiny_run, tmp_path):
     # where we stand: computed from the rows
     met = [tgt.met(load_metrics(tiny_run).rows) for tgt in TARGETS]
     assert res.targets_met == tuple(met)
-    assert f"**{sum(met)} of {len(TARGETS)} targets met.**" in md
+    assert f"**{sum(met)} of {len(TARGETS)} paper-world targets met.**" in md
 
     # header: seeds and their disjointness, the run, the commits
     assert f"seed {metrics['eval_seed']}" in md and "disjoint from every seed" in md

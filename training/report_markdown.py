@@ -213,7 +213,7 @@ def standing(metrics: Metrics) -> tuple[str, tuple[bool, ...]]:
         shown = pct(v) if t.unit == "%" else f"{fmt(v)} {t.unit}"
         lines.append(f"| {t.describe()} | {shown} | {'yes' if ok else '**no**'} |")
     missed = [t.describe() for t, ok in zip(TARGETS, met, strict=True) if not ok]
-    summary = f"**{sum(met)} of {len(TARGETS)} targets met.** " + (
+    summary = f"**{sum(met)} of {len(TARGETS)} paper-world targets met.** " + (
         "Not met: " + "; ".join(missed) + "." if missed else "All targets are met."
     )
     return summary + "\n\n" + "\n".join(lines), met
