@@ -304,9 +304,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 print(f"{k:>28}: {v:.4g}" if isinstance(v, float) else f"{k:>28}: {v}")
         return 0
     if args.what == "policy":
+        from tools.bench_companion import DEFAULT_CHECKPOINT
         from training.bench_policy import bench_policy
 
-        res = bench_policy(args.checkpoint, steps=300, seed=args.seed)
+        res = bench_policy(args.checkpoint or DEFAULT_CHECKPOINT, steps=300, seed=args.seed)
         if args.json:
             _print_json(res)
         else:
@@ -431,15 +432,16 @@ def _parser() -> argparse.ArgumentParser:
         "what",
         choices=["sim", "mpc", "policy", "companion"],
         help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's; "
-        "policy: per-step inference of a checkpoint (default: shipped size) vs a paper-style net; "
+        "policy: per-step inference of a checkpoint (default: the shipped model) vs a paper-style "
+        "net; "
         "companion: frame receipt -> setpoint latency of the real companion process (SITL "
         "flights), and torch vs ONNX Runtime policy step on the same frames",
     )
     b.add_argument(
         "--checkpoint",
         default=None,
-        help="bench policy: checkpoint to time; bench companion: checkpoint to fly (default "
-        "models/visland_vision.pt)",
+        help="bench policy: checkpoint to time; bench companion: checkpoint to fly (default, "
+        "both: models/visland_vision.pt)",
     )
     b.add_argument(
         "--runtime",
