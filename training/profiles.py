@@ -3,7 +3,7 @@ pipeline's error type (no torch here: reports read a run's profile too)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from training.record import Record
 from training.seeds import EVAL_SEED
@@ -168,3 +168,9 @@ PROFILES: dict[str, Profile] = {
         latency_compensation=True,
     ),
 }
+
+# Ablation of the hover-thrust input: the robust profile with the controller blind to the
+# autopilot's hover thrust (its thrust centred on the config's, as the paper-world model's is).
+PROFILES["robust_no_hover"] = replace(
+    PROFILES["robust"], name="robust_no_hover", hover_input=False, eval_suite_baseline=None
+)
