@@ -42,7 +42,9 @@ def inference_timing(vision_checkpoint: str, steps: int = 300) -> dict[str, Any]
 
 def _fly_suite(r: Run, policy: str, name: str) -> str:
     """The profile's suite flown by ``policy`` (a checkpoint) into ``<run>/<name>``; a finished
-    file of the same policy and suite is kept (the stage resumes past it)."""
+    file of the same checkpoint bytes (sha256) and suite is kept (the stage resumes past it; a
+    redone vision stage's new ``vision.pt`` is flown again)."""
+    from companion.files import sha256_file
     from training.provenance import REPO
     from training.suite import format_suite_table, load_suite, run_suite
 
@@ -50,16 +52,18 @@ def _fly_suite(r: Run, policy: str, name: str) -> str:
     assert p.eval_suite is not None
     path = r.root / name
     suite = load_suite(REPO / p.eval_suite)
+    sha = sha256_file(policy)
     if path.exists():
         try:
             done = json.loads(path.read_text())
-            if done.get("policy") == policy and done.get("suite") == suite.path:
+            if done.get("policy_sha256") == sha and done.get("suite") == suite.path:
                 return str(path)
         except ValueError:
             pass  # half-written: fly it again
     report = run_suite(
         suite, policy, seed=p.eval_seed, workers=p.workers, render_camera=True, progress=r.progress
     )
+    report["policy_sha256"] = sha
     format_suite_table(report, sys.stderr)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(jsonable(report), indent=1))
