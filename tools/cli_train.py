@@ -79,6 +79,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
             out=args.out,
             figures_dir=args.figures_dir,
             trajectories=not args.no_trajectories,
+            ablations=tuple(args.ablation),
         )
     )
     print(f"wrote {res.out} and {len(res.figures)} figures")
@@ -143,5 +144,14 @@ def register_training(sub: argparse._SubParsersAction) -> None:
         "--no-trajectories",
         action="store_true",
         help="skip flying the trajectory episodes (no trajectory figures)",
+    )
+    rp.add_argument(
+        "--ablation",
+        type=Path,
+        action="append",
+        default=[],
+        help="another run of the same suite whose profile differs in one thing (e.g. "
+        "runs/robust_no_hover): its suite results go beside the run's, the differing profile "
+        "keys named (repeatable)",
     )
     rp.set_defaults(func=_cmd_report)

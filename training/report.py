@@ -75,6 +75,9 @@ class ReportConfig:
     """Fly the trajectory episodes in process (four policies; ``False`` skips those figures)."""
     trajectory_episodes: tuple[int, ...] | None = None
     """Eval episode indices to fly (default: episode 0 and the vision row's worst episode)."""
+    ablations: tuple[Path, ...] = ()
+    """Other run folders whose eval stage flew the same suite (one profile key changed): their
+    suite results go beside the run's."""
 
     def figures(self) -> Path:
         return Path(self.figures_dir) if self.figures_dir else Path(self.out).parent / "figures"
@@ -88,6 +91,7 @@ class ReportConfig:
             parts.append(f"--figures-dir {self.figures_dir}")
         if not self.trajectories:
             parts.append("--no-trajectories")
+        parts += [f"--ablation {a}" for a in self.ablations]
         return " ".join(parts)
 
 
@@ -171,6 +175,49 @@ def _add_trajectories(
             "are the autopilot's rate setpoints).",
         )
     return mismatches
+
+
+def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
+    """Per suite condition, the run's success and mean error beside each ablation run's (the
+    profile keys it changed named in its column); empty without ablations or a suite."""
+    if not runs or not metrics.suite:
+        return ""
+    ours = json.loads(Path(metrics.suite).read_text())
+    mine = metrics.profile.to_dict()
+    columns = []
+    for run in runs:
+        other = load_metrics(Path(run))
+        if not other.suite:
+            raise ReportError(f"{run}/metrics.json: no suite results (its profile flies none)")
+        theirs = other.profile.to_dict()
+        changed = [
+            f"{k}={theirs[k]}"
+            for k in mine
+            if k not in ("name", "eval_suite_baseline") and theirs.get(k) != mine[k]
+        ]
+        columns.append((f"{run}: {', '.join(changed) or 'same profile'}", other))
+    head = ["condition", f"{metrics.profile.name} (shipped)"] + [c[0] for c in columns]
+    lines = [
+        "### Ablations on the suite",
+        "",
+        "Each cell: success and mean landing error; the same suite and seeds, each run trained "
+        "from scratch by its profile (`visland pipeline --profile P`).",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|---|" + "---:|" * (len(head) - 1),
+    ]
+    reports = [json.loads(Path(o.suite).read_text()) for _, o in columns]
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "—"
+        mean = (r.get("landing_error_m") or {}).get("mean")
+        return f"{pct(r['success_rate'])}, {fmt(mean)} m"
+
+    for name, r in ours["conditions"].items():
+        cells = [name, cell(r)] + [cell(rep["conditions"].get(name)) for rep in reports]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\n"
 
 
 def suite_section(metrics: Metrics) -> str:
@@ -303,13 +350,14 @@ def write_report(cfg: ReportConfig) -> ReportResult:
         )
 
     stand, met = standing(metrics)
+    suite_md = suite_section(metrics) + ablation_section(metrics, cfg.ablations)
     md = (
         f"""{header(cfg.command(), metrics, prov, mismatches)}
 ## Where we stand
 
 {stand}
 
-{suite_section(metrics)}## Table 3 — landing performance, ours beside the paper (paper §5.4)
+{suite_md}## Table 3 — landing performance, ours beside the paper (paper §5.4)
 
 {table3(metrics)}
 
