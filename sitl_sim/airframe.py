@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl_sim.config import Planet, VehicleConfig
+from sitl_sim.config import Planet, VehicleConfig, number_pair
 from sitl_sim.errors import ConfigError
 
 __all__ = [
@@ -161,16 +161,13 @@ class AirframeScales:
 
 def _range(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
     value = table[key]
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
+    pair = number_pair(value)
+    if pair is None:
         raise ConfigError(
             f"{where}: [vehicle] {key} = {value!r}; expected [lo, hi] (two numbers, factors on "
             "the vehicle file)"
         )
-    return float(value[0]), float(value[1])
+    return pair
 
 
 def airframe_config_from_table(table: Any, where: str) -> AirframeConfig:

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from sitl_sim.airframe import AirframeConfig, airframe_config_from_table
-from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
+from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, number_pair, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
 from sitl_sim.sensor_faults import SensorFaultsConfig, sensor_faults_config_from_table
@@ -139,15 +139,12 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
         if key not in init:
             raise ConfigError(f"{where}: [initial_state] missing key {key!r}")
         value = init[key]
-        if (
-            not isinstance(value, list)
-            or len(value) != 2
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        ):
+        pair = number_pair(value)
+        if pair is None:
             raise ConfigError(
                 f"{where}: [initial_state] {key} = {value!r}; expected [lo, hi] (two numbers)"
             )
-        ranges[key] = (float(value[0]), float(value[1]))
+        ranges[key] = pair
     sampler = init.get("sampler", "sobol+uniform")
     world_tbl = data.get("world", {})
     if not isinstance(world_tbl, dict):

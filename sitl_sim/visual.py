@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sitl_sim.config import CameraConfig
+from sitl_sim.config import CameraConfig, number_pair
 from sitl_sim.errors import ConfigError
 from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
 from sitl_sim.terrain import FAMILIES, Sun, terrain_map
@@ -247,13 +247,10 @@ class CameraEffects:
 
 
 def _pair(value: Any, key: str, where: str, lo: float, hi: float) -> tuple[float, float]:
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
+    pair = number_pair(value)
+    if pair is None:
         raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected [lo, hi] (two numbers)")
-    a, b = float(value[0]), float(value[1])
+    a, b = pair
     if not (math.isfinite(a) and math.isfinite(b) and lo <= a <= b <= hi):
         raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected {lo} <= lo <= hi <= {hi}")
     return a, b

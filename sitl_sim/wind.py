@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from sitl_sim.config import number_pair
 from sitl_sim.errors import ConfigError, SimStateError
 
 __all__ = [
@@ -139,13 +140,10 @@ class WindConfig:
 
 def _range(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
     value = table[key]
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
+    pair = number_pair(value)
+    if pair is None:
         raise ConfigError(f"{where}: [wind] {key} = {value!r}; expected [lo, hi] (two numbers)")
-    return float(value[0]), float(value[1])
+    return pair
 
 
 def wind_config_from_table(table: Any, where: str) -> WindConfig:
