@@ -11,6 +11,9 @@ shared/reference/mcap_notes.md):
   carries ``time_s`` (sim time);
 * small zstd chunks, flushed whenever 1 s of wall time or 1 s of sim time has passed since the
   last flush, so a killed process loses at most the last second;
+* a *reproducible* log (``reproducible=True``: in-process rollouts and expert labels, which are
+  renamed into place only when complete) has epoch 0 (log time = sim time) and flushes on sim
+  time only: the same flight gives the same bytes on any host, worker or backend;
 * the effective configuration goes into MCAP metadata records at the start of the file.
 
 Reading (:func:`read_log`) never seeks: a truncated file yields every message up to the cut and
@@ -219,6 +222,10 @@ class FlightLogWriter:
         metadata: name -> JSON-serialisable dict (e.g. ``{"config": {...}, "episode": {...}}``),
             each written as one MCAP metadata record whose values are JSON strings.
         epoch_ns: the file's time origin; defaults to the wall time at creation.
+        reproducible: no wall clock in the file: epoch 0 (unless ``epoch_ns`` is given) and
+            chunks flushed on sim time only, so the same messages give the same bytes. For
+            logs written to a ``.part`` file and renamed when complete (a crash loses the
+            whole file anyway, so flushing on wall time buys nothing).
     """
 
     def __init__(
@@ -226,8 +233,10 @@ class FlightLogWriter:
         path: str | Path,
         metadata: Mapping[str, Mapping[str, Any]] | None = None,
         epoch_ns: int | None = None,
+        reproducible: bool = False,
     ) -> None:
         self.path = Path(path)
+        self._wall_flush = not reproducible
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
             self._fh = self.path.open("wb")
@@ -235,7 +244,9 @@ class FlightLogWriter:
             raise FlightLogError(f"{self.path}: cannot create flight log: {exc}") from None
         self._writer = Writer(self._fh, chunk_size=_CHUNK_BYTES, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="visland")
-        self.epoch_ns = int(time.time_ns() if epoch_ns is None else epoch_ns)
+        if epoch_ns is None:
+            epoch_ns = 0 if reproducible else time.time_ns()
+        self.epoch_ns = int(epoch_ns)
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._seq: dict[str, int] = defaultdict(int)
@@ -328,9 +339,8 @@ class FlightLogWriter:
     def _maybe_flush(self, time_s: float) -> None:
         now = time.monotonic()
         if (
-            now - self._last_flush_wall >= _FLUSH_PERIOD_S
-            or time_s - self._last_flush_sim >= _FLUSH_PERIOD_S
-        ):
+            self._wall_flush and now - self._last_flush_wall >= _FLUSH_PERIOD_S
+        ) or time_s - self._last_flush_sim >= _FLUSH_PERIOD_S:
             self.flush(time_s)
 
     def flush(self, time_s: float | None = None) -> None:

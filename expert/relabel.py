@@ -14,6 +14,7 @@ when the scenario had a ``[vehicle]`` section (the ``airframe`` of ``/episode/sc
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -167,7 +168,7 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
         }
     }
     steps = 0
-    with FlightLogWriter(tmp, meta) as writer:
+    with FlightLogWriter(tmp, meta, reproducible=True) as writer:
         for fid in frames:
             try:
                 gt = groundtruth_from_msg(truths[fid])
@@ -204,10 +205,26 @@ def _safe_relabel(args: tuple[str, str]) -> RelabelReport:
         return RelabelReport(log_path, None, 0, False, str(exc))
 
 
-def relabel(logs: list[str | Path], out_dir: str | Path, workers: int = 1) -> list[RelabelReport]:
-    """Relabel many logs; a failed one is reported (``error``) and the rest continue."""
+def relabel(
+    logs: list[str | Path],
+    out_dir: str | Path,
+    workers: int = 1,
+    on_done: Callable[[RelabelReport], None] | None = None,
+) -> list[RelabelReport]:
+    """Relabel many logs in ``workers`` processes (the local backend; ``training.backend``
+    has the Ray one); a failed one is reported (``error``) and the rest continue. Reports in
+    the order of ``logs``."""
     jobs = [(str(p), str(out_dir)) for p in logs]
+    reports = []
     if workers <= 1 or len(jobs) <= 1:
-        return [_safe_relabel(j) for j in jobs]
+        for job in jobs:
+            reports.append(_safe_relabel(job))
+            if on_done is not None:
+                on_done(reports[-1])
+        return reports
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
-        return list(pool.map(_safe_relabel, jobs, chunksize=4))
+        for report in pool.map(_safe_relabel, jobs, chunksize=4):
+            reports.append(report)
+            if on_done is not None:
+                on_done(report)
+    return reports

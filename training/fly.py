@@ -24,10 +24,9 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import read_log
@@ -38,11 +37,15 @@ from training.provenance import REPO
 from training.seeds import EVAL_SEED
 from training.transport import Transport
 
+if TYPE_CHECKING:
+    from training.backend import Backend
+
 __all__ = [
     "FlyConfig",
     "FlyError",
     "fly",
     "fly_many",
+    "fly_run",
     "free_udp_port",
     "policy_is_privileged",
     "sitl_log_name",
@@ -306,29 +309,55 @@ def _chunks(indices: list[int], size: int) -> list[tuple[int, int]]:
     return runs
 
 
+def fly_run(cfg: FlyConfig, first: int, count: int, out: Path, sitl_dir: Path) -> dict[str, Any]:
+    """Episodes ``first .. first + count - 1`` of ``cfg.seed`` through one SITL + companion
+    pair: the pair's files in ``out/ep<first>/``, the SITL's flight logs in ``sitl_dir``
+    (one unit of :func:`fly_many`'s work, on whichever backend runs it).
+
+    Raises:
+        FlyError: as :func:`fly`.
+    """
+    return fly(
+        replace(
+            cfg,
+            first_episode=first,
+            episodes=count,
+            out=str(Path(out) / f"ep{first:04d}"),
+            sitl_log_dir=str(sitl_dir),
+            timeout_s=None,
+            progress=False,
+        )
+    )
+
+
 def fly_many(
     cfg: FlyConfig,
     indices: list[int],
     instances: int = 2,
     chunk: int = 10,
     on_done: Callable[[int], None] | None = None,
+    backend: Backend | None = None,
 ) -> dict[str, Any]:
-    """Fly episodes ``indices`` of ``cfg.seed`` with up to ``instances`` SITL + companion pairs
-    side by side, each in lockstep on its own free ports.
+    """Fly episodes ``indices`` of ``cfg.seed`` with SITL + companion pairs, each in lockstep
+    on its own free ports: up to ``instances`` side by side on this host, or on ``backend``
+    (e.g. a Ray cluster: one pair per task, where the cluster has room).
 
     The indices are cut into runs of at most ``chunk`` consecutive episodes; each run is one
-    :func:`fly` (its SITL started at ``--first-episode``), so any subset of a seed's episodes can
-    be flown (a resumed DAgger round flies only the missing ones) and a failed pair loses at most
-    one run. The SITL logs of every run go to ``cfg.sitl_log_dir`` (default ``<out>/sitl``);
-    each run's companion logs and process output to ``<out>/ep<first>/``. ``on_done(n)`` after
-    each run with its episode count.
+    :func:`fly_run` (its SITL started at ``--first-episode``), so any subset of a seed's
+    episodes can be flown (a resumed DAgger round flies only the missing ones) and a failed
+    pair loses at most one run. The SITL logs of every run go to ``cfg.sitl_log_dir`` (default
+    ``<out>/sitl``); each run's companion logs and process output to ``<out>/ep<first>/``.
+    ``on_done(n)`` after each run with its episode count.
 
-    Returns the report of :func:`fly` over all episodes (``instances`` and ``runs`` added).
+    Returns the report of :func:`fly` over all episodes (``instances``, ``runs`` and
+    ``backend`` added).
 
     Raises:
         FlyError: after every run has been tried, naming each that failed (the episodes of the
             runs that finished keep their logs).
     """
+    from training.backend import LocalBackend
+
     if not indices:
         raise ValueError("no episodes to fly")
     if instances < 1 or chunk < 1:
@@ -336,34 +365,9 @@ def fly_many(
     out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="visland_fly_"))
     sitl_dir = Path(cfg.sitl_log_dir) if cfg.sitl_log_dir else out / "sitl"
     runs = _chunks(indices, chunk)
-
-    def one(run: tuple[int, int]) -> dict[str, Any]:
-        first, count = run
-        report = fly(
-            replace(
-                cfg,
-                first_episode=first,
-                episodes=count,
-                out=str(out / f"ep{first:04d}"),
-                sitl_log_dir=str(sitl_dir),
-                timeout_s=None,
-                progress=False,
-            )
-        )
-        if on_done is not None:
-            on_done(count)
-        return report
-
+    backend = backend or LocalBackend(min(instances, len(runs)))
     t0 = time.monotonic()
-    reports, failures = [], []
-    with ThreadPoolExecutor(max_workers=min(instances, len(runs))) as pool:
-        futures = {pool.submit(one, run): run for run in runs}
-        for future in as_completed(futures):
-            first, count = futures[future]
-            try:
-                reports.append(future.result())
-            except FlyError as exc:
-                failures.append(f"episodes {first}..{first + count - 1}: {exc}")
+    reports, failures = backend.fly_runs(cfg, runs, out, sitl_dir, on_done)
     if failures:
         raise FlyError(f"{len(failures)} of {len(runs)} runs failed:\n" + "\n".join(failures))
     rows = sorted((r for rep in reports for r in rep["per_episode"]), key=lambda r: r["episode"])
@@ -381,8 +385,9 @@ def fly_many(
         sorted(out.glob("ep*/companion/*.mcap")),
         flights,
         {
-            "instances": min(instances, len(runs)),
+            "instances": min(backend.slots, len(runs)),
             "runs": len(runs),
+            "backend": backend.describe(),
             "wall_s": time.monotonic() - t0,
             "out": str(out),
         },

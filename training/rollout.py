@@ -13,11 +13,11 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
-from sitl_sim.config import VehicleConfig, load_sim, load_vehicle
+from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.env import LandingEnv
 from sitl_sim.flight_record import (
     write_control_step,
@@ -28,12 +28,16 @@ from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import Scenario
 from training.provenance import git_commit
 
+if TYPE_CHECKING:
+    from training.backend import Backend
+
 __all__ = [
     "EpisodeOutcome",
     "RolloutSpec",
     "VehicleModelPilot",
     "episode_pilot",
     "fly_episode",
+    "fly_episodes_local",
     "log_name",
     "make_policy",
     "run_episodes",
@@ -86,8 +90,8 @@ class RolloutSpec:
     seed: int = 0
     scenario: str | Scenario | None = None
     """A scenario file, or a checked scenario (e.g. a benchmark suite's inline condition)."""
-    vehicle: str | None = None
-    sim: str | None = None
+    vehicle: str | VehicleConfig | None = None
+    sim: str | SimConfig | None = None
     render_camera: bool = True
     log_dir: str | None = None
     """Write one MCAP flight log per episode here (None: no logs)."""
@@ -169,7 +173,7 @@ def fly_episode(
             "episode": {"seed": seed, "episode_index": index, "source": source, **airframe},
             **(metadata or {}),
         }
-        log = FlightLogWriter(tmp, meta)
+        log = FlightLogWriter(tmp, meta, reproducible=True)
         write_episode_start(
             log, env.initial_state, env.scenario.to_dict(), seed, index, env.airframe
         )
@@ -222,15 +226,17 @@ def fly_episode(
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(spec: RolloutSpec) -> None:
+def _worker_init(spec: RolloutSpec, policy_file: str | None = None) -> None:
+    """This process's env and policy for ``spec``; ``policy_file``: where this host keeps the
+    checkpoint ``spec.policy`` names (a Ray node's copy), the name staying ``spec.policy``."""
     env = LandingEnv(
-        vehicle=load_vehicle(spec.vehicle),
-        sim=load_sim(spec.sim),
+        vehicle=spec.vehicle,
+        sim=spec.sim,
         scenario=spec.scenario,
         render_camera=spec.render_camera,
     )
     _WORKER["env"] = env
-    _WORKER["policy"] = make_policy(spec.policy, env)
+    _WORKER["policy"] = make_policy(policy_file or spec.policy, env)
     _WORKER["spec"] = spec
     _WORKER["commit"] = git_commit()
 
@@ -254,8 +260,22 @@ def run_episodes(
     indices: list[int],
     workers: int = 1,
     on_done: Callable[[EpisodeOutcome], None] | None = None,
+    backend: Backend | None = None,
 ) -> list[EpisodeOutcome]:
-    """Fly the given episode indices, in ``workers`` processes; results sorted by index."""
+    """Fly the given episode indices on ``backend`` (default: this host, ``workers``
+    processes); results sorted by index."""
+    if backend is None:
+        return fly_episodes_local(spec, indices, workers, on_done)
+    return backend.episodes(spec, indices, on_done)
+
+
+def fly_episodes_local(
+    spec: RolloutSpec,
+    indices: list[int],
+    workers: int = 1,
+    on_done: Callable[[EpisodeOutcome], None] | None = None,
+) -> list[EpisodeOutcome]:
+    """The local backend's episodes: ``workers`` spawn processes (one: this process)."""
     outcomes: list[EpisodeOutcome] = []
 
     def consume(it: Iterator[EpisodeOutcome]) -> None:
