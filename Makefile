@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/pip install --quiet --upgrade pip
 	# torch first and pinned: the CPU build, never a CUDA download.
 	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[dev,ray]'
 	# MAVProxy (the ground-station interop test) without its declared dependencies: they pull
 	# opencv-python and vtk, which clash with opencv-python-headless; its core needs pymavlink
 	# and pyserial (both in [dev]).

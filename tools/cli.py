@@ -77,6 +77,7 @@ def _cmd_companion(args: argparse.Namespace) -> int:
 
 
 def _cmd_fly(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.evaluate import format_table
     from training.fly import FlyConfig, FlyError, fly, fly_many
 
@@ -95,10 +96,11 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         print(f"visland {args.command}: --instances must be >= 1, got {instances}", file=sys.stderr)
         return 2
     try:
-        if instances == 1:
+        if instances == 1 and args.ray is None:
             report = fly(cfg)
         else:
-            report = fly_many(cfg, list(range(args.episodes)), instances=instances)
+            with backend_from_args(args, instances) as backend:
+                report = fly_many(cfg, list(range(args.episodes)), instances, backend=backend)
     except FlyError as exc:
         print(f"visland {args.command}: failed: {exc}", file=sys.stderr)
         return 1
@@ -117,6 +119,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_suite(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.suite import (
         format_suite_table,
         load_suite,
@@ -140,15 +143,17 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    report = run_suite(
-        load_suite(args.suite),
-        args.policy,
-        episodes=args.episodes,
-        seed=args.seed,
-        workers=args.workers,
-        render_camera=not args.no_camera,
-        progress=not args.json,
-    )
+    suite = load_suite(args.suite)
+    with backend_from_args(args, args.workers) as backend:
+        report = run_suite(
+            suite,
+            args.policy,
+            episodes=args.episodes,
+            seed=args.seed,
+            render_camera=not args.no_camera,
+            progress=not args.json,
+            backend=backend,
+        )
     png = None
     if args.plot is not None:
         png = plot_suite(report, args.plot)
@@ -177,6 +182,7 @@ def _cmd_pictures(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.evaluate import EvalConfig, evaluate, format_table
 
     if args.suite is not None:
@@ -189,17 +195,18 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     args.seed = EVAL_SEED if args.seed is None else args.seed
     if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
         return _cmd_fly(args)
-    report = evaluate(
-        EvalConfig(
-            policy=args.policy,
-            episodes=args.episodes,
-            seed=args.seed,
-            scenario=str(args.scenario) if args.scenario else None,
-            workers=args.workers,
-            render_camera=not args.no_camera,
-            progress=not args.json,
+    with backend_from_args(args, args.workers) as backend:
+        report = evaluate(
+            EvalConfig(
+                policy=args.policy,
+                episodes=args.episodes,
+                seed=args.seed,
+                scenario=str(args.scenario) if args.scenario else None,
+                render_camera=not args.no_camera,
+                progress=not args.json,
+                backend=backend,
+            )
         )
-    )
     if args.json:
         _print_json(report)
     else:
@@ -208,17 +215,20 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.evaluate import CollectConfig, collect, format_table
 
-    summary = collect(
-        CollectConfig(
-            out=args.out,
-            episodes=args.episodes,
-            seed=args.seed,
-            scenario=str(args.scenario) if args.scenario else None,
-            workers=args.workers,
+    with backend_from_args(args, args.workers) as backend:
+        summary = collect(
+            CollectConfig(
+                out=args.out,
+                episodes=args.episodes,
+                seed=args.seed,
+                scenario=str(args.scenario) if args.scenario else None,
+                progress=not args.json,
+                backend=backend,
+            )
         )
-    )
     if args.json:
         _print_json(summary)
     else:
@@ -235,10 +245,12 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 def _cmd_relabel(args: argparse.Namespace) -> int:
     import time
 
-    from expert.relabel import relabel
+    from training.backend import backend_from_args
 
     t0 = time.perf_counter()
-    reports = relabel(args.logs, args.out, workers=args.workers)
+    with backend_from_args(args, args.workers) as backend:
+        reports = backend.relabel(list(args.logs), Path(args.out))
+        described = backend.describe()
     wall = time.perf_counter() - t0
     steps = sum(r.steps for r in reports)
     failed = [r for r in reports if not r.ok]
@@ -258,6 +270,7 @@ def _cmd_relabel(args: argparse.Namespace) -> int:
         "wall_s": wall,
         "steps_per_s": steps / wall if wall > 0 else None,
         "labels_dir": str(args.out),
+        "backend": described,
         "per_log": [r.__dict__ for r in reports],
     }
     if args.json:
@@ -467,6 +480,7 @@ def _parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_cmd_bench)
 
     from sitl_sim.sitl_config import add_sitl_arguments
+    from training.backend import add_backend_arguments
 
     st = sub.add_parser(
         "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"
@@ -531,6 +545,7 @@ def _parser() -> argparse.ArgumentParser:
         help="inprocess: the simulator in this process; mavlink: SITL + companion processes "
         "over UDP (as visland fly)",
     )
+    add_backend_arguments(e)
     e.set_defaults(func=_cmd_eval)
 
     from companion.app import add_arguments as add_companion_arguments
@@ -558,6 +573,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     fl.add_argument("--out", type=Path, default=None, help="run folder for both processes' logs")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
+    add_backend_arguments(fl)
     fl.set_defaults(func=_cmd_fly)
 
     c = sub.add_parser("collect", help="fly the expert and write one MCAP log per episode")
@@ -567,6 +583,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--scenario", type=Path, default=None)
     c.add_argument("--workers", type=int, default=1)
     c.add_argument("--json", action="store_true")
+    add_backend_arguments(c)
     c.set_defaults(func=_cmd_collect)
 
     r = sub.add_parser("relabel", help="expert labels for every control step of flight logs")
@@ -574,6 +591,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, required=True, help="folder for the .labels.mcap files")
     r.add_argument("--workers", type=int, default=1)
     r.add_argument("--json", action="store_true")
+    add_backend_arguments(r)
     r.set_defaults(func=_cmd_relabel)
 
     lg = sub.add_parser("log", help="look into an MCAP flight log: info, plot")
@@ -604,12 +622,16 @@ def main(argv: list[str] | None = None) -> int:
     from companion.contract import ContractError
     from companion.flightlog import FlightLogError
     from sitl_sim.errors import SimError
+    from training.backend import BackendError
 
     try:
         return int(args.func(args))
     except (SimError, ContractError, FlightLogError, FileNotFoundError, ValueError) as exc:
         print(f"visland {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BackendError as exc:
+        print(f"visland {args.command}: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"visland {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -20,12 +20,20 @@ def _profile(args: argparse.Namespace):
 
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.pipeline import STAGES, run_pipeline
 
     stages = tuple(args.stages.split(",")) if args.stages else STAGES
-    records = run_pipeline(
-        args.out, _profile(args), args.scenario, stages=stages, progress=not args.no_progress
-    )
+    prof = _profile(args)
+    with backend_from_args(args, prof.workers) as backend:
+        records = run_pipeline(
+            args.out,
+            prof,
+            args.scenario,
+            stages=stages,
+            progress=not args.no_progress,
+            backend=backend,
+        )
     metrics = Path(args.out) / "metrics.json"
     if args.json:
         print(json.dumps(records, indent=2, default=str))
@@ -47,16 +55,20 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from training.backend import backend_from_args
     from training.pipeline import run_pipeline
 
-    run_pipeline(
-        args.run,
-        _profile(args),
-        args.scenario,
-        stages=(args.stage,),
-        progress=not args.no_progress,
-        redo=args.stage if args.redo else None,
-    )
+    prof = _profile(args)
+    with backend_from_args(args, prof.workers) as backend:
+        run_pipeline(
+            args.run,
+            prof,
+            args.scenario,
+            stages=(args.stage,),
+            progress=not args.no_progress,
+            redo=args.stage if args.redo else None,
+            backend=backend,
+        )
     rec = json.loads((Path(args.run) / "stages" / f"{args.stage}.json").read_text())
     print(json.dumps(rec, indent=2) if args.json else f"{args.stage}: {rec.get('checkpoint', rec)}")
     return 0
@@ -90,6 +102,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def register_training(sub: argparse._SubParsersAction) -> None:
+    from training.backend import add_backend_arguments
     from training.pipeline import STAGES
     from training.profiles import PROFILES, ROLLOUT_TRANSPORTS
 
@@ -110,6 +123,7 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     pp.add_argument("--stages", default=None, help=f"comma list (default all: {','.join(STAGES)})")
     pp.add_argument("--no-progress", action="store_true")
     pp.add_argument("--json", action="store_true")
+    add_backend_arguments(pp)
     pp.set_defaults(func=_cmd_pipeline)
 
     tr = sub.add_parser("train", help="run one training stage of a run folder (see pipeline)")
@@ -125,6 +139,7 @@ def register_training(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="run the stage again although it has finished (the later stages' records go too)",
     )
+    add_backend_arguments(tr)
     tr.set_defaults(func=_cmd_train)
 
     sh = sub.add_parser("ship", help="copy a run's vision policy to models/ with its model card")

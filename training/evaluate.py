@@ -12,7 +12,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from tqdm import tqdm
 
@@ -23,10 +23,12 @@ from training.rollout import (
     RolloutSpec,
     completed_episode,
     log_name,
-    run_episodes,
 )
 from training.seeds import EVAL_SEED
 from training.transport import Transport
+
+if TYPE_CHECKING:
+    from training.backend import Backend
 
 __all__ = ["CollectConfig", "EvalConfig", "collect", "evaluate", "format_table"]
 
@@ -47,6 +49,14 @@ class EvalConfig:
     render_camera: bool = True
     """Render the camera (needed by vision policies; privileged ones can skip it)."""
     progress: bool = True
+    backend: Backend | None = None
+    """Where the episodes fly (None: this host, ``workers`` processes)."""
+
+
+def _backend(backend: Backend | None, workers: int) -> Backend:
+    from training.backend import LocalBackend
+
+    return backend if backend is not None else LocalBackend(workers)
 
 
 def _totals(outcomes: list[EpisodeOutcome]) -> dict[str, int]:
@@ -73,11 +83,10 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     spec = RolloutSpec(
         policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, render_camera=cfg.render_camera
     )
+    backend = _backend(cfg.backend, cfg.workers)
     t0 = time.perf_counter()
     with _progress(cfg.episodes, cfg.progress, f"eval {cfg.policy}") as bar:
-        outcomes = run_episodes(
-            spec, list(range(cfg.episodes)), cfg.workers, on_done=lambda _: bar.update()
-        )
+        outcomes = backend.episodes(spec, list(range(cfg.episodes)), lambda _: bar.update())
     results = [o.result for o in outcomes]
     return {
         "policy": cfg.policy,
@@ -87,6 +96,7 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
         **summarize(results),
         "policy_stats": _totals(outcomes),
         "wall_s": time.perf_counter() - t0,
+        "backend": backend.describe(),
         "per_episode": [o.row() for o in outcomes],
     }
 
@@ -103,6 +113,8 @@ class CollectConfig:
     workers: int = 1
     policy: str = "expert"
     progress: bool = True
+    backend: Backend | None = None
+    """Where the episodes fly (None: this host, ``workers`` processes)."""
 
 
 def collect(cfg: CollectConfig) -> dict[str, Any]:
@@ -115,9 +127,10 @@ def collect(cfg: CollectConfig) -> dict[str, Any]:
     spec = RolloutSpec(
         policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, log_dir=str(flights)
     )
+    backend = _backend(cfg.backend, cfg.workers)
     t0 = time.perf_counter()
     with _progress(len(todo), cfg.progress, f"collect {cfg.policy}") as bar:
-        outcomes = run_episodes(spec, todo, cfg.workers, on_done=lambda _: bar.update())
+        outcomes = backend.episodes(spec, todo, lambda _: bar.update()) if todo else []
     summary = {
         "policy": cfg.policy,
         "seed": cfg.seed,
@@ -128,6 +141,7 @@ def collect(cfg: CollectConfig) -> dict[str, Any]:
         **{k: v for k, v in summarize([o.result for o in outcomes]).items() if k != "episodes"},
         "policy_stats": _totals(outcomes),
         "wall_s": time.perf_counter() - t0,
+        "backend": backend.describe(),
         "per_episode": [o.row() for o in outcomes],
     }
     (Path(cfg.out) / f"collect_s{cfg.seed}.json").write_text(json.dumps(summary, indent=2))

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from training.backend import Backend
 from training.profiles import PROFILES, PipelineError, Profile
 from training.run_folder import Run
 from training.stages import bc, collect, dagger, perception, vision
@@ -53,14 +54,17 @@ def run_pipeline(
     stages: tuple[str, ...] = STAGES,
     progress: bool = True,
     redo: str | None = None,
+    backend: Backend | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run (or resume) the stages in order; returns the stage records (their JSON).
+
+    ``backend``: where the episodes fly (default: this host, the profile's ``workers``).
 
     ``redo``: run this stage again although it has finished; the records of the stages after it
     (which were built on it) are removed too, so they run again when asked for.
     """
     prof = PROFILES[profile] if isinstance(profile, str) else profile
-    run = Run(out, prof, scenario, progress)
+    run = Run(out, prof, scenario, progress, backend=backend)
     if redo is not None:
         if redo not in STAGES:
             run.close()

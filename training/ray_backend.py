@@ -17,6 +17,7 @@ rerun resumes. Every node must run the same visland commit as the driver (checke
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import socket
@@ -39,11 +40,8 @@ _INSTALL = "the Ray backend needs Ray: pip install 'visland[ray]' (ray 2.60.0)"
 
 
 def ray_available() -> bool:
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether Ray is installed (without importing it: see :class:`RayBackend` on loopback)."""
+    return importlib.util.find_spec("ray") is not None
 
 
 def _ray():
@@ -207,6 +205,11 @@ class RayBackend(Backend):
         num_cpus: int | None = None,
     ) -> None:
         super().__init__()
+        if address == "local" and "ray" not in sys.modules:
+            # a local instance is one node: Ray then binds and registers 127.0.0.1 instead of
+            # the host's network address, so nothing outside this host can reach it (Ray reads
+            # this when it is imported)
+            os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
         ray = _ray()
         self._say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.address = address

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from companion.flightlog import jsonable
 from sitl_sim.config import load_sim, load_vehicle, planet
+from training.backend import Backend, LocalBackend
 from training.profiles import PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
@@ -41,9 +42,13 @@ class Run:
         scenario: str | None = None,
         progress: bool = True,
         say: Callable[[str], None] | None = None,
+        backend: Backend | None = None,
     ) -> None:
         self.root = Path(out)
         self.profile = profile
+        self.backend = backend if backend is not None else LocalBackend(profile.workers)
+        """Where the run's episodes fly: rollouts, relabelling, validation, evaluation (not a
+        part of the profile: both backends fly the same episodes)."""
         self.scenario_path = scenario
         self.progress = progress
         self.say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))

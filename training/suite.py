@@ -31,7 +31,7 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from sitl_sim.config import load_toml
 from sitl_sim.errors import ConfigError
@@ -39,6 +39,9 @@ from sitl_sim.scenario import Scenario, load_scenario, scenario_from_dict
 from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.seeds import EVAL_SEED
+
+if TYPE_CHECKING:
+    from training.backend import Backend
 
 __all__ = [
     "Condition",
@@ -171,12 +174,13 @@ def run_suite(
     workers: int = 1,
     render_camera: bool = True,
     progress: bool = True,
+    backend: Backend | None = None,
 ) -> dict[str, Any]:
     """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
-    processes). ``episodes``/``seed`` override the suite file's (``episodes`` every
-    condition's, its own count included). Returns ``{"suite", "policy", "seed", "episodes",
-    "conditions": {name: eval report}}`` (``episodes``: the suite's default count; each
-    report says its own)."""
+    processes, or on ``backend``). ``episodes``/``seed`` override the suite file's
+    (``episodes`` every condition's, its own count included). Returns ``{"suite", "policy",
+    "seed", "episodes", "conditions": {name: eval report}}`` (``episodes``: the suite's
+    default count; each report says its own)."""
     n = suite.episodes if episodes is None else episodes
     s = suite.seed if seed is None else seed
     reports: dict[str, dict[str, Any]] = {}
@@ -192,6 +196,7 @@ def run_suite(
                 workers=workers,
                 render_camera=render_camera,
                 progress=progress,
+                backend=backend,
             )
         )
     return {"suite": suite.path, "policy": policy, "seed": s, "episodes": n, "conditions": reports}

@@ -61,7 +61,7 @@ def _fly_suite(r: Run, policy: str, name: str) -> str:
         except ValueError:
             pass  # half-written: fly it again
     report = run_suite(
-        suite, policy, seed=p.eval_seed, workers=p.workers, render_camera=True, progress=r.progress
+        suite, policy, seed=p.eval_seed, render_camera=True, progress=r.progress, backend=r.backend
     )
     report["policy_sha256"] = sha
     format_suite_table(report, sys.stderr)
@@ -90,9 +90,9 @@ def run(r: Run) -> EvalRecord:
                 episodes=p.eval_episodes,
                 seed=p.eval_seed,
                 scenario=r.scenario_path,
-                workers=p.workers,
                 render_camera=camera,
                 progress=r.progress,
+                backend=r.backend,
             )
         )
         rows[row] = report

@@ -11,7 +11,7 @@ from typing import Any
 
 from training.dataset import Episode, load_episodes
 from training.profiles import PipelineError
-from training.rollout import RolloutSpec, completed_episode, log_name, run_episodes
+from training.rollout import RolloutSpec, completed_episode, log_name
 from training.run_folder import Run
 from training.stages.records import CollectRecord
 from training.transport import Transport
@@ -65,7 +65,7 @@ def fly(
                     render_camera=camera,
                     log_dir=str(flights),
                 )
-                run_episodes(spec, todo, run.profile.workers, on_done=lambda _: bar.update())
+                run.backend.episodes(spec, todo, lambda _: bar.update())
     return out
 
 
@@ -94,7 +94,7 @@ def _fly_mavlink(
     )
     for attempt in (1, 2):
         try:
-            fly_many(cfg, todo, instances=run.profile.workers, on_done=progress)
+            fly_many(cfg, todo, run.profile.workers, on_done=progress, backend=run.backend)
             return
         except FlyError as exc:
             todo = [i for i in todo if not completed_episode(flights / sitl_log_name(seed, i))]
@@ -109,13 +109,12 @@ def _fly_mavlink(
 def relabel(run: Run, logs: list[Path], folder: str) -> list[tuple[Path, Path]]:
     """Offline expert labels for learner logs (``expert.relabel``, as `visland relabel`)."""
     from expert.relabel import label_path
-    from expert.relabel import relabel as relabel_logs
 
     out = run.root / "labels" / folder
     todo = [p for p in logs if not label_path(p, out).exists()]
     if todo:
         t0 = time.perf_counter()
-        reports = relabel_logs(todo, out, workers=run.profile.workers)
+        reports = run.backend.relabel(todo, out)
         bad = [r for r in reports if r.error]
         for r in bad:
             run.say(f"relabel: {r.error}")

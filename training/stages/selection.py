@@ -28,9 +28,9 @@ def evaluate(
                 episodes=n,
                 seed=seed + world.seed_offset,
                 scenario=world.file,
-                workers=run.profile.workers,
                 render_camera=camera,
                 progress=progress,
+                backend=run.backend,
             )
         )
         for world, n in run.worlds.split(episodes)
