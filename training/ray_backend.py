@@ -210,6 +210,8 @@ class RayBackend(Backend):
             # the host's network address, so nothing outside this host can reach it (Ray reads
             # this when it is imported)
             os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        if address == "local":
+            os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves this host
         ray = _ray()
         self._say = say or (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.address = address
