@@ -341,7 +341,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         try:
             res = bench_companion(
                 policy=args.checkpoint or DEFAULT_CHECKPOINT,
-                episodes=args.episodes,
+                episodes=args.episodes or 3,
                 seed=args.seed,
                 runtime=args.runtime,
             )
@@ -355,6 +355,33 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             return 1
         else:
             print(format_bench(res))
+        return 0
+    if args.what == "rollouts":
+        from tools.bench_rollouts import RolloutBenchConfig, bench_rollouts, format_rollout_bench
+        from training.backend import check_ray_address
+        from training.profiles import PROFILES
+
+        if args.profile not in PROFILES:
+            print(
+                f"visland bench rollouts: unknown profile {args.profile!r}; expected one of "
+                f"{sorted(PROFILES)}",
+                file=sys.stderr,
+            )
+            return 2
+        res = bench_rollouts(
+            RolloutBenchConfig(
+                episodes=args.episodes or 12,
+                workers=args.workers,
+                ray=check_ray_address(args.ray),
+                seed=args.seed or 900,
+                run=args.run,
+                profile=args.profile,
+            )
+        )
+        if args.json:
+            _print_json(res)
+        else:
+            print(format_rollout_bench(res))
         return 0
     if args.what == "sim":
         from tools.bench import SimBenchConfig, bench_sim
@@ -443,12 +470,14 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks that print the project's speed figures")
     b.add_argument(
         "what",
-        choices=["sim", "mpc", "policy", "companion"],
+        choices=["sim", "mpc", "policy", "companion", "rollouts"],
         help="sim: simulator real-time factor on one core; mpc: MPC solve time vs the paper's; "
         "policy: per-step inference of a checkpoint (default: the shipped model) vs a paper-style "
         "net; "
         "companion: frame receipt -> setpoint latency of the real companion process (SITL "
-        "flights), and torch vs ONNX Runtime policy step on the same frames",
+        "flights), and torch vs ONNX Runtime policy step on the same frames; "
+        "rollouts: episodes per minute on the local backend vs Ray, and the projection of a "
+        "training profile on a cluster",
     )
     b.add_argument(
         "--checkpoint",
@@ -462,7 +491,28 @@ def _parser() -> argparse.ArgumentParser:
         default="torch",
         help="bench companion: the companion's policy backend",
     )
-    b.add_argument("--episodes", type=int, default=3, help="bench companion: flights")
+    b.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="bench companion: flights (default 3); bench rollouts: episodes of each kind per "
+        "backend (default 12)",
+    )
+    b.add_argument(
+        "--ray",
+        default="local",
+        metavar="ADDRESS",
+        help="bench rollouts: the Ray cluster to compare with (default: a local instance)",
+    )
+    b.add_argument(
+        "--workers", type=int, default=0, help="bench rollouts: local processes (0: CPU count)"
+    )
+    b.add_argument(
+        "--run",
+        default="runs/robust",
+        help="bench rollouts: run folder whose recorded training seconds the projection adds",
+    )
+    b.add_argument("--profile", default="robust", help="bench rollouts: the profile to project")
     b.add_argument(
         "--renderer",
         choices=["fast", "pybullet"],
