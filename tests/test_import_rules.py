@@ -47,7 +47,7 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
     ),
     "training": (
         ("training", "expert", "sitl_sim", "companion"),
-        {"numpy", "scipy", "torch", "tqdm", "matplotlib", "tomli_w"},
+        {"numpy", "scipy", "torch", "tqdm", "matplotlib", "tomli_w", "ray"},
     ),
 }
 PROJECT = ("companion", "sitl_sim", "expert", "training", "tools")
