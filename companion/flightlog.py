@@ -12,8 +12,9 @@ shared/reference/mcap_notes.md):
 * small zstd chunks, flushed whenever 1 s of wall time or 1 s of sim time has passed since the
   last flush, so a killed process loses at most the last second;
 * a *reproducible* log (``reproducible=True``: in-process rollouts and expert labels, which are
-  renamed into place only when complete) has epoch 0 (log time = sim time) and flushes on sim
-  time only: the same flight gives the same bytes on any host, worker or backend;
+  renamed into place only when complete) has the fixed epoch :data:`REPRODUCIBLE_EPOCH_NS`
+  (2000-01-01T00:00:00Z; log time = that + sim time) and flushes on sim time only: the same
+  flight gives the same bytes on any host, worker or backend;
 * the effective configuration goes into MCAP metadata records at the start of the file.
 
 Reading (:func:`read_log`) never seeks: a truncated file yields every message up to the cut and
@@ -210,6 +211,11 @@ def jsonable(value: Any) -> Any:
     return _jsonable(value)
 
 
+REPRODUCIBLE_EPOCH_NS = 946_684_800 * 1_000_000_000
+"""2000-01-01T00:00:00Z: the epoch of reproducible logs (not 0: a sensor's timestamp may precede
+the episode's start by its latency, and MCAP log times are unsigned)."""
+
+
 class FlightLogError(Exception):
     """A flight log cannot be written or read (names the file and the reason)."""
 
@@ -222,10 +228,10 @@ class FlightLogWriter:
         metadata: name -> JSON-serialisable dict (e.g. ``{"config": {...}, "episode": {...}}``),
             each written as one MCAP metadata record whose values are JSON strings.
         epoch_ns: the file's time origin; defaults to the wall time at creation.
-        reproducible: no wall clock in the file: epoch 0 (unless ``epoch_ns`` is given) and
-            chunks flushed on sim time only, so the same messages give the same bytes. For
-            logs written to a ``.part`` file and renamed when complete (a crash loses the
-            whole file anyway, so flushing on wall time buys nothing).
+        reproducible: no wall clock in the file: epoch :data:`REPRODUCIBLE_EPOCH_NS` (unless
+            ``epoch_ns`` is given) and chunks flushed on sim time only, so the same messages
+            give the same bytes. For logs written to a ``.part`` file and renamed when complete
+            (a crash loses the whole file anyway, so flushing on wall time buys nothing).
     """
 
     def __init__(
@@ -245,7 +251,7 @@ class FlightLogWriter:
         self._writer = Writer(self._fh, chunk_size=_CHUNK_BYTES, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="visland")
         if epoch_ns is None:
-            epoch_ns = 0 if reproducible else time.time_ns()
+            epoch_ns = REPRODUCIBLE_EPOCH_NS if reproducible else time.time_ns()
         self.epoch_ns = int(epoch_ns)
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}

@@ -215,6 +215,16 @@ class EpisodeRow(Record):
 
 
 @dataclass(frozen=True)
+class BackendInfo(Record):
+    """Where a report's episodes flew (``training.backend.Backend.describe``)."""
+
+    name: str
+    slots: int
+    retried: tuple[str, ...]
+    address: str | None = field(default=None, metadata={"omit_none": True})
+
+
+@dataclass(frozen=True)
 class EvalRow(Record):
     """One Table 3 row: ``training.evaluate.evaluate``'s report of one policy."""
 
@@ -233,6 +243,8 @@ class EvalRow(Record):
     policy_stats: dict[str, int]
     wall_s: float
     per_episode: tuple[EpisodeRow, ...]
+    backend: BackendInfo | None = field(default=None, metadata={"omit_none": True})
+    """Absent in runs evaluated before execution backends existed."""
 
 
 @dataclass(frozen=True)
