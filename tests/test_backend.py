@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -185,3 +186,20 @@ def test_shared_dir_without_ray_is_refused():
 
     with pytest.raises(ValueError, match="--shared-dir is for --ray"):
         open_backend(None, 1, "/tmp")
+
+
+def test_ray_flies_sitl_companion_pairs_as_the_local_backend(tmp_path, ray_backend, low_scenario):
+    """``fly --instances`` on Ray: each run is one SITL + companion pair on its node's own ports;
+    the SITL logs come back under the driver's folder and the records are the local ones."""
+    from training.fly import FlyConfig, fly_many
+
+    cfg = FlyConfig(policy="expert", seed=48, scenario=low_scenario, progress=False)
+    local = fly_many(replace(cfg, out=str(tmp_path / "l")), [0, 1, 2], instances=2, chunk=2)
+    ray = fly_many(replace(cfg, out=str(tmp_path / "r")), [0, 1, 2], chunk=2, backend=ray_backend)
+    assert ray["backend"]["name"] == "ray" and ray["runs"] == 2
+    strip = [{k: v for k, v in r.items() if k != "log"} for r in ray["per_episode"]]
+    assert strip == [{k: v for k, v in r.items() if k != "log"} for r in local["per_episode"]]
+    for row in ray["per_episode"]:
+        assert Path(row["log"]).parent == tmp_path / "r" / "sitl" and Path(row["log"]).is_file()
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["ep0000", "ep0002", "sitl"]
+    assert list((tmp_path / "r" / "ep0000" / "companion").glob("*.mcap"))
