@@ -128,9 +128,9 @@ class LocalBackend(Backend):
         return self.workers
 
     def episodes(self, spec, indices, on_done=None):
-        from training.rollout import fly_episodes_local
+        from training.rollout import run_episodes
 
-        return fly_episodes_local(spec, indices, self.workers, on_done)
+        return run_episodes(spec, indices, self.workers, on_done)
 
     def relabel(self, logs, out_dir, on_done=None):
         from expert.relabel import relabel

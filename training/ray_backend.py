@@ -100,22 +100,14 @@ def _take(path: Path, shared: Path | None) -> bytes | str:
 
 
 def _episode_task(spec, index, policy_sha, policy_data, commit, shared):
-    from training import rollout
+    from training.rollout import fly_in_this_process
 
     _check_commit(commit)
-    policy_file = _node_policy(policy_sha, policy_data)
     log_dir = None
     if spec.log_dir is not None:
         log_dir = str(Path(shared) if shared else _node_dir() / "logs")
     local = replace(spec, log_dir=log_dir)
-    key = (local, policy_file)
-    if rollout._WORKER.get("key") != key:
-        if "env" in rollout._WORKER:
-            rollout._WORKER["env"].close()
-            rollout._WORKER.clear()
-        rollout._worker_init(local, policy_file)
-        rollout._WORKER["key"] = key
-    outcome = rollout._worker_run(index)
+    outcome = fly_in_this_process(local, index, _node_policy(policy_sha, policy_data))
     log = None
     if outcome.log_path is not None:
         log = _take(Path(outcome.log_path), Path(shared) if shared else None)

@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
@@ -28,16 +28,13 @@ from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import Scenario
 from training.provenance import git_commit
 
-if TYPE_CHECKING:
-    from training.backend import Backend
-
 __all__ = [
     "EpisodeOutcome",
     "RolloutSpec",
     "VehicleModelPilot",
     "episode_pilot",
     "fly_episode",
-    "fly_episodes_local",
+    "fly_in_this_process",
     "log_name",
     "make_policy",
     "run_episodes",
@@ -255,27 +252,27 @@ def _worker_run(index: int) -> EpisodeOutcome:
     )
 
 
+def fly_in_this_process(spec: RolloutSpec, index: int, policy_file: str | None = None):
+    """Episode ``index`` of ``spec`` in this (long-lived worker) process, keeping the env and
+    policy between calls of the same spec (a Ray task's body: ``training.ray_backend``)."""
+    key = (spec, policy_file)
+    if _WORKER.get("key") != key:
+        if "env" in _WORKER:
+            _WORKER["env"].close()
+            _WORKER.clear()
+        _worker_init(spec, policy_file)
+        _WORKER["key"] = key
+    return _worker_run(index)
+
+
 def run_episodes(
     spec: RolloutSpec,
     indices: list[int],
     workers: int = 1,
     on_done: Callable[[EpisodeOutcome], None] | None = None,
-    backend: Backend | None = None,
 ) -> list[EpisodeOutcome]:
-    """Fly the given episode indices on ``backend`` (default: this host, ``workers``
-    processes); results sorted by index."""
-    if backend is None:
-        return fly_episodes_local(spec, indices, workers, on_done)
-    return backend.episodes(spec, indices, on_done)
-
-
-def fly_episodes_local(
-    spec: RolloutSpec,
-    indices: list[int],
-    workers: int = 1,
-    on_done: Callable[[EpisodeOutcome], None] | None = None,
-) -> list[EpisodeOutcome]:
-    """The local backend's episodes: ``workers`` spawn processes (one: this process)."""
+    """Fly the given episode indices in ``workers`` spawn processes (one: this process);
+    results sorted by index. The local backend's episodes (``training.backend``)."""
     outcomes: list[EpisodeOutcome] = []
 
     def consume(it: Iterator[EpisodeOutcome]) -> None:
