@@ -163,3 +163,17 @@ def test_cli_export_and_companion_runtime_errors(shipped, tmp_path, capsys):
     assert "needs a checkpoint file" in capsys.readouterr().err
     assert main(["bench", "companion", "--checkpoint", str(tmp_path / "none.pt")]) == 2
     assert "none.pt: no such checkpoint file" in capsys.readouterr().err
+
+
+@needs_onnx
+def test_bench_policy_times_onnx_beside_torch_without_writing_beside_the_checkpoint(tmp_path):
+    from training.bench_policy import bench_policy
+
+    ckpt = tmp_path / "model.pt"
+    shutil.copyfile(SHIPPED, ckpt)
+    res = bench_policy(str(ckpt), steps=30, runtime="onnx")
+    assert res["onnx"]["median_ms"] > 0 and res["shipped"]["median_ms"] > 0
+    assert res["onnx_vs_torch"] == res["shipped"]["median_ms"] / res["onnx"]["median_ms"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]  # the export was a copy's
+    with pytest.raises(ValueError, match="runtime must be"):
+        bench_policy(str(ckpt), steps=5, runtime="tensorrt")

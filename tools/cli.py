@@ -320,7 +320,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench_companion import DEFAULT_CHECKPOINT
         from training.bench_policy import bench_policy
 
-        res = bench_policy(args.checkpoint or DEFAULT_CHECKPOINT, steps=300, seed=args.seed)
+        res = bench_policy(
+            args.checkpoint or DEFAULT_CHECKPOINT, steps=300, seed=args.seed, runtime=args.runtime
+        )
         if args.json:
             _print_json(res)
         else:
@@ -333,6 +335,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 f"({b['parameters']} parameters) -> {res['speedup_vs_paper_style']:.1f}x faster\n"
                 f"paper's reported policy step: {res['paper_reported_ms']} ms"
             )
+            if "onnx" in res:
+                o = res["onnx"]
+                print(
+                    f"ONNX Runtime, same checkpoint, same run: median {o['median_ms']:.3f} ms, "
+                    f"p99 {o['p99_ms']:.3f} ms ({res['onnx_vs_torch']:.2f}x torch)"
+                )
         return 0
     if args.what == "companion":
         from tools.bench_companion import DEFAULT_CHECKPOINT, bench_companion, format_bench
@@ -489,7 +497,8 @@ def _parser() -> argparse.ArgumentParser:
         "--runtime",
         choices=["torch", "onnx"],
         default="torch",
-        help="bench companion: the companion's policy backend",
+        help="bench companion: the companion's policy backend; bench policy: onnx times the "
+        "checkpoint on ONNX Runtime too (exported to a temporary copy), beside torch",
     )
     b.add_argument(
         "--episodes",

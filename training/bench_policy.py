@@ -9,8 +9,11 @@ even on a shared, noisy CPU. Both run one thread, batch 1, as on a companion com
 
 from __future__ import annotations
 
+import shutil
 import statistics
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -76,8 +79,35 @@ def _stats(samples: list[float]) -> dict[str, float]:
     }
 
 
-def bench_policy(checkpoint: str | None = None, steps: int = 300, seed: int = 0) -> dict[str, Any]:
-    """Time ``act()`` of the policy (shipped size if no checkpoint) and the paper-style net."""
+def _onnx_twin(checkpoint: str, folder: Path) -> LearnedPolicy:
+    """``checkpoint`` exported to ONNX in ``folder`` (a copy: nothing is written beside the
+    original) and loaded on ONNX Runtime, one intra-op thread."""
+    from companion.onnx_runtime import export_onnx, load_onnx_policy
+
+    copy = folder / Path(checkpoint).name
+    shutil.copyfile(checkpoint, copy)
+    export_onnx(copy)
+    return load_onnx_policy(copy, threads=1)
+
+
+def bench_policy(
+    checkpoint: str | None = None, steps: int = 300, seed: int = 0, runtime: str = "torch"
+) -> dict[str, Any]:
+    """Time ``act()`` of the policy (shipped size if no checkpoint) and the paper-style net;
+    with ``runtime = "onnx"`` the same checkpoint on ONNX Runtime too (exported to a temporary
+    copy), all interleaved in one run (``onnx``, ``onnx_vs_torch``)."""
+    if runtime not in ("torch", "onnx"):
+        raise ValueError(f"runtime must be 'torch' or 'onnx', got {runtime!r}")
+    if runtime == "onnx" and checkpoint is None:
+        raise ValueError("bench policy --runtime onnx needs a checkpoint (an exported network)")
+    with tempfile.TemporaryDirectory(prefix="visland_bench_onnx_") as tmp:
+        onnx = _onnx_twin(checkpoint, Path(tmp)) if runtime == "onnx" else None
+        return _bench(checkpoint, steps, seed, onnx)
+
+
+def _bench(
+    checkpoint: str | None, steps: int, seed: int, onnx: LearnedPolicy | None
+) -> dict[str, Any]:
     torch.set_num_threads(1)
     policy: LearnedPolicy = load_policy(checkpoint) if checkpoint else untrained_policy(seed)
     rng = np.random.default_rng(seed)
@@ -89,15 +119,23 @@ def bench_policy(checkpoint: str | None = None, steps: int = 300, seed: int = 0)
         gt = SimpleNamespace(pos_ned_m=np.array([1.0, -1.0, -50.0]), vel_ned_m_s=np.zeros(3))
     torch.manual_seed(seed)
     paper = PaperStyleNet().eval()
-    ours, theirs = [], []
+    ours, theirs, on_onnx = [], [], []
     state = policy.initial_state()
+    ostate = onnx.initial_state() if onnx is not None else None
     pstate = None
     for _ in range(20):  # warm-up (allocator, oneDNN kernels)
         _, state = policy.act(obs[0], gt, state)
+        if onnx is not None:
+            _, ostate = onnx.act(obs[0], gt, ostate)
         with torch.inference_mode():
             _, pstate = paper(torch.zeros(1, 1, 128, 128), torch.zeros(1, 9), pstate)
     state, pstate = policy.initial_state(), None
-    for o in obs:  # interleaved, so load changes hit both alike
+    ostate = onnx.initial_state() if onnx is not None else None
+    for o in obs:  # interleaved, so load changes hit all alike
+        if onnx is not None:
+            t = time.perf_counter()
+            _, ostate = onnx.act(o, gt, ostate)
+            on_onnx.append(time.perf_counter() - t)
         t0 = time.perf_counter()
         _, state = policy.act(o, gt, state)
         t1 = time.perf_counter()
@@ -128,4 +166,7 @@ def bench_policy(checkpoint: str | None = None, steps: int = 300, seed: int = 0)
         "paper_reported_ms": 13.2,
     }
     res["speedup_vs_paper_style"] = res["paper_style"]["median_ms"] / res["shipped"]["median_ms"]
+    if onnx is not None:
+        res["onnx"] = _stats(on_onnx)
+        res["onnx_vs_torch"] = res["shipped"]["median_ms"] / res["onnx"]["median_ms"]
     return res
