@@ -198,7 +198,8 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ADDRESS",
         help="fly the episodes on a Ray cluster (pip install 'visland[ray]'): auto, local (a "
         "Ray instance started in this process), ray://HOST:PORT or HOST:PORT; every node must "
-        "run the same visland commit",
+        "run the same visland commit; the cluster's CPUs then set the parallelism (--workers / "
+        "--instances are for this host)",
     )
     parser.add_argument(
         "--shared-dir",
