@@ -203,3 +203,23 @@ def test_ray_flies_sitl_companion_pairs_as_the_local_backend(tmp_path, ray_backe
         assert Path(row["log"]).parent == tmp_path / "r" / "sitl" and Path(row["log"]).is_file()
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["ep0000", "ep0002", "sitl"]
     assert list((tmp_path / "r" / "ep0000" / "companion").glob("*.mcap"))
+
+
+def test_an_unreachable_cluster_is_a_clear_error_at_once():
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    cmd = [sys.executable, "-m", "tools.cli", "eval", "--episodes", "1", "--no-camera"]
+    proc = subprocess.run(
+        [*cmd, "--ray", f"127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert f"cannot reach 127.0.0.1:{port}" in proc.stderr
+    assert f"ray start --head --port {port}" in proc.stderr
+    assert time.monotonic() - t0 < 100  # not Ray's minutes of retrying

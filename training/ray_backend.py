@@ -178,6 +178,22 @@ def _place(data: bytes | str, dst: Path) -> None:
     tmp.replace(dst)
 
 
+def _probe(address: str, timeout_s: float = 5.0) -> None:
+    """A TCP connect to ``HOST:PORT`` (or ``ray://HOST:PORT``) first: Ray itself retries an
+    unreachable head for minutes before it gives up."""
+    if address == "auto":
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise BackendError(
+            f"--ray {address}: cannot reach {host}:{port} ({exc.strerror or exc}); is the head "
+            f"node started (`ray start --head --port {port}`) and reachable from here?"
+        ) from None
+
+
 def _short(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[-1] if text else type(exc).__name__
@@ -230,6 +246,7 @@ class RayBackend(Backend):
                 logging_level="WARNING",
             )
         else:
+            _probe(address)
             try:
                 ctx = ray.init(address=address, logging_level="WARNING")
             except (ConnectionError, RuntimeError, ValueError) as exc:
