@@ -38,7 +38,7 @@ class RolloutBenchConfig:
     """Episodes of each kind (expert, vision policy) per backend."""
     workers: int = 0
     """Local processes (0: the CPU count)."""
-    ray: str | None = "local"
+    ray: str = "local"
     """Ray address (``local``: an instance started here with ``workers`` CPUs)."""
     policy: str = "models/visland_vision.pt"
     seed: int = 900
@@ -88,7 +88,7 @@ def bench_rollouts(cfg: RolloutBenchConfig) -> dict[str, Any]:
         local = _time_kinds(LocalBackend(workers), cfg, root / "local")
         t0 = time.perf_counter()
         num_cpus = workers if cfg.ray == "local" else None
-        with RayBackend(cfg.ray or "local", num_cpus=num_cpus, say=lambda _m: None) as backend:
+        with RayBackend(cfg.ray, num_cpus=num_cpus, say=lambda _m: None) as backend:
             start_s = time.perf_counter() - t0
             ray = _time_kinds(backend, cfg, root / "ray")
             ray_cpus = backend.cpus

@@ -185,8 +185,7 @@ def _probe(address: str, timeout_s: float = 5.0) -> None:
         return
     host, _, port = address.removeprefix("ray://").rpartition(":")
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout_s):
-            pass
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
     except OSError as exc:
         raise BackendError(
             f"--ray {address}: cannot reach {host}:{port} ({exc.strerror or exc}); is the head "
