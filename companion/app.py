@@ -97,10 +97,11 @@ class CompanionConfig:
     )
     policy: str = option("", "policy checkpoint (visland companion also takes expert | cascade)")
     runtime: str = option(
-        "torch",
-        "learned policy backend: torch, or onnx (ONNX Runtime on the visland export-onnx "
-        "graphs beside the checkpoint; pip install 'visland[onnx]')",
-        choices=("torch", "onnx"),
+        "auto",
+        "learned policy backend: onnx (ONNX Runtime on the visland export-onnx graphs beside "
+        "the checkpoint; no torch needed), torch, or auto (onnx when onnxruntime is installed "
+        "and the export is there, else torch)",
+        choices=("auto", "torch", "onnx"),
     )
     torch_threads: int = option(1, "intra-op threads for the policy (torch or ONNX Runtime)")
     shadow: bool = option(

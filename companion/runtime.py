@@ -10,17 +10,22 @@ back as ``StepResult.error``, which the safety monitor turns into a failsafe.
 
 from __future__ import annotations
 
+import importlib.util
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from companion.contract import Command, GroundTruth, Observation, Policy, PolicyState
 
-__all__ = ["RUNTIMES", "PolicyRuntime", "StepResult", "load_policy_file"]
+_log = logging.getLogger("companion.runtime")
 
-RUNTIMES = ("torch", "onnx")
-"""Backends of a learned checkpoint: ``torch`` (the checkpoint itself) or ``onnx`` (its
-``visland export-onnx`` graphs in ONNX Runtime; same geometry/estimator code in Python)."""
+__all__ = ["RUNTIMES", "PolicyRuntime", "StepResult", "load_policy_file", "resolve_runtime"]
+
+RUNTIMES = ("auto", "torch", "onnx")
+"""Backends of a learned checkpoint: ``torch`` (the checkpoint itself), ``onnx`` (its
+``visland export-onnx`` graphs in ONNX Runtime; same geometry/estimator code in Python, no
+torch), or ``auto`` (:func:`resolve_runtime`)."""
 
 
 @dataclass(frozen=True)
@@ -106,31 +111,60 @@ class PolicyRuntime:
         return StepResult(command, None, time.perf_counter() - t0)
 
 
-def load_policy_file(path: str | Path, torch_threads: int = 1, runtime: str = "torch") -> Policy:
+def resolve_runtime(path: str | Path, runtime: str = "auto") -> str:
+    """The backend ``runtime`` names for checkpoint ``path``: ``auto`` is ``onnx`` when
+    onnxruntime is installed and the export is beside the checkpoint (what a board has), else
+    ``torch``. Raises ValueError for an unknown runtime."""
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
+    if runtime != "auto":
+        return runtime
+    from companion.onnx_runtime import onnx_paths
+
+    if onnx_paths(path)[1].is_file() and _installed("onnxruntime"):
+        return "onnx"
+    return "torch"
+
+
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ValueError:  # in sys.modules as None: its import is blocked
+        return False
+
+
+def load_policy_file(path: str | Path, torch_threads: int = 1, runtime: str = "auto") -> Policy:
     """A learned-policy checkpoint for the CPU (explicit LSTM state).
 
     ``runtime``: ``torch`` runs the checkpoint's networks in torch; ``onnx`` runs its
     ``visland export-onnx`` graphs (beside the checkpoint, checked to be exported from it) in
-    ONNX Runtime — the optional ``onnx`` extra. ``torch_threads`` limits the intra-op threads
-    of either: on a small board one thread gives the steadiest latency and leaves a core to the
-    link and the camera.
+    ONNX Runtime, with no torch installed (the ``companion`` extra); ``auto`` (default) picks
+    ``onnx`` when onnxruntime is installed and the export is there, else ``torch``.
+    ``torch_threads`` limits the intra-op threads of either: on a small board one thread gives
+    the steadiest latency and leaves a core to the link and the camera.
 
     Raises:
         companion.policy_net.CheckpointError: not a readable checkpoint (names the file).
         companion.onnx_runtime.OnnxModelError: runtime onnx: onnxruntime missing, or an ONNX
             file missing, corrupt or stale (names the file and the fix).
-        ValueError: an unknown ``runtime``.
+        ValueError: an unknown ``runtime``, or torch needed and not installed (names the
+            extra to install).
     """
-    import torch
-
-    if runtime not in RUNTIMES:
-        raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
-    if torch_threads > 0:
-        torch.set_num_threads(torch_threads)
-    if runtime == "onnx":
+    chosen = resolve_runtime(path, runtime)
+    _log.info("policy %s: runtime %s%s", path, chosen, " (auto)" if runtime == "auto" else "")
+    if chosen == "onnx":
         from companion.onnx_runtime import load_onnx_policy
 
         return load_onnx_policy(path, threads=max(1, torch_threads))
+    try:
+        import torch
+    except ImportError:
+        raise ValueError(
+            f"{path}: runtime torch needs torch, which is not installed: pip install "
+            "'visland[torch]', or fly the ONNX export (visland export-onnx, then --runtime onnx)"
+        ) from None
+    if torch_threads > 0:
+        torch.set_num_threads(torch_threads)
     from companion.policy_net import load_policy
 
     return load_policy(path)

@@ -5,22 +5,28 @@ Importing this package registers the gymnasium environment ``visland/Landing-v0`
 
 from __future__ import annotations
 
-import gymnasium as gym
+import importlib
+from typing import TYPE_CHECKING, Any
 
-from sitl_sim.config import (
-    PLANETS,
-    Planet,
-    SimConfig,
-    VehicleConfig,
-    load_sim,
-    load_vehicle,
-    planet,
-)
-from sitl_sim.env import ENV_ID, LandingEnv
 from sitl_sim.errors import ConfigError, SimError, SimStateError
-from sitl_sim.metrics import EpisodeResult, summarize
-from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
-from sitl_sim.simulator import Simulator
+
+if TYPE_CHECKING:
+    from sitl_sim.config import (
+        PLANETS,
+        Planet,
+        SimConfig,
+        VehicleConfig,
+        load_sim,
+        load_vehicle,
+        planet,
+    )
+    from sitl_sim.env import LandingEnv
+    from sitl_sim.metrics import EpisodeResult, summarize
+    from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
+    from sitl_sim.simulator import Simulator
+
+ENV_ID = "visland/Landing-v0"
+"""The gymnasium id of :class:`sitl_sim.env.LandingEnv`."""
 
 __all__ = [
     "ENV_ID",
@@ -44,5 +50,44 @@ __all__ = [
     "summarize",
 ]
 
-if ENV_ID not in gym.registry:
-    gym.register(id=ENV_ID, entry_point="sitl_sim.env:LandingEnv", max_episode_steps=None)
+_LAZY = {
+    "PLANETS": "config",
+    "Planet": "config",
+    "SimConfig": "config",
+    "VehicleConfig": "config",
+    "load_sim": "config",
+    "load_vehicle": "config",
+    "planet": "config",
+    "LandingEnv": "env",
+    "EpisodeResult": "metrics",
+    "summarize": "metrics",
+    "InitialState": "scenario",
+    "InitialStateSampler": "scenario",
+    "Scenario": "scenario",
+    "load_scenario": "scenario",
+    "Simulator": "simulator",
+}
+"""Public names imported on first access (PEP 562): the package itself imports nothing of the
+``[sim]`` extra (numpy aside), so a light submodule (``sitl_sim.mavlink_endpoint``, the CLI's
+flags) loads where pybullet, scipy and gymnasium are not installed."""
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+try:  # registered whenever gymnasium is installed (the [sim] extra); the entry point is lazy
+    import gymnasium as _gym
+except ImportError:  # pragma: no cover - a companion-only install
+    _gym = None
+if _gym is not None and ENV_ID not in _gym.registry:
+    _gym.register(id=ENV_ID, entry_point="sitl_sim.env:LandingEnv", max_episode_steps=None)

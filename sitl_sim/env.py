@@ -36,6 +36,7 @@ import numpy as np
 from gymnasium import spaces
 
 from companion.contract import IMAGE_SIZE_PX, Command, ContractError, GroundTruth, Observation
+from sitl_sim import ENV_ID  # the one id: the package registers it
 from sitl_sim.airframe import AirframeScales, check_airframe_can_hover
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.metrics import EpisodeResult
@@ -45,7 +46,6 @@ from sitl_sim.world import episode_world
 
 __all__ = ["ENV_ID", "LandingEnv", "observation_to_dict"]
 
-ENV_ID = "visland/Landing-v0"
 INVALID_RANGE = -1.0
 
 

@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.onnx_runtime import OnnxModelError, export_onnx, onnx_paths
-from companion.policy_net import save_checkpoint, untrained_policy
-from companion.runtime import PolicyRuntime, load_policy_file
+from companion.onnx_export import export_onnx
+from companion.onnx_runtime import OnnxModelError, OnnxPolicy, onnx_paths
+from companion.policy_net import LearnedPolicy, PolicyCore, save_checkpoint, untrained_policy
+from companion.runtime import PolicyRuntime, load_policy_file, resolve_runtime
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "models" / "visland_vision.pt"
@@ -49,11 +50,11 @@ def test_export_writes_two_checked_graphs_beside_the_checkpoint(tmp_path):
     assert res.perception == str(perception) and res.control == str(control)
     assert perception.stat().st_size > 10_000 and control.stat().st_size > 10_000
     assert res.perception_max_rel_diff <= 1e-5 and res.control_max_abs_diff <= 1e-5
-    # the policy built on the graphs is LearnedPolicy itself: same estimator, same act()
+    # the policy built on the graphs shares LearnedPolicy's core: same estimator, same act();
+    # its config and metadata come from the graphs' metadata, not from unpickling the .pt
     onnx_policy = load_policy_file(ckpt, 1, "onnx")
-    assert (
-        type(onnx_policy).__name__ == "LearnedPolicy" and onnx_policy.metadata["runtime"] == "onnx"
-    )
+    assert isinstance(onnx_policy, PolicyCore) and not isinstance(onnx_policy, LearnedPolicy)
+    assert onnx_policy.metadata["runtime"] == "onnx"
     assert onnx_policy.config == net.config
     # a privileged checkpoint has no CNN: one graph, and a stale CNN file is removed
     priv = untrained_policy(seed=5, privileged=True)
@@ -113,7 +114,7 @@ def test_broken_stale_or_missing_exports_are_refused_with_the_fix(shipped, tmp_p
         load_policy_file(ckpt, 1, "onnx")
     for src, dst in zip(onnx_paths(shipped), (perception, control), strict=True):
         shutil.copyfile(src, dst)
-    assert load_policy_file(ckpt, 1, "onnx").perception is not None  # same bytes: accepted
+    assert load_policy_file(ckpt, 1, "onnx").config.kind == "vision"  # same bytes: accepted
     # corrupt: truncated protobuf
     data = control.read_bytes()
     control.write_bytes(data[: len(data) // 2])
@@ -137,8 +138,21 @@ def test_without_onnxruntime_the_error_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # `import onnxruntime` fails
     with pytest.raises(OnnxModelError, match=r"needs onnxruntime: pip install 'visland\[onnx\]'"):
         load_policy_file(SHIPPED, 1, "onnx")
-    with pytest.raises(OnnxModelError, match=r"needs (onnx|onnxruntime).*visland\[onnx\]"):
+    with pytest.raises(OnnxModelError, match=r"needs onnxruntime.*visland\[train\]"):
         export_onnx(SHIPPED)
+    # auto: without onnxruntime the checkpoint flies on torch, export or not
+    assert resolve_runtime(SHIPPED, "auto") == "torch"
+
+
+@needs_onnx
+def test_auto_runtime_is_onnx_where_the_export_is(shipped, tmp_path):
+    assert resolve_runtime(shipped, "auto") == "onnx"  # the fixture exported it
+    bare = tmp_path / "bare.pt"
+    shutil.copyfile(shipped, bare)
+    assert resolve_runtime(bare, "auto") == "torch"
+    assert resolve_runtime(bare, "onnx") == "onnx"  # explicit: then refused at load if missing
+    assert isinstance(load_policy_file(shipped, 1), OnnxPolicy)
+    assert isinstance(load_policy_file(bare, 1), LearnedPolicy)
 
 
 @needs_onnx
@@ -177,3 +191,13 @@ def test_bench_policy_times_onnx_beside_torch_without_writing_beside_the_checkpo
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]  # the export was a copy's
     with pytest.raises(ValueError, match="runtime must be"):
         bench_policy(str(ckpt), steps=5, runtime="tensorrt")
+
+
+@needs_onnx
+def test_the_shipped_export_is_the_shipped_checkpoints():
+    """models/ holds the board's graphs beside the checkpoint: `training.ship` re-exports on
+    every ship, so a stale pair here would be refused by every companion on `--runtime auto`."""
+    from companion.onnx_runtime import load_onnx_policy
+
+    policy = load_onnx_policy(SHIPPED)
+    assert policy.config.kind == "vision" and policy.metadata["runtime"] == "onnx"

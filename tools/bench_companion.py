@@ -125,7 +125,7 @@ def bench_companion(
     flown = Path(policy)
     if is_file and (runtime == "onnx" or compare):
         # the ONNX graphs are exported beside a copy, never beside the user's checkpoint
-        from companion.onnx_runtime import export_onnx
+        from companion.onnx_export import export_onnx
 
         flown = run / "policy" / Path(policy).name
         flown.parent.mkdir(parents=True)

@@ -431,7 +431,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
 
-    from tools.demo import EVAL_SEED, SHIPPED_MODEL
+    from training.provenance import SHIPPED_MODEL
 
     d = sub.add_parser(
         "demo",
@@ -676,8 +676,54 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+EXTRA_OF_MODULE = {
+    "onnxruntime": "onnx",
+    "torch": "torch",
+    "cv2": "camera",
+    "scipy": "sim",
+    "pybullet": "sim",
+    "gymnasium": "sim",
+    "PIL": "sim",
+    "cvxpy": "train",
+    "osqp": "train",
+    "clarabel": "train",
+    "matplotlib": "train",
+    "tqdm": "train",
+    "tensorboard": "train",
+    "tomli_w": "train",
+    "onnx": "train",
+    "ray": "ray",
+    "mavsdk": "dev",
+    "pytest": "dev",
+}
+"""Which ``pip install 'visland[EXTRA]'`` brings each optional module (pyproject.toml)."""
+
+
+def missing_extra(exc: ImportError) -> str | None:
+    """The line telling a user which extra a failed import needs; None for a module that no
+    extra provides (a real bug, left to raise)."""
+    top = (exc.name or "").split(".")[0]
+    extra = EXTRA_OF_MODULE.get(top)
+    if extra is None:
+        return None
+    return (
+        f"needs the '{extra}' extra (no module named {top!r}): pip install 'visland[{extra}]'"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except ImportError as exc:
+        line = missing_extra(exc)
+        if line is None:
+            raise
+        print(f"visland {args.command}: {line}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     from companion.contract import ContractError
     from companion.flightlog import FlightLogError
     from sitl_sim.errors import SimError

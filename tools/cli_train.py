@@ -103,8 +103,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def register_training(sub: argparse._SubParsersAction) -> None:
     from training.backend import add_backend_arguments
-    from training.pipeline import STAGES
     from training.profiles import PROFILES, ROLLOUT_TRANSPORTS
+    from training.stages.records import STAGES
 
     rollouts_help = (
         "how DAgger learner rollouts fly (default: the profile's, mavlink = SITL + companion "

@@ -33,12 +33,11 @@ from sitl_sim.metrics import (
 )
 from tools.log_plots import plot_flights
 from training.fly import FlyConfig, fly
-from training.provenance import REPO
+from training.provenance import SHIPPED_MODEL
 from training.seeds import EVAL_SEED
 
 __all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run"]
 
-SHIPPED_MODEL = REPO / "models" / "visland_vision.pt"
 
 MARKER = ".visland-demo"
 """File that marks a folder as a demo output folder, so a new demo may replace its contents."""

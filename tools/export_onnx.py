@@ -19,7 +19,7 @@ DEFAULT_CHECKPOINT = "models/visland_vision.pt"
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
-    from companion.onnx_runtime import export_onnx
+    from companion.onnx_export import export_onnx
 
     res = export_onnx(args.checkpoint, check_samples=args.check_samples)
     if args.json:

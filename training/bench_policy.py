@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from companion.contract import Observation
-from companion.policy_net import LearnedPolicy, load_policy, untrained_policy
+from companion.policy_net import LearnedPolicy, PolicyCore, load_policy, untrained_policy
 
 __all__ = ["PaperStyleNet", "bench_policy"]
 
@@ -79,10 +79,11 @@ def _stats(samples: list[float]) -> dict[str, float]:
     }
 
 
-def _onnx_twin(checkpoint: str, folder: Path) -> LearnedPolicy:
+def _onnx_twin(checkpoint: str, folder: Path) -> PolicyCore:
     """``checkpoint`` exported to ONNX in ``folder`` (a copy: nothing is written beside the
     original) and loaded on ONNX Runtime, one intra-op thread."""
-    from companion.onnx_runtime import export_onnx, load_onnx_policy
+    from companion.onnx_export import export_onnx
+    from companion.onnx_runtime import load_onnx_policy
 
     copy = folder / Path(checkpoint).name
     shutil.copyfile(checkpoint, copy)
@@ -106,7 +107,7 @@ def bench_policy(
 
 
 def _bench(
-    checkpoint: str | None, steps: int, seed: int, onnx: LearnedPolicy | None
+    checkpoint: str | None, steps: int, seed: int, onnx: PolicyCore | None
 ) -> dict[str, Any]:
     torch.set_num_threads(1)
     policy: LearnedPolicy = load_policy(checkpoint) if checkpoint else untrained_policy(seed)

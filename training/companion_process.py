@@ -31,9 +31,9 @@ def resolve_policy(name: str, cfg: Any = None) -> Any:
 
         return CascadeLander(vehicle, sim.planet)
     threads = getattr(cfg, "torch_threads", 1) if cfg is not None else 1
-    runtime = getattr(cfg, "runtime", "torch") if cfg is not None else "torch"
+    runtime = getattr(cfg, "runtime", "auto") if cfg is not None else "auto"
     if name in ("untrained", "untrained-privileged"):
-        if runtime != "torch":
+        if runtime == "onnx":
             raise ValueError(
                 f"--policy {name} is built in torch; runtime {runtime!r} needs a checkpoint file "
                 "(save it, then visland export-onnx)"

@@ -79,6 +79,10 @@ class FlyConfig:
     """Wall-clock limit of the whole run (None: from the episode count)."""
     companion_args: tuple[str, ...] = ()
     sitl_args: tuple[str, ...] = ()
+    companion_command: tuple[str, ...] = ()
+    """The command that starts the companion, before its flags (default: this Python,
+    ``-m training.companion_process``); e.g. another install's ``python -I .../visland
+    companion``, to fly a board's environment against this SITL."""
     progress: bool = True
     env: dict[str, str] = field(default_factory=dict)
 
@@ -203,9 +207,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         *cfg.sitl_args,
     ]
     comp_cmd = [
-        sys.executable,
-        "-m",
-        "training.companion_process",
+        *(cfg.companion_command or (sys.executable, "-m", "training.companion_process")),
         "--policy",
         cfg.policy,
         "--connect",

@@ -6,11 +6,13 @@ import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["REPO", "git_commit"]
+__all__ = ["REPO", "SHIPPED_MODEL", "git_commit"]
 
 REPO = Path(__file__).resolve().parent.parent
 """The checkout (or installed tree) holding this code: relative config, model and suite paths
 resolve against it, and child processes start in it."""
+SHIPPED_MODEL = REPO / "models" / "visland_vision.pt"
+"""The default model (``visland demo``, ``visland fly --policy``): the checkout's shipped one."""
 
 
 def _git(repo: Path, *args: str) -> str:

@@ -139,7 +139,9 @@ def _limits(robust: bool) -> str:
 
 
 def ship(run: str | Path, out: str | Path = "models", name: str = "visland_vision.pt") -> Path:
-    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>`` and write ``MODEL_CARD.md``."""
+    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>``, export its ONNX graphs beside
+    it (the board runtime; a previous model's export there would otherwise be refused as stale)
+    and write ``MODEL_CARD.md``."""
     run, out = Path(run), Path(out)
     metrics_path = run / "metrics.json"
     if not metrics_path.exists():
@@ -150,6 +152,9 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
     out.mkdir(parents=True, exist_ok=True)
     dst = out / name
     shutil.copyfile(src, dst)
+    from companion.onnx_export import export_onnx
+
+    export_onnx(dst)
     prof = metrics["profile"]
     stages = metrics.get("stages", {})
     timing = metrics.get("timing", {})

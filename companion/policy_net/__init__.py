@@ -9,14 +9,16 @@ module             its one job                                                  
 ``config``         :class:`NetConfig` (stored in checkpoints), :class:`CheckpointError`  no
 ``geometry``       pad position from a bearing, the controller's input features      no
 ``estimator``      :class:`PadEstimator`: Kalman filter of position and velocity     no
+``core``           :class:`PolicyCore`: all but the networks behind ``act``           no
 ``networks``       :class:`PerceptionCNN` and :class:`ControlLSTM`                   yes
-``policy``         :class:`LearnedPolicy`: all of the above behind ``act``           yes
+``policy``         :class:`LearnedPolicy`: ``PolicyCore`` over the torch networks    yes
 ``checkpoint``     save a checkpoint, load it as networks or as a policy             yes
 =================  ===============================================================  =====
 
 Every public name is importable from here (``from companion.policy_net import load_policy``);
-the torch ones are imported on first use, so the geometry, the estimator and the config
-(``from companion.policy_net import PadEstimator``) load without torch.
+the torch ones are imported on first use, so the geometry, the estimator, the config and the
+policy core (``from companion.policy_net import PadEstimator``) load without torch — the ONNX
+runtime (:mod:`companion.onnx_runtime`) flies ``PolicyCore`` on a board with no torch.
 
 Pipeline of the *vision* policy, one call per camera frame (paper Fig. 2, with the CNN's output
 given a geometric meaning)::
@@ -45,6 +47,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from companion.policy_net.config import ESTIMATOR_FIELDS, CheckpointError, NetConfig
+from companion.policy_net.core import PolicyCore, PolicyState, attitude_at
 from companion.policy_net.estimator import EstimatorState, PadEstimator
 from companion.policy_net.geometry import (
     FEATURE_NAMES,
@@ -76,6 +79,9 @@ __all__ = [
     "NetConfig",
     "PadEstimator",
     "PerceptionCNN",
+    "PolicyCore",
+    "PolicyState",
+    "attitude_at",
     "control_features",
     "feature_names",
     "load_networks",

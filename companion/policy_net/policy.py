@@ -1,73 +1,25 @@
-"""The learned policy: networks, estimator and geometry put together behind ``act``."""
+"""The learned policy in torch: :class:`PolicyCore` over :class:`PerceptionCNN` and
+:class:`ControlLSTM` (training, and the companion's ``torch`` runtime)."""
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field, replace
-from itertools import pairwise
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
-from companion.contract import Command, Observation
 from companion.policy_net.config import CheckpointError, NetConfig
-from companion.policy_net.estimator import EstimatorState, PadEstimator
-from companion.policy_net.geometry import (
-    control_features,
-    position_at_altitude,
-    position_from_bearing,
-)
+from companion.policy_net.core import PolicyCore, PolicyState, attitude_at
 from companion.policy_net.networks import ControlLSTM, PerceptionCNN
 
-__all__ = ["LearnedPolicy", "PolicyState"]
-
-
-@dataclass(frozen=True)
-class PolicyState:
-    """Recurrent state of a :class:`LearnedPolicy` (never mutated in place)."""
-
-    lstm: tuple[torch.Tensor, torch.Tensor]
-    estimator: EstimatorState | None = None
-    last_perception: np.ndarray | None = None
-    """The CNN's last raw output (tan_right, tan_forward, visibility logit), for logs."""
-    attitudes: tuple[tuple[float, np.ndarray], ...] = ()
-    """The last few (ATTITUDE time, attitude) samples, oldest first (``latency_compensation``:
-    the attitude at an image's exposure time is interpolated from them)."""
-    last_image_time_s: float | None = None
-    """Exposure time of the newest image used for a fix (a repeated image gives none)."""
-
-
-_MAX_CAMERA_LAG_S = 0.5
-"""A camera lag (ATTITUDE time minus image exposure time) beyond this, or negative, is taken as
-clocks that do not compare (e.g. a companion-clock camera): the fix is used as of now."""
-_ATTITUDE_HISTORY = 4
-
-
-def _angle_lerp(a0: np.ndarray, a1: np.ndarray, w: float) -> np.ndarray:
-    d = (a1 - a0 + math.pi) % (2 * math.pi) - math.pi
-    return a0 + w * d
-
-
-def attitude_at(history: tuple[tuple[float, np.ndarray], ...], t: float) -> np.ndarray:
-    """The attitude at time ``t``, linearly interpolated (angles wrapped) between the samples of
-    ``history`` (oldest first) that bracket it; the oldest / newest sample outside them."""
-    if t <= history[0][0]:
-        return history[0][1]
-    for (t0, a0), (t1, a1) in pairwise(history):
-        if t <= t1:
-            return a0 if t1 <= t0 else _angle_lerp(a0, a1, (t - t0) / (t1 - t0))
-    return history[-1][1]
+__all__ = ["LearnedPolicy", "PolicyState", "attitude_at"]
 
 
 @dataclass
-class LearnedPolicy:
-    """A trained policy: ``initial_state()`` / ``act(observation, groundtruth, state)``.
-
-    ``groundtruth`` (a :class:`companion.contract.GroundTruth`: the simulator's, or the
-    companion's ODOMETRY record) is read only by privileged policies. Vision policies ignore it
-    (pass ``None`` on hardware).
-    """
+class LearnedPolicy(PolicyCore):
+    """A trained policy: ``initial_state()`` / ``act(observation, groundtruth, state)`` (see
+    :class:`PolicyCore`), its networks in torch."""
 
     config: NetConfig
     control: ControlLSTM
@@ -80,150 +32,20 @@ class LearnedPolicy:
             self.perception.eval()
         if self.config.kind == "vision" and self.perception is None:
             raise CheckpointError("a vision policy needs its perception network")
-        self._estimator = PadEstimator(self.config)
-
-    @property
-    def privileged(self) -> bool:
-        return self.config.kind == "privileged"
-
-    def initial_state(self) -> PolicyState:
-        est = None if self.privileged else self._estimator.initial_state()
-        return PolicyState(lstm=self.control.zero_state(1), estimator=est)
+        self._init_core()
 
     def perceive(self, image: np.ndarray) -> np.ndarray:
-        """The CNN's raw output for one image: (tan_right, tan_forward, visibility logit)."""
         assert self.perception is not None
         with torch.inference_mode():
             out = self.perception(torch.from_numpy(np.array(image, dtype=np.uint8))[None])
         return out[0].numpy().astype(float)
 
-    def features(
-        self, observation: Observation, groundtruth: Any, state: PolicyState
-    ) -> tuple[np.ndarray, PolicyState]:
-        """The controller input for this step and the state with the estimator advanced."""
-        if self.privileged:
-            if groundtruth is None:
-                raise ValueError(
-                    "privileged policy: needs ground truth (position/velocity); it cannot fly "
-                    "on hardware — use a vision policy"
-                )
-            feats = control_features(
-                np.asarray(groundtruth.pos_ned_m, float),
-                np.asarray(groundtruth.vel_ned_m_s, float),
-                observation.attitude_rad,
-                observation.rate_frd_rad_s,
-                observation.accel_frd_m_s2,
-                1.0,
-                self.config.hover_feature(observation.hover_thrust_norm),
-            )
-            return feats, state
-        raw = self.perceive(observation.image)
-        return self.vision_features(
-            raw,
-            observation.attitude_rad,
-            observation.rate_frd_rad_s,
-            observation.accel_frd_m_s2,
-            observation.range_m,
-            state,
-            hover_thrust_norm=observation.hover_thrust_norm,
-            image_time_s=observation.image_time_s,
-            attitude_time_s=observation.attitude_time_s,
-        )
+    def zero_state(self) -> tuple[torch.Tensor, ...]:
+        return tuple(self.control.zero_state(1))
 
-    def _fix(
-        self,
-        raw: np.ndarray,
-        attitude_rad: np.ndarray,
-        range_m: float,
-        state: PolicyState,
-        image_time_s: float,
-        attitude_time_s: float,
-    ) -> tuple[np.ndarray | None, bool, float, PolicyState]:
-        """The position fix of this step, whether its horizontal part is new, how old that
-        horizontal part is (s), and the state with the attitude history advanced.
-
-        With ``latency_compensation`` the horizontal fix is where the vehicle was at the
-        image's exposure: the bearing through the attitude then, scaled by the altitude then
-        (the radar's, less the estimated descent since); the estimator takes it as a delayed
-        measurement. The vertical fix is the radar's, now."""
-        cfg = self.config
-        fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
-        if not (
-            cfg.latency_compensation
-            and math.isfinite(image_time_s)
-            and math.isfinite(attitude_time_s)
-        ):
-            return fix, True, 0.0, state
-        history = (*state.attitudes, (float(attitude_time_s), np.asarray(attitude_rad, float)))
-        state = replace(state, attitudes=history[-_ATTITUDE_HISTORY:])
-        last = state.last_image_time_s
-        if last is not None and image_time_s <= last:
-            return fix, False, 0.0, state  # the same image again (a lost frame): radar only
-        state = replace(state, last_image_time_s=float(image_time_s))
-        lag = attitude_time_s - image_time_s
-        if fix is None or not 0.0 < lag <= _MAX_CAMERA_LAG_S:
-            return fix, True, 0.0, state
-        est = state.estimator
-        assert est is not None
-        descent = float(est.x[2, 1]) * lag if est.initialised[2] else 0.0
-        seen_from = position_at_altitude(
-            float(raw[0]),
-            float(raw[1]),
-            attitude_at(history, image_time_s),
-            -float(fix[2]) + descent,
-        )
-        if seen_from is None:
-            return fix, False, 0.0, state
-        return np.array([seen_from[0], seen_from[1], fix[2]]), True, lag, state
-
-    def vision_features(
-        self,
-        raw: np.ndarray,
-        attitude_rad: np.ndarray,
-        rate_frd_rad_s: np.ndarray,
-        accel_frd_m_s2: np.ndarray,
-        range_m: float,
-        state: PolicyState,
-        hover_thrust_norm: float = math.nan,
-        image_time_s: float = math.nan,
-        attitude_time_s: float = math.nan,
-    ) -> tuple[np.ndarray, PolicyState]:
-        """Controller input from the CNN's output (``perceive``) and the sensors; estimator step.
-
-        Split from :meth:`features` so training can batch the CNN over a recorded flight and
-        still run exactly this code for the rest. The times are the Observation's (used with
-        ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
-        """
-        vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
-        fix, fresh, lag, state = self._fix(
-            raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
-        )
-        seen = fresh and vis >= self.config.visibility_threshold
-        assert state.estimator is not None
-        est = self._estimator.step(
-            state.estimator, fix, seen, attitude_rad, accel_frd_m_s2, fix_lag_s=lag
-        )
-        feats = control_features(
-            est.x[:, 0],
-            est.x[:, 1],
-            attitude_rad,
-            rate_frd_rad_s,
-            accel_frd_m_s2,
-            vis,
-            self.config.hover_feature(hover_thrust_norm),
-        )
-        return feats, replace(state, estimator=est, last_perception=raw)
-
-    def act(
-        self, observation: Observation, groundtruth: Any, state: PolicyState
-    ) -> tuple[Command, PolicyState]:
-        feats, state = self.features(observation, groundtruth, state)
-        if not np.all(np.isfinite(feats)):
-            raise ValueError(f"policy input not finite at frame {observation.frame_id}: {feats}")
+    def control_step(
+        self, features: np.ndarray, state: tuple[torch.Tensor, ...]
+    ) -> tuple[np.ndarray, tuple[torch.Tensor, ...]]:
         with torch.inference_mode():
-            out, lstm = self.control(torch.from_numpy(feats)[None, None], state.lstm)
-        cmd = out[0, 0].numpy().astype(float)
-        if not np.all(np.isfinite(cmd)):
-            raise ValueError(f"policy output not finite at frame {observation.frame_id}: {cmd}")
-        command = Command(thrust_norm=float(np.clip(cmd[0], 0.0, 1.0)), rate_frd_rad_s=cmd[1:])
-        return command, replace(state, lstm=lstm)
+            out, lstm = self.control(torch.from_numpy(features)[None, None], state)
+        return out[0, 0].numpy(), lstm
