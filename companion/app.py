@@ -432,6 +432,7 @@ class Companion:
             "flights": self.outcomes,
             "link_events": self.link_events,
             "link": dataclasses.asdict(self.link.counters),
+            "camera": self.camera.counters() if hasattr(self.camera, "counters") else {},
             "stopped": self._stop_reason or None,
             "wall_s": self._clock() - t0,
         }

@@ -230,6 +230,16 @@ class UdpCameraSource:
                 continue
             out.append(ReceivedFrame(frame.frame_id, frame.time_s, frame.image, time.monotonic()))
 
+    def counters(self) -> dict[str, int]:
+        """What was refused: malformed datagrams, wrong-size frames, incomplete frames evicted,
+        frames whose CRC failed (the companion's report, ``camera``)."""
+        return {
+            "bad_packets": self.bad_packets,
+            "bad_size": self.bad_size,
+            "incomplete_dropped": self._assembler.dropped,
+            "corrupt": self._assembler.corrupt,
+        }
+
     def close(self) -> None:
         self.sock.close()
 

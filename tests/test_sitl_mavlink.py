@@ -23,6 +23,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fuzzing import mavlink_fuzz
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract.signing import signing_key_bytes
@@ -473,38 +474,6 @@ def test_setup_signing_sets_changes_and_clears_the_key_only_while_disarmed(ports
     assert len(setups) == 3 and all(m["secret_key"] == "<redacted>" for m in setups)
 
 
-def _fuzz_datagrams(rng: np.random.Generator, mav) -> list[bytes]:
-    """Malformed or not-for-us datagrams of every kind (none is a valid order to us)."""
-    hb = mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav)
-    wrong_target_sp = mav.set_attitude_target_encode(0, 7, 1, 128, [1, 0, 0, 0], 0, 0, 0, 1.0)
-    nan_sp = mav.set_attitude_target_encode(0, 1, 1, 128, [1, 0, 0, 0], math.nan, 0, 0, 0.5)
-    unsupported = mav.command_long_encode(
-        1, 1, 31_000 + int(rng.integers(0, 999)), 0, *([math.nan] * 7)
-    )
-    req = mav.command_long_encode(
-        1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, float(rng.integers(0, 70_000)), 0, 0, 0, 0, 0, 0
-    )
-    wrong_cmd = mav.command_long_encode(42, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 4, 6, 0, 0, 0, 0)
-    param = mav.param_request_read_encode(1, 1, b"\xff\xfeZZ", int(rng.integers(-5, 500)))
-    valid = [m.pack(mav) for m in (wrong_target_sp, nan_sp, unsupported, req, wrong_cmd, param)]
-    kind = int(rng.integers(0, 7))
-    if kind == 0:  # random bytes
-        return [rng.integers(0, 256, int(rng.integers(0, 300)), dtype=np.uint8).tobytes()]
-    if kind == 1:  # truncated frame
-        return [hb[: int(rng.integers(1, len(hb)))]]
-    if kind == 2:  # bad CRC / flipped byte
-        b = bytearray(valid[int(rng.integers(0, len(valid)))])
-        b[int(rng.integers(1, len(b)))] ^= 0x5A
-        return [bytes(b)]
-    if kind == 3:  # valid but wrong target / bad values / unsupported
-        return [valid[int(rng.integers(0, len(valid)))]]
-    if kind == 4:  # several frames and junk glued together
-        return [b"".join(valid) + b"\xfd\x09\x00" + hb[: int(rng.integers(1, 10))]]
-    if kind == 5:  # MAVLink 1 magic, random rest
-        return [b"\xfe" + rng.integers(0, 256, 40, dtype=np.uint8).tobytes()]
-    return [b"", b"\xfd" * int(rng.integers(1, 64)), bytes(int(rng.integers(1000, 60_000)))]
-
-
 def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
     # 1 s lockstep wait (not the fixture's 0.1 s): a loaded machine may park the client thread
     # for a while, but only a stalled SITL (the decoder's 20 ms time box failing under the flood)
@@ -519,7 +488,7 @@ def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             while not stop.is_set():
                 for _ in range(20):  # about 4000 datagrams per second
-                    for d in _fuzz_datagrams(rng, mav):
+                    for d in mavlink_fuzz(rng, mav):
                         s.sendto(d, ("127.0.0.1", ports.mavlink))
                         sent[0] += 1
                 time.sleep(0.005)

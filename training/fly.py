@@ -85,6 +85,8 @@ class FlyConfig:
     companion``, to fly a board's environment against this SITL."""
     progress: bool = True
     env: dict[str, str] = field(default_factory=dict)
+    ports: tuple[int, int, int] | None = None
+    """Loopback UDP ports (SITL MAVLink, companion MAVLink, camera); None: free ones."""
 
 
 _RESULT_FIELDS = tuple(EpisodeResult.__dataclass_fields__)
@@ -176,7 +178,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     sitl_dir = Path(cfg.sitl_log_dir) if cfg.sitl_log_dir else out / "sitl"
     comp_dir = out / "companion"
     out.mkdir(parents=True, exist_ok=True)
-    mav, remote, cam = free_udp_port(), free_udp_port(), free_udp_port()
+    mav, remote, cam = cfg.ports or (free_udp_port(), free_udp_port(), free_udp_port())
     episode_s = load_sim().episode_timeout_s
     timeout_s = cfg.timeout_s or 60.0 + cfg.episodes * (episode_s * (1.2 if cfg.realtime else 0.6))
     sitl_cmd = [
