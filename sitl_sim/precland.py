@@ -288,7 +288,9 @@ class LandingTargetEstimator:
         return True
 
     def age_s(self, now_s: float) -> float:
-        return now_s - self.last_update_s if self.initialised else math.inf
+        """Time since the last published target (inf: never). A filter reset (2 s without a
+        measurement) does not withdraw the pose: PX4's navigator judges its age by PLD_BTOUT."""
+        return now_s - self.last_update_s
 
 
 class PreclandState(enum.Enum):

@@ -178,6 +178,7 @@ class PreclandLoop:
         pl, nav, lte = self.precland, self.nav, self.lte
         assert pl is not None and nav is not None and lte is not None
         now = self.clock.time_s
+        seen = math.isfinite(lte.last_update_s)
         self._log(
             TOPIC_PRECLAND,
             SCHEMA_PRECLAND,
@@ -188,10 +189,10 @@ class PreclandLoop:
                 "est_pos_ned_m": nav.pos_ned_m,
                 "est_vel_ned_m_s": nav.vel_ned_m_s,
                 "target_valid": lte.age_s(now) <= pl.params.btout_s,
-                "target_age_s": lte.age_s(now) if lte.initialised else None,
+                "target_age_s": lte.age_s(now) if seen else None,
                 "target_rel_ne_m": lte.x[:, 0] if lte.initialised else None,
                 "target_rel_vel_ne_m_s": lte.x[:, 1] if lte.initialised else None,
-                "target_ne_m": pl.target_ne_m() if lte.initialised else None,
+                "target_ne_m": pl.target_ne_m() if seen else None,
                 "approx_ne_m": pl.approx_ne_m,
                 "hold_altitude_m": hold_altitude_m,
             },

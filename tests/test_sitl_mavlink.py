@@ -203,7 +203,7 @@ def test_px4_custom_modes_match_the_reference_table():
     assert custom_mode(FlightMode.LAND) == 100925440
     assert custom_mode(FlightMode.HOLD) == 50593792
     assert mode_from_custom(6, 0) is FlightMode.OFFBOARD
-    assert mode_from_custom(4, 9) is FlightMode.LAND  # PRECLAND
+    assert mode_from_custom(4, 9) is FlightMode.PRECLAND
     assert mode_from_custom(3, 0) is False  # POSCTL exists but needs GPS
     assert mode_from_custom(42, 0) is None
 
