@@ -24,6 +24,7 @@ then the precision land runs free.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from typing import TYPE_CHECKING, Any
@@ -50,6 +51,8 @@ if TYPE_CHECKING:
     from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["FRAME_MARKER_NAME", "NAV_RATE_HZ", "PreclandLoop"]
+
+log = logging.getLogger("visland.sitl")
 
 NAV_RATE_HZ = 50
 """The estimators' rate (PX4's landing_target_estimator runs at 50 Hz)."""
@@ -149,6 +152,7 @@ class PreclandLoop:
         if self.precland is None:
             return
         for ev in self.precland.pop_events():
+            log.info("precland: %s", ev.text)
             self._statustext(ev.severity, ev.text)
             self._event("precland", f"{ev.state.value}: {ev.text}")
 
