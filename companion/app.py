@@ -95,6 +95,16 @@ class CompanionConfig:
     camera_rate_hz: float = option(
         10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
     )
+    mode: str = option(
+        "offboard",
+        "offboard: fly the policy's commands (SET_ATTITUDE_TARGET); landing-target: run only "
+        "its camera pad estimator, stream LANDING_TARGET and let the autopilot's precision "
+        "land (PX4 AUTO.PRECLAND, ArduPilot LAND + PLND) fly",
+        choices=("offboard", "landing-target"),
+    )
+    target_timeout_s: float = option(
+        1.0, "landing-target mode: stop sending this long after the pad was last seen"
+    )
     policy: str = option("", "policy checkpoint (visland companion also takes expert | cascade)")
     runtime: str = option(
         "auto",
@@ -267,6 +277,16 @@ class Companion:
             )
         self.safety = SafetyMonitor(cfg.safety_config())
         self.flight_cfg = cfg.offboard_config()
+        self.tracker = None
+        if cfg.mode == "landing-target":
+            from companion.landing_target import LandingTargetError, PadTracker
+
+            try:
+                self.tracker = PadTracker(policy, cfg.target_timeout_s)
+            except LandingTargetError as exc:
+                raise CompanionError(
+                    f"--mode landing-target, policy {policy_name!r}: {exc}"
+                ) from None
         error = self.runtime.warm_up()
         if error is not None:
             raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
@@ -352,10 +372,25 @@ class Companion:
             path = Path(tempfile.mkdtemp(prefix="visland_companion_")) / f"f{index:03d}.mcap"
         meta = {
             "config": {"companion": self.cfg.to_dict()},
-            "flight": {"index": index, "shadow": self.cfg.shadow},
+            "flight": {"index": index, "shadow": self.cfg.shadow, "mode": self.cfg.mode},
             "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
         }
         flog = self.flight_log = CompanionLog(path, meta, self._clock)
+        if self.tracker is not None:
+            from companion.landing_target import LandingTargetController
+
+            return LandingTargetController(
+                self.flight_cfg,
+                self.link,
+                self.store,
+                self.camera.clock,
+                self.tracker,
+                self.safety,
+                flog,
+                self._pump,
+                self._clock,
+                index,
+            )
         return FlightController(
             self.flight_cfg,
             self.link,

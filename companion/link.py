@@ -76,6 +76,14 @@ class AutopilotProfile:
         thrust_param: a parameter that must have ``thrust_param_bits`` set for ``thrust`` to be
             collective thrust, or None when it always is (PX4). ArduPilot reads ``thrust`` as a
             climb-rate demand (0.5 = hold altitude) unless GUID_OPTIONS bit 3 (8) is set.
+        precland: DO_SET_MODE params of the mode that lands on LANDING_TARGET (PX4
+            AUTO.PRECLAND 4/9; ArduPilot LAND 9, which uses the target when PLND_ENABLED = 1).
+        landing_target_position: send LANDING_TARGET's x, y, z with ``position_valid = 1`` in
+            MAV_FRAME_BODY_FRD (ArduPilot reads them, divided by ``distance``); PX4 drops a
+            body-frame position outright ("coordinate frame 12 unsupported"), so for PX4 the
+            angle form alone is sent.
+        precland_param: a parameter that must be 1 for the precision land to use the target
+            (ArduPilot PLND_ENABLED), or None (PX4: AUTO.PRECLAND always does).
     """
 
     name: str
@@ -85,6 +93,9 @@ class AutopilotProfile:
     hover_param: str
     thrust_param: str | None = None
     thrust_param_bits: int = 0
+    precland: tuple[int, int] = (4, 9)
+    landing_target_position: bool = False
+    precland_param: str | None = None
 
     @staticmethod
     def _main_sub(custom_mode: int) -> tuple[int, int]:
@@ -104,6 +115,9 @@ class AutopilotProfile:
             main, sub = self._main_sub(custom_mode)
             return main == 4 and sub in (6, 9)  # AUTO.LAND or AUTO.PRECLAND
         return self._matches(custom_mode, self.land)
+
+    def is_precland(self, custom_mode: int) -> bool:
+        return self._matches(custom_mode, self.precland)
 
     def is_hold(self, custom_mode: int) -> bool:
         return self._matches(custom_mode, self.hold)
@@ -152,6 +166,9 @@ ARDUPILOT = AutopilotProfile(
     hover_param="MOT_THST_HOVER",
     thrust_param="GUID_OPTIONS",
     thrust_param_bits=8,
+    precland=(9, 0),
+    landing_target_position=True,
+    precland_param="PLND_ENABLED",
 )
 PROFILES = {"px4": PX4, "ardupilot": ARDUPILOT}
 
@@ -209,6 +226,7 @@ class LinkCounters:
     rx_bad_data: int = 0
     rx_other_systems: int = 0
     tx_setpoints: int = 0
+    tx_landing_targets: int = 0
     tx_commands: int = 0
     reconnects: int = 0
     restarts: int = 0
@@ -500,6 +518,58 @@ class MavlinkLink:
         mav.total_bytes_sent += len(buf)
         self.counters.tx_setpoints += 1
         return handed
+
+    def send_landing_target(
+        self,
+        time_usec: int,
+        angle_x_rad: float,
+        angle_y_rad: float,
+        distance_m: float,
+        pos_frd_m: tuple[float, float, float] | None,
+        target_type: int = mavlink.LANDING_TARGET_TYPE_VISION_OTHER,
+        target_num: int = 0,
+    ) -> float | None:
+        """LANDING_TARGET (MAVLink 2, with its extensions) in MAV_FRAME_BODY_FRD: the angles
+        (rad) and slant distance (m) always; ``pos_frd_m`` (the target in body FRD) with
+        ``position_valid = 1`` when given. Returns the hand-off time (None: not sent)."""
+        conn = self.conn
+        if conn is None or self.target_system is None:
+            return None
+        valid = pos_frd_m is not None
+        x, y, z = pos_frd_m if pos_frd_m is not None else (0.0, 0.0, 0.0)
+        msg = conn.mav.landing_target_encode(
+            int(time_usec),
+            int(target_num),
+            mavlink.MAV_FRAME_BODY_FRD,
+            float(angle_x_rad),
+            float(angle_y_rad),
+            float(distance_m),
+            0.0,  # size_x, size_y: unknown (neither autopilot reads them)
+            0.0,
+            float(x),
+            float(y),
+            float(z),
+            [1.0, 0.0, 0.0, 0.0],
+            int(target_type),
+            1 if valid else 0,
+        )
+        handed = self._clock()
+        if not self._send(msg):
+            return None
+        self.counters.tx_landing_targets += 1
+        return handed
+
+    def send_frame_marker(self, time_boot_ms: int, frame_id: int) -> None:
+        """NAMED_VALUE_INT ``VL_FRAME`` = frame id, stamped with the frame's time: a SITL
+        frame processed without a LANDING_TARGET (the lockstep answer; an autopilot only logs
+        it)."""
+        if self.conn is None:
+            return
+        self._send(
+            self.conn.mav.named_value_int_encode(
+                int(time_boot_ms) & 0xFFFFFFFF, b"VL_FRAME", int(frame_id) & 0x7FFFFFFF
+            )
+        )
 
     def _send_command(self, command: int, params: tuple[float, ...], confirmation: int = 0) -> None:
         if self.conn is None or self.target_system is None:

@@ -35,7 +35,12 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.contract.topics import TOPIC_EVENTS, TOPIC_IMAGE
+from companion.contract.topics import (
+    SCHEMA_COMPANION_LANDING_TARGET,
+    TOPIC_COMPANION_LANDING_TARGET,
+    TOPIC_EVENTS,
+    TOPIC_IMAGE,
+)
 from companion.flightlog import FlightLogWriter, read_log
 from companion.telemetry import TelemetryStore, assemble_observation
 
@@ -137,6 +142,10 @@ class CompanionLog:
 
     def command(self, t: float, body: dict[str, Any]) -> None:
         self._put(TOPIC_COMMAND, "visland.CompanionCommand", t, body)
+
+    def landing_target(self, t: float, body: dict[str, Any]) -> None:
+        """Landing-target mode: a frame's pad estimate and what was sent."""
+        self._put(TOPIC_COMPANION_LANDING_TARGET, SCHEMA_COMPANION_LANDING_TARGET, t, body)
 
     def event(self, t: float, kind: str, text: str, **extra: Any) -> None:
         self._put(TOPIC_EVENTS, "visland.Event", t, {"kind": kind, "text": text, **extra})

@@ -7,9 +7,10 @@ What it models (PX4 behaviour, ``shared/reference/mavlink_notes.md`` sections 6 
 * **Modes** — PX4 custom modes, ``custom_mode = (main << 16) | (sub << 24)``:
   HOLD (AUTO.LOITER, the episode's start: the vehicle is *frozen* at its state, an ideal position
   hold), OFFBOARD (the companion flies SET_ATTITUDE_TARGET setpoints) and LAND (AUTO.LAND: the
-  SITL's own land controller, on ground truth). Other PX4 modes (POSCTL, ALTCTL, ...) need GPS or
-  sticks and are refused with TEMPORARILY_REJECTED, as PX4 refuses a mode whose requirements
-  fail.
+  SITL's own land controller, on ground truth), PRECLAND (AUTO.PRECLAND: the precision land
+  of :mod:`sitl_sim.precland` on LANDING_TARGET, on the autopilot's own estimate). Other PX4
+  modes (POSCTL, ALTCTL, ...) need GPS or sticks and are refused with TEMPORARILY_REJECTED,
+  as PX4 refuses a mode whose requirements fail.
 * **Offboard rules** — OFFBOARD is accepted only while a setpoint arrived within
   ``COM_OF_LOSS_T`` (sim time); once in OFFBOARD, a silence longer than ``COM_OF_LOSS_T`` switches
   to the ``COM_OBL_RC_ACT`` action (4 = Land, the only action modelled).
@@ -25,12 +26,13 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
 from companion.contract import Command
+from sitl_sim.precland import LteParams, PldParams
 
 __all__ = [
     "COM_OBL_RC_ACT_LAND",
@@ -77,10 +79,16 @@ class FlightMode(enum.Enum):
     HOLD = (4, 3)  # AUTO.LOITER, shown as "Hold"
     OFFBOARD = (6, 0)
     LAND = (4, 6)  # AUTO.LAND
+    PRECLAND = (4, 9)  # AUTO.PRECLAND (sitl_sim.precland, on the autopilot's own estimate)
 
     @property
     def label(self) -> str:
-        return {"HOLD": "AUTO.LOITER", "OFFBOARD": "OFFBOARD", "LAND": "AUTO.LAND"}[self.name]
+        return {
+            "HOLD": "AUTO.LOITER",
+            "OFFBOARD": "OFFBOARD",
+            "LAND": "AUTO.LAND",
+            "PRECLAND": "AUTO.PRECLAND",
+        }[self.name]
 
 
 # PX4 main modes that exist but need what this vehicle lacks (GPS, RC sticks): refused.
@@ -114,8 +122,10 @@ def mode_from_custom(main: int, sub: int) -> FlightMode | bool | None:
     if main == 4:
         if sub == 3:
             return FlightMode.HOLD
-        if sub in (6, _PX4_AUTO_PRECLAND):
-            return FlightMode.LAND  # PRECLAND lands on the pad: the same controller here
+        if sub == 6:
+            return FlightMode.LAND
+        if sub == _PX4_AUTO_PRECLAND:
+            return FlightMode.PRECLAND
         if 1 <= sub <= 18:
             return False
         return None
@@ -270,7 +280,7 @@ class LandController(Protocol):
     """The autopilot's AUTO.LAND controller: ground truth in, Command out (the default is
     :class:`sitl_sim.land_controller.CascadeLandController`)."""
 
-    def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command: ...
+    def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz, v_down_m_s=None) -> Command: ...
 
 
 @dataclass(frozen=True)
@@ -285,6 +295,10 @@ class AutopilotParams:
     """COM_DISARM_LAND: auto-disarm this long after touchdown, s (sim time)."""
     mpc_thr_hover: float = 0.5
     """MPC_THR_HOVER: hover thrust, fraction of the maximum (read-only: from the vehicle)."""
+    pld: PldParams = field(default_factory=PldParams)
+    """PLD_*: the precision land (AUTO.PRECLAND)."""
+    ltest: LteParams = field(default_factory=LteParams)
+    """LTEST_*: the landing-target estimator."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.com_of_loss_t_s <= 60.0:

@@ -55,12 +55,19 @@ class CascadeLandController:
             return self
         return type(self)(vehicle, self.world, self.gains)
 
-    def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz) -> Command:
+    def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz, v_down_m_s=None) -> Command:
+        """``pos_ned_m`` is the position relative to the landing point (its down part the
+        altitude); ``v_down_m_s`` replaces the land descent profile (e.g. an altitude hold)."""
         g = self.gains
         pos = np.asarray(pos_ned_m, dtype=float)
         vel = np.asarray(vel_ned_m_s, dtype=float)
         altitude = max(0.0, -pos[2])
-        v_down = min(g.max_descent_m_s, max(g.min_descent_m_s, g.descent_per_altitude * altitude))
+        if v_down_m_s is None:
+            v_down = min(
+                g.max_descent_m_s, max(g.min_descent_m_s, g.descent_per_altitude * altitude)
+            )
+        else:
+            v_down = float(v_down_m_s)
         acc = np.array(
             [
                 -g.kp_pos * pos[0] - g.kd_pos * vel[0],

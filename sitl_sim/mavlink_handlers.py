@@ -51,6 +51,8 @@ SUBSCRIBES = (
     "PING",
     "MISSION_REQUEST_LIST",
     "SETUP_SIGNING",
+    "LANDING_TARGET",
+    "NAMED_VALUE_INT",
 )
 """Messages this autopilot acts on (each has a ``handle_<name>`` method); others are counted."""
 
@@ -226,6 +228,15 @@ class MessageHandlers:
                 self._event("param_rejected", str(exc))
         self._send_param(names.index(msg.param_id))
 
+    def handle_landing_target(self, msg: Any, inbound: Inbound) -> None:
+        """The precision land's input (:meth:`~sitl_sim.sitl_precland.PreclandLoop.
+        _on_landing_target`); a malformed one is counted and ignored."""
+        self._on_landing_target(msg, inbound)
+
+    def handle_named_value_int(self, msg: Any, inbound: Inbound) -> None:
+        """``VL_FRAME``: a landing-target companion's lockstep answer to a frame."""
+        self._on_frame_marker(msg, inbound)
+
     def handle_timesync(self, msg: Any, inbound: Inbound) -> None:
         """Answer requests (tc1 = 0) with the sim clock in ns; our own requests: none."""
         if msg.tc1 == 0:
@@ -297,9 +308,12 @@ class MessageHandlers:
             return MavResult.DENIED
         if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return MavResult.DENIED  # PX4 modes are custom modes
-        return self.autopilot.request_mode(
-            mode_from_custom(int(p[1]), int(p[2])), self.clock.time_s
-        )
+        mode = mode_from_custom(int(p[1]), int(p[2]))
+        if mode is FlightMode.PRECLAND and not math.isfinite(self._sample_now().range_m):
+            # PX4 needs a local position and distance to the ground (mode_requirements.cpp)
+            self._statustext(4, "Precision landing denied! Please land manually")
+            return MavResult.TEMPORARILY_REJECTED
+        return self.autopilot.request_mode(mode, self.clock.time_s)
 
     def _command_nav_land(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         return self.autopilot.request_mode(FlightMode.LAND, self.clock.time_s)

@@ -87,6 +87,7 @@ from sitl_sim.sitl_config import (
     sitl_config_from_args,
 )
 from sitl_sim.sitl_episode import Episode, EpisodeLifecycle
+from sitl_sim.sitl_precland import PreclandLoop
 
 __all__ = ["MavlinkSitl", "main", "run_sitl"]
 
@@ -95,7 +96,7 @@ log = logging.getLogger("visland.sitl")
 _ON_GROUND_DOWN_M = -0.01  # within 1 cm of the ground plane counts as on the ground
 
 
-class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
+class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLoop):
     """The MAVLink SITL: build it (binds the ports), then :meth:`run` (blocking) or
     :meth:`stop` from another thread. Use as a context manager to release the ports.
 
@@ -174,6 +175,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
         """Frames the scenario's ``frame_drop_prob`` lost (not sent)."""
         self._init_dispatch()
         self._init_streams()
+        self._init_precland()
         self._stop = threading.Event()
         self._frame_id = 0
         self._flying = False
@@ -234,6 +236,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
                         continue
                     if not wait.answered:
                         self.lockstep_timeouts += 1
+                        self._precland_wait_timed_out()
                     self._wait = None
                 # Nobody paces HOLD or real time: the wall clock does (lockstep flight runs free).
                 paced = not self._physics_running() or not cfg.lockstep
@@ -302,6 +305,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
         if boundary and not self._control_period():
             return  # the episode ended here; the next one starts at the next tick
         self._emit_streams()
+        if running:
+            self._precland_tick()  # after the streams: it reads the readings they sent
         if boundary:
             stamp_us = self._send_frame()
             ap = self.autopilot
@@ -309,7 +314,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
                 stamp_us is not None  # a lost frame has no answer to wait for
                 and self.config.lockstep
                 and self._physics_running()
-                and ap.mode is FlightMode.OFFBOARD
+                and (ap.mode is FlightMode.OFFBOARD or self._precland_waits())
                 and ap.armed
             ):
                 # the companion stamps its answer with the frame's (exposure) time
@@ -327,6 +332,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
             sp = ap.setpoint
             quat = self.sim.ground_truth().quat_wxyz if sp.attitude_quat_wxyz is not None else None
             return sp.command(quat)
+        if self._land_cmd is None and ap.mode is FlightMode.PRECLAND:
+            self._land_cmd = self._precland_command()  # on the autopilot's own estimate
         if self._land_cmd is None:  # LAND (or OFFBOARD without setpoint, impossible by rule)
             gt = self.sim.ground_truth()
             self._land_cmd = self.land_controller.command(

@@ -123,6 +123,8 @@ class EpisodeLifecycle:
         hover_changed = self._tune_for_episode_vehicle()
         self._reset_samples()
         self.autopilot = Autopilot(self.params, armed=self.config.start_armed)
+        self._reset_precland()
+        self._reset_precland_counters()
         self._flying = False
         self._land_cmd = None
         self._wait = None
@@ -202,6 +204,7 @@ class EpisodeLifecycle:
         if self.gcs_endpoint is not None:
             record["gcs_link_stats"] = self.gcs_endpoint.stats.to_dict()
         record["lockstep_timeouts"] = self.lockstep_timeouts
+        record.update(self._precland_record())
         if ep.writer is not None:
             ep.writer.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, self.clock.time_s, record)
             ep.writer.close()
@@ -223,8 +226,11 @@ class EpisodeLifecycle:
         (HOLD's length and the sensor readings taken while frozen cannot change the flight)."""
         ep = self._episode
         assert ep is not None
+        paced = self._precland_paced
         self.sim.reset(ep.initial, np.random.SeedSequence(ep.seed_key), world=self._world(ep.index))
         self._reset_samples()
+        self._reset_precland()
+        self._precland_paced = paced  # a client pacing the frozen HOLD paces the flight
         self._flying = True
         self.clock.restart_phase()
         self._event(

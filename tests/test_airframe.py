@@ -363,7 +363,7 @@ def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(
                 "PARAM_VALUE", 30.0, lambda m: m.param_id == "MPC_THR_HOVER", fresh=False
             )
             assert pushed.param_value == pytest.approx(expected[1], rel=1e-6)
-            assert pushed.param_count == 5 and pushed.param_index == 3
+            assert pushed.param_count == 17 and pushed.param_index == 3
         except ClientTimeout as exc:
             sitl.stop()
             raise AssertionError(f"no answer from the SITL: {exc}") from None

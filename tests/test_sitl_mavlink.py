@@ -204,7 +204,7 @@ def test_px4_custom_modes_match_the_reference_table():
     assert custom_mode(FlightMode.LAND) == 100925440
     assert custom_mode(FlightMode.HOLD) == 50593792
     assert mode_from_custom(6, 0) is FlightMode.OFFBOARD
-    assert mode_from_custom(4, 9) is FlightMode.LAND  # PRECLAND
+    assert mode_from_custom(4, 9) is FlightMode.PRECLAND
     assert mode_from_custom(3, 0) is False  # POSCTL exists but needs GPS
     assert mode_from_custom(42, 0) is None
 
@@ -715,10 +715,12 @@ def test_params_commands_intervals_timesync(start_sitl, client):
     client.inbox.clear()
     client.send(client.mav.param_request_list_encode(1, 1))
     values = {}
-    while len(values) < 5:
+    while len(values) < 17:
         m = client.wait_for("PARAM_VALUE", 3.0, fresh=False)
         values[m.param_id] = m
-    assert m.param_count == 5
+    assert m.param_count == 17  # COM_*, MPC_THR_HOVER, MAV_SYS_ID, PLD_*, LTEST_*, RTL_PLD_MD
+    assert values["PLD_BTOUT"].param_value == 5.0
+    assert np.float32(values["PLD_MAX_SRCH"].param_value).view(np.int32) == 3  # byte-wise
     assert values["COM_OF_LOSS_T"].param_value == 1.0
     assert values["COM_DISARM_LAND"].param_value == 2.0
     assert values["COM_OBL_RC_ACT"].param_type == mavlink.MAV_PARAM_TYPE_INT32

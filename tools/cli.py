@@ -79,10 +79,15 @@ def _cmd_companion(args: argparse.Namespace) -> int:
 def _cmd_fly(args: argparse.Namespace) -> int:
     from training.backend import backend_from_args
     from training.evaluate import format_table
-    from training.fly import FlyConfig, FlyError, fly, fly_many
+    from training.fly import DEFAULT_VISION_POLICY, FlyConfig, FlyError, fly, fly_many
 
+    mode = getattr(args, "companion_mode", "offboard")
+    policy = args.policy
+    if policy is None:  # fly's default: the expert flies; in landing-target mode, the shipped net
+        policy = DEFAULT_VISION_POLICY if mode == "landing-target" else "expert"
     cfg = FlyConfig(
-        policy=args.policy,
+        policy=policy,
+        companion_mode=mode,
         episodes=args.episodes,
         seed=args.seed,
         scenario=str(args.scenario) if args.scenario else None,
@@ -619,7 +624,19 @@ def _parser() -> argparse.ArgumentParser:
     fl = sub.add_parser(
         "fly", help="SITL + companion as separate processes over UDP: N episodes, eval JSON"
     )
-    fl.add_argument("--policy", default="expert", help="expert | cascade | checkpoint path")
+    fl.add_argument(
+        "--policy",
+        default=None,
+        help="expert | cascade | checkpoint path (default: expert; with --companion-mode "
+        "landing-target: models/visland_vision.pt)",
+    )
+    fl.add_argument(
+        "--companion-mode",
+        choices=("offboard", "landing-target"),
+        default="offboard",
+        help="offboard: the companion flies the policy; landing-target: it streams "
+        "LANDING_TARGET from the policy's camera estimator and the SITL's AUTO.PRECLAND lands",
+    )
     fl.add_argument("--episodes", type=int, default=20)
     fl.add_argument("--seed", type=int, default=EVAL_SEED, help="disjoint from training seeds")
     fl.add_argument("--scenario", type=Path, default=None)

@@ -77,6 +77,9 @@ class FlyConfig:
     """Folder for the SITL's flight logs (None: ``<out>/sitl``)."""
     timeout_s: float | None = None
     """Wall-clock limit of the whole run (None: from the episode count)."""
+    companion_mode: str = "offboard"
+    """``offboard`` (the policy flies) or ``landing-target`` (the companion streams
+    LANDING_TARGET from the policy's camera estimator; the SITL's AUTO.PRECLAND lands)."""
     companion_args: tuple[str, ...] = ()
     sitl_args: tuple[str, ...] = ()
     companion_command: tuple[str, ...] = ()
@@ -88,6 +91,10 @@ class FlyConfig:
     ports: tuple[int, int, int] | None = None
     """Loopback UDP ports (SITL MAVLink, companion MAVLink, camera); None: free ones."""
 
+
+COMPANION_MODES = ("offboard", "landing-target")
+DEFAULT_VISION_POLICY = "models/visland_vision.pt"
+"""The shipped vision policy (README, models/MODEL_CARD.md)."""
 
 _RESULT_FIELDS = tuple(EpisodeResult.__dataclass_fields__)
 _handed_out: set[int] = set()
@@ -172,7 +179,16 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     """
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    if cfg.companion_mode not in COMPANION_MODES:
+        raise ValueError(
+            f"companion_mode = {cfg.companion_mode!r}; expected one of {COMPANION_MODES}"
+        )
     privileged = policy_is_privileged(cfg.policy)
+    if privileged and cfg.companion_mode == "landing-target":
+        raise ValueError(
+            f"--companion-mode landing-target needs a vision checkpoint (camera + pad "
+            f"estimator), not {cfg.policy!r}: e.g. --policy {DEFAULT_VISION_POLICY}"
+        )
     render = (not privileged) if cfg.render is None else cfg.render
     out = Path(cfg.out) if cfg.out else Path(tempfile.mkdtemp(prefix="visland_fly_"))
     sitl_dir = Path(cfg.sitl_log_dir) if cfg.sitl_log_dir else out / "sitl"
@@ -216,6 +232,8 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         f"udpin:127.0.0.1:{remote}",
         "--camera",
         f"udp:127.0.0.1:{cam}",
+        "--mode",
+        cfg.companion_mode,
         "--flights",
         "0",  # until stopped: the SITL decides when the run is over
         "--log-dir",
@@ -294,6 +312,7 @@ def _report(
         "seed": cfg.seed,
         "scenario": cfg.scenario or "configs/scenario.toml",
         "realtime": cfg.realtime,
+        "companion_mode": cfg.companion_mode,
         **summarize(results),
         "latency_ms": latency_stats(companion_logs),
         "companion_flights": companion_flights,

@@ -26,6 +26,7 @@ __all__ = [
     "SCHEMA_AUTOPILOT_COMMAND",
     "SCHEMA_COMMAND",
     "SCHEMA_COMPANION_COMMAND",
+    "SCHEMA_COMPANION_LANDING_TARGET",
     "SCHEMA_COMPANION_OBSERVATION",
     "SCHEMA_COMPANION_SUMMARY",
     "SCHEMA_EPISODE_RESULT",
@@ -37,10 +38,12 @@ __all__ = [
     "SCHEMA_LABEL",
     "SCHEMA_LINK_STATS",
     "SCHEMA_OBSERVATION",
+    "SCHEMA_PRECLAND",
     "SCHEMA_RX_ERROR",
     "TOPIC_AUTOPILOT_COMMAND",
     "TOPIC_COMMAND",
     "TOPIC_COMPANION_COMMAND",
+    "TOPIC_COMPANION_LANDING_TARGET",
     "TOPIC_COMPANION_OBSERVATION",
     "TOPIC_COMPANION_PREFIX",
     "TOPIC_COMPANION_SUMMARY",
@@ -53,6 +56,7 @@ __all__ = [
     "TOPIC_MAVLINK_IN",
     "TOPIC_MAVLINK_OUT",
     "TOPIC_OBSERVATION",
+    "TOPIC_PRECLAND",
     "TOPIC_RESULT",
     "TOPIC_RX_ERRORS",
     "TOPIC_SCENARIO",
@@ -100,6 +104,11 @@ TOPIC_COMPANION_COMMAND = "/companion/command"
 """Every command computed: raw, clamped, ``sent``, latency."""
 TOPIC_COMPANION_SUMMARY = "/companion/summary"
 """The flight's counters, last."""
+TOPIC_COMPANION_LANDING_TARGET = "/companion/landing_target"
+"""Landing-target mode: each frame's pad estimate and the LANDING_TARGET sent (or why not)."""
+TOPIC_PRECLAND = "/autopilot/precland"
+"""SITL, AUTO.PRECLAND: each control period's precision-land state, the autopilot's own
+estimate and its landing-target estimate (what the precision land flew on)."""
 
 # ------------------------------------------------------------- labels (relabel's sibling file)
 TOPIC_LABEL = "/label/command"
@@ -120,6 +129,8 @@ SCHEMA_LINK_STATS = "visland.LinkStats"
 SCHEMA_COMPANION_OBSERVATION = "visland.CompanionObservation"
 SCHEMA_COMPANION_COMMAND = "visland.CompanionCommand"
 SCHEMA_COMPANION_SUMMARY = "visland.CompanionSummary"
+SCHEMA_COMPANION_LANDING_TARGET = "visland.CompanionLandingTarget"
+SCHEMA_PRECLAND = "visland.Precland"
 SCHEMA_LABEL = "visland.Label"
 
 SCHEMAS: dict[str, str] = {
@@ -137,6 +148,8 @@ SCHEMAS: dict[str, str] = {
     TOPIC_COMPANION_OBSERVATION: SCHEMA_COMPANION_OBSERVATION,
     TOPIC_COMPANION_COMMAND: SCHEMA_COMPANION_COMMAND,
     TOPIC_COMPANION_SUMMARY: SCHEMA_COMPANION_SUMMARY,
+    TOPIC_COMPANION_LANDING_TARGET: SCHEMA_COMPANION_LANDING_TARGET,
+    TOPIC_PRECLAND: SCHEMA_PRECLAND,
     TOPIC_LABEL: SCHEMA_LABEL,
 }
 """Topic → schema name for every fixed topic (``/mavlink/*/<NAME>``: :func:`mavlink_schema`)."""
@@ -155,7 +168,7 @@ _ROLLOUT_TOPICS = frozenset(
 LOG_KIND_TOPICS: dict[str, frozenset[str]] = {
     "rollout": _ROLLOUT_TOPICS,
     "sitl": _ROLLOUT_TOPICS
-    | {TOPIC_EVENTS, TOPIC_AUTOPILOT_COMMAND, TOPIC_RX_ERRORS, TOPIC_LINK_STATS},
+    | {TOPIC_EVENTS, TOPIC_AUTOPILOT_COMMAND, TOPIC_RX_ERRORS, TOPIC_LINK_STATS, TOPIC_PRECLAND},
     "companion": frozenset(
         {
             TOPIC_IMAGE,
@@ -163,6 +176,7 @@ LOG_KIND_TOPICS: dict[str, frozenset[str]] = {
             TOPIC_COMPANION_OBSERVATION,
             TOPIC_COMPANION_COMMAND,
             TOPIC_COMPANION_SUMMARY,
+            TOPIC_COMPANION_LANDING_TARGET,
         }
     ),
 }
