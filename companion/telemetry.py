@@ -5,7 +5,10 @@ is.
 
 One ``handle_<message>`` method per message (``SUBSCRIBES`` lists them); anything else is
 ignored. Malformed values (non-finite attitude, a range outside the sensor's limits) never raise:
-the sample is marked invalid or dropped and counted.
+the sample is marked invalid or dropped and counted. A sample stamped before the one held (a
+reordered datagram of a lossy link) is dropped and counted as ``<NAME> late``: the newest
+reading never goes back in time. One stamped more than a second before it is a restarted
+autopilot, and is taken (:data:`companion.camera.RESTART_WINDOW_S`, the link's rule).
 
 :func:`assemble_observation` makes the policy's :class:`~companion.contract.Observation` from a
 camera frame and the newest samples: in flight (:mod:`companion.offboard`) and in a log's replay
@@ -20,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.camera import ReceivedFrame
+from companion.camera import RESTART_WINDOW_S, ReceivedFrame
 from companion.contract import GroundTruth, Observation
 
 __all__ = [
@@ -187,6 +190,14 @@ class TelemetryStore:
         self.rejected[name] = self.rejected.get(name, 0) + 1
         return False
 
+    def _late(self, held: Any, time_s: float, name: str) -> bool:
+        """Whether a sample stamped ``time_s`` is older than ``held`` (and not a restart);
+        counted as ``<name> late``."""
+        if held is None or not held.time_s - RESTART_WINDOW_S <= time_s < held.time_s:
+            return False
+        self._reject(f"{name} late")
+        return True
+
     def _stamp(self, time_s: float) -> None:
         if time_s > self.latest_time_s:
             self.latest_time_s = time_s
@@ -209,6 +220,8 @@ class TelemetryStore:
         if not (np.all(np.isfinite(att)) and np.all(np.isfinite(rates))):
             return self._reject("ATTITUDE")
         t = msg.time_boot_ms * 1e-3
+        if self._late(self.attitude, t, "ATTITUDE"):
+            return False
         self.attitude = AttitudeSample(att, rates, t, rx_s)
         self._stamp(t)
         return True
@@ -219,6 +232,8 @@ class TelemetryStore:
         if msg.fields_updated & 0b111 != 0b111 or not np.all(np.isfinite(acc)):
             return self._reject("HIGHRES_IMU")
         t = msg.time_usec * 1e-6
+        if self._late(self.imu, t, "HIGHRES_IMU"):
+            return False
         self.imu = ImuSample(acc, gyro, t, rx_s)
         self._stamp(t)
         return True
@@ -232,6 +247,8 @@ class TelemetryStore:
             or getattr(msg, "signal_quality", 0) == 1
         )
         t = msg.time_boot_ms * 1e-3
+        if self._late(self.range, t, "DISTANCE_SENSOR"):
+            return False
         sample = RangeSample(math.nan if invalid else msg.current_distance * 0.01, t, rx_s)
         self.range = sample
         if sample.valid:
@@ -247,6 +264,8 @@ class TelemetryStore:
         sample = odometry_from_msg(msg, rx_s)
         if sample is None:
             return self._reject("ODOMETRY")
+        if self._late(self.odometry, sample.time_s, "ODOMETRY"):
+            return False
         self.odometry = sample
         self._stamp(sample.time_s)
         return True

@@ -253,6 +253,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
                 self._tick_once()
         finally:
             self._finish_episode(aborted=not self._done)
+            self._drain_link()
             self.close()
         return list(self.results)
 
@@ -314,6 +315,20 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle):
         self.endpoint.release()
         for datagram in imp.streams["camera_tx"].due(imp.clock()):
             self._camera_sendto(datagram)
+
+    def _drain_link(self) -> None:
+        """Before closing: let the impaired link deliver what it still holds for the companion
+        (the disarm HEARTBEAT of the last touchdown), as a real link would after we stop."""
+        imp = self.link_impairment
+        if imp is None:
+            return
+        cfg = imp.config
+        deadline = time.monotonic() + 1e-3 * (cfg.delay_ms + cfg.jitter_ms) + 0.01
+        held = (imp.streams["mavlink_tx"], imp.streams["camera_tx"])
+        while any(s.held for s in held) and (now := time.monotonic()) < deadline:
+            due = min(t for s in held if (t := s.next_release_s()) is not None)
+            time.sleep(min(max(due - now, 0.0), 0.01))
+            self._release_link()
 
     def _update_link_cut(self) -> None:
         """The ``outage_s`` window, on flight time: log its start and end."""
