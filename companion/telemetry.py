@@ -18,6 +18,7 @@ camera frame and the newest samples: in flight (:mod:`companion.offboard`) and i
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +48,11 @@ SUBSCRIBES = (
     "EXTENDED_SYS_STATE",
     "ODOMETRY",
 )
+
+HISTORY_SAMPLES = 16
+"""Samples kept per timed message for :meth:`TelemetryStore.at`: 0.32 s of 50 Hz ATTITUDE,
+HIGHRES_IMU or ODOMETRY, 1.6 s of 10 Hz DISTANCE_SENSOR — beyond any jitter worth flying."""
+_TIMED = ("attitude", "imu", "range", "odometry")
 
 _MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
@@ -178,6 +184,28 @@ class TelemetryStore:
 
     def __post_init__(self) -> None:
         self._handlers = {name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES}
+        self._history: dict[str, deque[Any]] = {
+            name: deque(maxlen=HISTORY_SAMPLES) for name in _TIMED
+        }
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # every new timed sample (set by a handler) also goes into its short history
+        super().__setattr__(name, value)
+        if name in _TIMED and value is not None and "_history" in self.__dict__:
+            self._history[name].append(value)
+
+    def at(self, name: str, time_s: float | None) -> Any:
+        """The ``name`` sample (attitude, imu, range, odometry) stamped at ``time_s``: the newest
+        one stamped at or before it, of the last :data:`HISTORY_SAMPLES`; the oldest held if
+        all are newer; the newest when ``time_s`` is None. None when there is none.
+
+        On a jittery link a frame can arrive after telemetry stamped later than it; the
+        observation must still hold the readings at the frame's time, as in lockstep."""
+        newest = getattr(self, name)
+        if time_s is None or newest is None or newest.time_s <= time_s + 1e-6:
+            return newest
+        older = [s for s in self._history[name] if s.time_s <= time_s + 1e-6]
+        return older[-1] if older else self._history[name][0]
 
     def update(self, msg: Any, rx_s: float) -> bool:
         """Feed one message; True when it was one of :data:`SUBSCRIBES` and valid."""
@@ -285,15 +313,24 @@ class TelemetryStore:
 
 
 def assemble_observation(
-    frame: ReceivedFrame, store: TelemetryStore, hover_thrust_norm: float | None = None
+    frame: ReceivedFrame,
+    store: TelemetryStore,
+    hover_thrust_norm: float | None = None,
+    at_time_s: float | dict[str, float | None] | None = None,
 ) -> Observation:
-    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU,
+    """The policy's Observation: this frame + the ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU samples
+    at ``at_time_s`` (:meth:`TelemetryStore.at`: the frame's time for an autopilot-clock
+    camera; None: the newest; a mapping: per sample, as a replay re-selects the recorded ones),
     and the autopilot's hover thrust as read at connect time (None: not reported, NaN).
 
     Raises:
         ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
     """
-    att, imu, rng = store.attitude, store.imu, store.range
+
+    def when(name: str) -> float | None:
+        return at_time_s.get(name) if isinstance(at_time_s, dict) else at_time_s
+
+    att, imu, rng = (store.at(n, when(n)) for n in ("attitude", "imu", "range"))
     if att is None or imu is None or rng is None:
         raise ValueError("observation: attitude, IMU and range samples are all needed")
     return Observation(

@@ -304,6 +304,29 @@ def test_telemetry_store_drops_late_samples_and_takes_a_restarted_clock():
     assert store.attitude.time_s == pytest.approx(0.02)
 
 
+def test_observation_takes_the_readings_stamped_at_the_frame_not_newer_ones():
+    from companion.camera import ReceivedFrame
+    from companion.link import mavlink
+    from companion.telemetry import TelemetryStore, assemble_observation
+
+    store = TelemetryStore()
+    for ms in (4960, 4980, 5000, 5020, 5040):  # telemetry up to 40 ms past the frame arrived
+        store.update(mavlink.MAVLink_attitude_message(ms, ms * 1e-4, 0, 0, 0, 0, 0), 1.0)
+        imu = mavlink.MAVLink_highres_imu_message(ms * 1000, 0, 0, -9.8, *[0.0] * 10, 0b111)
+        store.update(imu, 1.0)
+    rng = mavlink.MAVLink_distance_sensor_message(4900, 0, 15000, 812, 0, 0, 25, 0)
+    store.update(rng, 1.0)
+    frame = ReceivedFrame(7, 5.0, np.zeros((128, 128), np.uint8), 1.0)
+    obs = assemble_observation(frame, store, 0.4, at_time_s=5.0)
+    assert (obs.attitude_time_s, obs.imu_time_s, obs.range_time_s) == (5.0, 5.0, 4.9)
+    assert obs.attitude_rad[0] == pytest.approx(0.5)
+    assert assemble_observation(frame, store, 0.4).attitude_time_s == 5.04  # newest
+    # a replay re-selects exactly the samples the flight used, per reading
+    per = {"attitude": 4.98, "imu": 5.02, "range": 4.9}
+    again = assemble_observation(frame, store, 0.4, at_time_s=per)
+    assert (again.attitude_time_s, again.imu_time_s) == (4.98, 5.02)
+
+
 def test_link_drops_a_stale_heartbeat_by_sequence_number():
     import socket
 
@@ -379,6 +402,16 @@ def test_card_companion_flies_through_ten_percent_loss_and_50_ms_jitter_to_touch
         assert flight["failsafe_reason"] is None, flight
         assert any("touchdown (range + IMU)" in e for e in flight["events"]), flight["events"]
         assert flight["policy_commands"] > 20
+    # the logs replay exactly: the observation took the samples stamped at each frame, and the
+    # replay re-selects the same ones however the jitter ordered their arrival
+    from companion.record import replay_log
+    from companion.runtime import PolicyRuntime
+    from training.companion_process import resolve_policy
+
+    for flight in flights:
+        rep = replay_log(flight["log_path"], PolicyRuntime(resolve_policy("expert"), "expert"))
+        assert rep.errors == [] and rep.commands == flight["policy_commands"]
+        assert rep.max_abs_diff <= 1e-5
     # and the link did impair every stream, both ways
     streams = report["link_impairment"]
     for name in ("mavlink_tx", "mavlink_rx", "camera_tx"):
