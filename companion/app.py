@@ -412,6 +412,12 @@ class Companion:
         out = flight.outcome.to_dict()
         out["link"] = dataclasses.asdict(self.link.counters)
         out["clamped"] = self.safety.clamped
+        out["camera"] = {  # what a lossy link did to the frames (UDP sources count these)
+            k: getattr(self.camera, k)
+            for k in ("bad_packets", "bad_size", "stale_frames")
+            if hasattr(self.camera, k)
+        }
+        out["telemetry_rejected"] = dict(self.store.rejected)
         flog.close(summary=out)
         self.outcomes.append(out)
         print(

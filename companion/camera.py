@@ -35,6 +35,7 @@ from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
 from companion.contract.camera_packet import CameraPacketError, FrameAssembler
 
 __all__ = [
+    "RESTART_WINDOW_S",
     "CameraError",
     "CameraSource",
     "McapReplaySource",
@@ -48,6 +49,10 @@ __all__ = [
 ]
 
 Clock = Literal["autopilot", "companion"]
+
+RESTART_WINDOW_S = 1.0
+"""A SITL frame stamped this much before the newest one is from a restarted source, not a late
+datagram (as :class:`companion.link.MavlinkLink` tells a restart from ``time_boot_ms``)."""
 
 
 class CameraError(Exception):
@@ -186,8 +191,12 @@ def fit_to_policy(
 class UdpCameraSource:
     """Camera packets on a UDP port (the SITL sends to 127.0.0.1:5600 by default).
 
-    Counts ``bad_packets`` (malformed datagrams) and ``bad_size`` (frames that are not
-    128×128 mono8: refused, the policy's contract cannot take them).
+    Counts ``bad_packets`` (malformed datagrams), ``bad_size`` (frames that are not 128×128
+    mono8: refused, the policy's contract cannot take them) and ``stale_frames`` (a frame
+    stamped at or before the newest delivered one: a duplicate or a reordered datagram of a
+    lossy link; answering it would step the policy twice, or backwards in time). A frame
+    stamped more than :data:`RESTART_WINDOW_S` before the newest is a restarted source (a new
+    SITL, its clock from zero) and is delivered: the MAVLink link's restart rule.
     """
 
     clock: Clock = "autopilot"
@@ -203,8 +212,10 @@ class UdpCameraSource:
         self.sock.setblocking(False)
         self.address = self.sock.getsockname()
         self._assembler = FrameAssembler()
+        self._newest_time_s = -math.inf
         self.bad_packets = 0
         self.bad_size = 0
+        self.stale_frames = 0
 
     def fileno(self) -> int | None:
         return self.sock.fileno()
@@ -228,6 +239,11 @@ class UdpCameraSource:
             if frame.image.shape != (IMAGE_SIZE_PX, IMAGE_SIZE_PX):
                 self.bad_size += 1
                 continue
+            newest = self._newest_time_s
+            if newest - RESTART_WINDOW_S <= frame.time_s <= newest:
+                self.stale_frames += 1
+                continue
+            self._newest_time_s = frame.time_s
             out.append(ReceivedFrame(frame.frame_id, frame.time_s, frame.image, time.monotonic()))
 
     def counters(self) -> dict[str, int]:

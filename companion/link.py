@@ -12,6 +12,13 @@ INVALID, and watches the link: no autopilot HEARTBEAT for ``link_timeout_s`` = *
 one = *reconnected* (streams re-requested); ``time_boot_ms`` going backwards = the autopilot
 *restarted*. A broken serial/TCP port is reopened every ``reopen_period_s``.
 
+On a lossy link datagrams may be duplicated or reordered. Telemetry carries time stamps (the
+store drops late samples); a HEARTBEAT does not, and a stale one would show an old mode or
+arming state (a reordered HOLD heartbeat after the switch to OFFBOARD reads as "someone else
+changed the mode"). So a HEARTBEAT whose MAVLink sequence number is at most
+:data:`STALE_SEQ_WINDOW` behind the newest one received from that component is dropped and
+counted (``rx_stale_heartbeats``); further behind is a new stream (a restarted sender).
+
 Autopilot *profiles* hold what differs between PX4 and ArduPilot: mode numbers, the
 hover-thrust parameter and the meaning of SET_ATTITUDE_TARGET's ``thrust``.
 """
@@ -51,6 +58,12 @@ __all__ = [
 log = logging.getLogger("visland.companion.link")
 
 COMPANION_COMPID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
+
+STALE_SEQ_WINDOW = 64
+"""A HEARTBEAT 0..64 sequence numbers behind the newest message of its sender is stale (a
+duplicate or a reordered datagram). An autopilot streams ~170 messages/s here, so 64 is ~0.4 s
+of traffic: far more than a reordered datagram is overtaken by (delay + jitter ~0.1 s), far
+less than the 256 at which the u8 sequence wraps."""
 
 
 class LinkError(Exception):
@@ -231,6 +244,7 @@ class LinkCounters:
     reconnects: int = 0
     restarts: int = 0
     port_errors: int = 0
+    rx_stale_heartbeats: int = 0
     extra: dict[str, int] = field(default_factory=dict)
 
 
@@ -289,6 +303,7 @@ class MavlinkLink:
         self._last_hb_rx_s = -math.inf
         self._last_hb_tx_s = -math.inf
         self._last_boot_ms: int | None = None
+        self._newest_seq: dict[tuple[int, int], int] = {}
         self._pending: dict[int, _PendingCommand] = {}
         self._acks: dict[int, int] = {}
         self._params: dict[str, float] = {}
@@ -394,9 +409,24 @@ class MavlinkLink:
         self._tick()
         return n
 
+    def _stale(self, msg: Any, key: tuple[int, int]) -> bool:
+        """Whether ``msg`` is a stale HEARTBEAT (see :data:`STALE_SEQ_WINDOW`); keeps the newest
+        sequence number of each sender."""
+        seq = msg.get_seq()
+        newest = self._newest_seq.get(key)
+        if newest is None or (newest - seq) % 256 > STALE_SEQ_WINDOW:  # ahead, or a new stream
+            self._newest_seq[key] = seq
+            return False
+        if msg.get_type() != "HEARTBEAT":
+            return False
+        self.counters.rx_stale_heartbeats += 1
+        return True
+
     def _accept(self, msg: Any, rx: float) -> bool:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         name = msg.get_type()
+        if self._stale(msg, (src_sys, src_comp)):
+            return False
         if name == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID:
             if self.target_system is None:
                 self.target_system, self.target_component = src_sys, src_comp
@@ -420,6 +450,7 @@ class MavlinkLink:
         if boot_ms is not None:
             if self._last_boot_ms is not None and boot_ms + 1000 < self._last_boot_ms:
                 self.counters.restarts += 1
+                self._newest_seq.clear()
                 self._event(
                     "restarted",
                     f"autopilot clock went back from {self._last_boot_ms} to {boot_ms} ms",

@@ -402,8 +402,11 @@ class FlightController:
         if failsafe is not None:
             self._failsafe(failsafe)
             return
-        obs = assemble_observation(frame, self.store, self._hover_thrust(now))
-        gt = self.store.odometry if self.runtime.privileged else None
+        # an autopilot-clock frame (SITL) gets the readings stamped at its time, however late
+        # it arrived after them (jitter); a companion-clock camera, the newest
+        at = frame.time_s if self.camera_clock == "autopilot" else None
+        obs = assemble_observation(frame, self.store, self._hover_thrust(now), at)
+        gt = self.store.at("odometry", at) if self.runtime.privileged else None
         result = self.runtime.step(obs, gt)
         if result.command is None:
             self._failsafe(Failsafe(FailsafeReason.POLICY_ERROR, str(result.error)))

@@ -255,6 +255,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
     store = TelemetryStore()
     frames: dict[int, ReceivedFrame] = {}
     hovers: dict[int, float] = {}  # the hover thrust the policy was given, per frame
+    times: dict[int, dict[str, float | None]] = {}  # the sample times it was given
     for topic, msg in _raw_records(path):
         if topic.startswith(TOPIC_MAVLINK_IN):
             fields = {k: v for k, v in msg.items() if k not in ("time_s", "mavpackettype")}
@@ -271,6 +272,15 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
         elif topic == TOPIC_OBSERVATION:
             if msg.get("hover_thrust_norm") is not None:
                 hovers = {int(msg["frame_id"]): float(msg["hover_thrust_norm"])}
+            # the samples the flight used (on a jittery link not always the newest)
+            times = {
+                int(msg["frame_id"]): {
+                    "attitude": msg.get("attitude_time_s"),
+                    "imu": msg.get("imu_time_s"),
+                    "range": msg.get("range_time_s"),
+                    "odometry": msg.get("groundtruth_time_s"),
+                }
+            }
         elif topic == TOPIC_EVENTS and msg.get("kind") == EVENT_FLIGHT_START:
             runtime.reset()
         elif topic == TOPIC_COMMAND and msg.get("policy"):
@@ -279,8 +289,9 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
             if frame is None:
                 report.errors.append(f"frame {fid}: not in the log before its command")
                 continue
-            obs = assemble_observation(frame, store, hovers.get(fid))
-            gt = store.odometry if runtime.privileged else None
+            at = times.get(fid)
+            obs = assemble_observation(frame, store, hovers.get(fid), at)
+            gt = store.at("odometry", at and at["odometry"]) if runtime.privileged else None
             result = runtime.step(obs, gt)
             if result.command is None:
                 report.errors.append(f"frame {fid}: {result.error}")

@@ -5,7 +5,7 @@ companion requests LAND and stops sending setpoints, so the autopilot flies the 
 
 * ``camera_stale`` / ``telemetry_stale`` — the newest frame, ATTITUDE, HIGHRES_IMU or
   DISTANCE_SENSOR (and ODOMETRY for a privileged policy) was received more than ``max_age_s``
-  ago (default 300 ms; about three camera periods at 10 Hz);
+  ago (default 600 ms, see :data:`DEFAULT_MAX_AGE_S` for why);
 * ``range_invalid`` — near the ground (the last valid range below ``near_ground_m``) the radar
   has given no valid range for ``max_age_s``: the policy would descend blind;
 * ``policy_error`` — the policy raised or produced a non-finite command.
@@ -27,7 +27,26 @@ from companion.link import mavlink
 from companion.states import Failsafe, FailsafeReason
 from companion.telemetry import TelemetryStore
 
-__all__ = ["SafetyConfig", "SafetyError", "SafetyMonitor", "TouchdownDetector"]
+__all__ = [
+    "DEFAULT_MAX_AGE_S",
+    "SafetyConfig",
+    "SafetyError",
+    "SafetyMonitor",
+    "TouchdownDetector",
+]
+
+DEFAULT_MAX_AGE_S = 0.6
+"""The staleness limit: long enough for a lossy link, short enough to act before the autopilot.
+
+The slowest inputs (camera frames, DISTANCE_SENSOR) come at 10 Hz. On a link losing 10 % of
+datagrams with 50 ms of jitter (the `[link]` the companion is tested through), a gap longer
+than the limit needs ``n`` consecutive losses: with 300 ms (the earlier default, three frame
+periods) two losses and a later-than-usual datagram do it, p ≈ 0.1² / 2 per frame — a false
+failsafe every ~10 s over two 10 Hz streams (measured: the first real-time flight through that
+link failed safe after 1.8 s, "newest frame 303 ms old"). With 600 ms it needs five losses, p ≈
+0.1⁵ / 2 + 0.1⁶ ≈ 6e-6 per frame, ~0.5 % of 40-s flights. It stays below the autopilot's
+offboard-loss timeout (PX4 COM_OF_LOSS_T = 1 s), so on a real outage the companion still
+notices first and asks for LAND while the link may still carry the request."""
 
 
 class SafetyError(ValueError):
@@ -45,7 +64,7 @@ class SafetyConfig:
         max_rate_rad_s: (roll, pitch, yaw) rate clamp, rad/s.
     """
 
-    max_age_s: float = 0.3
+    max_age_s: float = DEFAULT_MAX_AGE_S
     near_ground_m: float = 10.0
     thrust_min: float = 0.0
     thrust_max: float = 1.0

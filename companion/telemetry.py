@@ -5,7 +5,10 @@ is.
 
 One ``handle_<message>`` method per message (``SUBSCRIBES`` lists them); anything else is
 ignored. Malformed values (non-finite attitude, a range outside the sensor's limits) never raise:
-the sample is marked invalid or dropped and counted.
+the sample is marked invalid or dropped and counted. A sample stamped before the one held (a
+reordered datagram of a lossy link) is dropped and counted as ``<NAME> late``: the newest
+reading never goes back in time. One stamped more than a second before it is a restarted
+autopilot, and is taken (:data:`companion.camera.RESTART_WINDOW_S`, the link's rule).
 
 :func:`assemble_observation` makes the policy's :class:`~companion.contract.Observation` from a
 camera frame and the newest samples: in flight (:mod:`companion.offboard`) and in a log's replay
@@ -15,12 +18,13 @@ camera frame and the newest samples: in flight (:mod:`companion.offboard`) and i
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from companion.camera import ReceivedFrame
+from companion.camera import RESTART_WINDOW_S, ReceivedFrame
 from companion.contract import GroundTruth, Observation
 
 __all__ = [
@@ -44,6 +48,11 @@ SUBSCRIBES = (
     "EXTENDED_SYS_STATE",
     "ODOMETRY",
 )
+
+HISTORY_SAMPLES = 16
+"""Samples kept per timed message for :meth:`TelemetryStore.at`: 0.32 s of 50 Hz ATTITUDE,
+HIGHRES_IMU or ODOMETRY, 1.6 s of 10 Hz DISTANCE_SENSOR — beyond any jitter worth flying."""
+_TIMED = ("attitude", "imu", "range", "odometry")
 
 _MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
@@ -175,6 +184,28 @@ class TelemetryStore:
 
     def __post_init__(self) -> None:
         self._handlers = {name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES}
+        self._history: dict[str, deque[Any]] = {
+            name: deque(maxlen=HISTORY_SAMPLES) for name in _TIMED
+        }
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # every new timed sample (set by a handler) also goes into its short history
+        super().__setattr__(name, value)
+        if name in _TIMED and value is not None and "_history" in self.__dict__:
+            self._history[name].append(value)
+
+    def at(self, name: str, time_s: float | None) -> Any:
+        """The ``name`` sample (attitude, imu, range, odometry) stamped at ``time_s``: the newest
+        one stamped at or before it, of the last :data:`HISTORY_SAMPLES`; the oldest held if
+        all are newer; the newest when ``time_s`` is None. None when there is none.
+
+        On a jittery link a frame can arrive after telemetry stamped later than it; the
+        observation must still hold the readings at the frame's time, as in lockstep."""
+        newest = getattr(self, name)
+        if time_s is None or newest is None or newest.time_s <= time_s + 1e-6:
+            return newest
+        older = [s for s in self._history[name] if s.time_s <= time_s + 1e-6]
+        return older[-1] if older else self._history[name][0]
 
     def update(self, msg: Any, rx_s: float) -> bool:
         """Feed one message; True when it was one of :data:`SUBSCRIBES` and valid."""
@@ -186,6 +217,14 @@ class TelemetryStore:
     def _reject(self, name: str) -> bool:
         self.rejected[name] = self.rejected.get(name, 0) + 1
         return False
+
+    def _late(self, held: Any, time_s: float, name: str) -> bool:
+        """Whether a sample stamped ``time_s`` is older than ``held`` (and not a restart);
+        counted as ``<name> late``."""
+        if held is None or not held.time_s - RESTART_WINDOW_S <= time_s < held.time_s:
+            return False
+        self._reject(f"{name} late")
+        return True
 
     def _stamp(self, time_s: float) -> None:
         if time_s > self.latest_time_s:
@@ -209,6 +248,8 @@ class TelemetryStore:
         if not (np.all(np.isfinite(att)) and np.all(np.isfinite(rates))):
             return self._reject("ATTITUDE")
         t = msg.time_boot_ms * 1e-3
+        if self._late(self.attitude, t, "ATTITUDE"):
+            return False
         self.attitude = AttitudeSample(att, rates, t, rx_s)
         self._stamp(t)
         return True
@@ -219,6 +260,8 @@ class TelemetryStore:
         if msg.fields_updated & 0b111 != 0b111 or not np.all(np.isfinite(acc)):
             return self._reject("HIGHRES_IMU")
         t = msg.time_usec * 1e-6
+        if self._late(self.imu, t, "HIGHRES_IMU"):
+            return False
         self.imu = ImuSample(acc, gyro, t, rx_s)
         self._stamp(t)
         return True
@@ -232,6 +275,8 @@ class TelemetryStore:
             or getattr(msg, "signal_quality", 0) == 1
         )
         t = msg.time_boot_ms * 1e-3
+        if self._late(self.range, t, "DISTANCE_SENSOR"):
+            return False
         sample = RangeSample(math.nan if invalid else msg.current_distance * 0.01, t, rx_s)
         self.range = sample
         if sample.valid:
@@ -247,6 +292,8 @@ class TelemetryStore:
         sample = odometry_from_msg(msg, rx_s)
         if sample is None:
             return self._reject("ODOMETRY")
+        if self._late(self.odometry, sample.time_s, "ODOMETRY"):
+            return False
         self.odometry = sample
         self._stamp(sample.time_s)
         return True
@@ -266,15 +313,24 @@ class TelemetryStore:
 
 
 def assemble_observation(
-    frame: ReceivedFrame, store: TelemetryStore, hover_thrust_norm: float | None = None
+    frame: ReceivedFrame,
+    store: TelemetryStore,
+    hover_thrust_norm: float | None = None,
+    at_time_s: float | dict[str, float | None] | None = None,
 ) -> Observation:
-    """The policy's Observation: this frame + the newest ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU,
+    """The policy's Observation: this frame + the ATTITUDE, DISTANCE_SENSOR, HIGHRES_IMU samples
+    at ``at_time_s`` (:meth:`TelemetryStore.at`: the frame's time for an autopilot-clock
+    camera; None: the newest; a mapping: per sample, as a replay re-selects the recorded ones),
     and the autopilot's hover thrust as read at connect time (None: not reported, NaN).
 
     Raises:
         ValueError: a sample is missing (the safety monitor runs first, so this is a bug).
     """
-    att, imu, rng = store.attitude, store.imu, store.range
+
+    def when(name: str) -> float | None:
+        return at_time_s.get(name) if isinstance(at_time_s, dict) else at_time_s
+
+    att, imu, rng = (store.at(n, when(n)) for n in ("attitude", "imu", "range"))
     if att is None or imu is None or rng is None:
         raise ValueError("observation: attitude, IMU and range samples are all needed")
     return Observation(

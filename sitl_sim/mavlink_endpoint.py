@@ -13,7 +13,11 @@ pymavlink ``MAVLink`` object is used only as a codec (mavlink_notes.md section 1
 * outgoing frames go to the configured remote plus every peer that sent a valid frame (PX4's
   SITL does the same), at most ``max_peers``;
 * nothing received ever raises: malformed input is counted in :class:`LinkStats` and returned
-  as :class:`RxError` records for the flight log.
+  as :class:`RxError` records for the flight log;
+* with a :class:`~sitl_sim.link_impairment.LinkImpairment` (a scenario's ``[link]``) every
+  datagram sent goes through its ``mavlink_tx`` stream (sent when :meth:`release` finds it
+  due) and every datagram read from the socket through ``mavlink_rx`` (decoded when due), so
+  loss, delay, jitter, duplicates and reordering act on the wire, below MAVLink.
 """
 
 from __future__ import annotations
@@ -25,12 +29,15 @@ import struct
 import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract.signing import UNSIGNED_ALLOWED
 from sitl_sim.errors import SimError
+
+if TYPE_CHECKING:
+    from sitl_sim.link_impairment import LinkImpairment
 
 __all__ = [
     "MAX_DATAGRAM_BYTES",
@@ -192,6 +199,12 @@ class MavlinkEndpoint:
             self._encoder.signing.timestamp = signing_timestamp_now()
         self.sysid = sysid
         self.compid = compid
+        self._impairment: LinkImpairment | None = None
+
+    def set_impairment(self, impairment: LinkImpairment | None) -> None:
+        """Send and receive through ``impairment``'s ``mavlink_tx`` / ``mavlink_rx`` streams
+        (None: straight to the socket). The caller must call :meth:`release` often."""
+        self._impairment = impairment
 
     def set_signing_key(self, key: bytes | None, initial_timestamp: int = 0) -> None:
         """Start, change (32-byte key) or stop (None) MAVLink 2 signing on this link; the
@@ -245,6 +258,20 @@ class MavlinkEndpoint:
         """Send an already packed frame (e.g. the one :meth:`send` of another link of the same
         system returned: packed and signed once, one sequence for both links)."""
         self.stats.tx_messages += 1
+        imp = self._impairment
+        if imp is not None:
+            imp.streams["mavlink_tx"].offer(buf, imp.clock(), imp.cut)
+            return
+        self._sendto_all(buf)
+
+    def release(self) -> None:
+        """Send the impaired link's datagrams whose release time has come (no-op without one)."""
+        imp = self._impairment
+        if imp is not None:
+            for buf in imp.streams["mavlink_tx"].due(imp.clock()):
+                self._sendto_all(buf)
+
+    def _sendto_all(self, buf: bytes) -> None:
         for addr in (self.remote, *self._peers):
             try:
                 self._sock.sendto(buf, addr)
@@ -262,6 +289,7 @@ class MavlinkEndpoint:
         rest waits in the kernel buffer, which drops the excess)."""
         accepted: list[Inbound] = []
         errors: list[RxError] = []
+        imp = self._impairment
         deadline = time.perf_counter() + budget_s
         for _ in range(max_datagrams):
             if time.perf_counter() > deadline:
@@ -275,9 +303,15 @@ class MavlinkEndpoint:
                 errors.append(RxError("rx_bad_data", f"recvfrom: {exc}", 0, ("", 0)))
                 self.stats.rx_bad_data += 1
                 break
-            self._decode_datagram(data, addr, accepted, errors)
+            if imp is None:
+                self._decode_datagram(data, addr, accepted, errors)
+            else:  # on the impaired wire: decoded when (and if) it arrives
+                imp.streams["mavlink_rx"].offer((data, addr), imp.clock(), imp.cut)
         else:
             self.stats.rx_deferred += 1  # more waiting: the caller comes back next tick
+        if imp is not None:
+            for data, addr in imp.streams["mavlink_rx"].due(imp.clock()):
+                self._decode_datagram(data, addr, accepted, errors)
         return accepted, errors
 
     def _decode_datagram(

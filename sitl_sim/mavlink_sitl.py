@@ -48,7 +48,10 @@ This module wires the parts and runs the loop; the rest lives one job per module
 * :mod:`sitl_sim.mavlink_messages`: message builders and streams (``PUBLISHES``);
 * :mod:`sitl_sim.mavlink_handlers`: ``handle_<message>`` and command handlers (``SUBSCRIBES``,
   ``COMMANDS``);
-* :mod:`sitl_sim.params`: the parameter table.
+* :mod:`sitl_sim.params`: the parameter table;
+* :mod:`sitl_sim.link_impairment`: the scenario's ``[link]`` (real time only): the offboard
+  link's datagrams both ways and the camera's pass through it; due ones are released at the top
+  of every loop pass, and the loop never sleeps past the next release.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import select
 import signal
 import socket
@@ -72,8 +76,9 @@ from companion.contract.signing import signing_key_bytes
 from sitl_sim.airframe import check_airframe_can_hover
 from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
-from sitl_sim.errors import SimError
+from sitl_sim.errors import ConfigError, SimError
 from sitl_sim.land_controller import CascadeLandController
+from sitl_sim.link_impairment import LinkConfig, LinkImpairment
 from sitl_sim.mavlink_endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.mavlink_handlers import MessageHandlers
 from sitl_sim.mavlink_messages import MessageBuilders
@@ -135,6 +140,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         self.params = AutopilotParams(mpc_thr_hover=self.vehicle.hover_thrust_norm(sim_cfg.planet))
         self.autopilot = Autopilot(self.params, armed=config.start_armed)
         self.sampler = InitialStateSampler(self.scenario, config.seed)
+        self.link_impairment = _link_impairment(self.scenario, config)
+        """The impaired offboard + camera link (None: a perfect link)."""
         self.results: list[EpisodeResult] = []
         self.lockstep_timeouts = 0
         self._pacer = Pacer(self.clock.dt_s, config.speed)
@@ -164,6 +171,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
                 # The offboard link is the one a flight needs; a second SITL (or a PX4) holding
                 # 18570 must not stop this one. Said once, loudly; --gcs-port / --no-gcs fix it.
                 log.warning("ground-station link off: %s (use --gcs-port or --no-gcs)", exc)
+        self.endpoint.set_impairment(self.link_impairment)
         self._endpoints = [self.endpoint] + (
             [self.gcs_endpoint] if self.gcs_endpoint is not None else []
         )
@@ -228,6 +236,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
                 if cfg.max_wall_s is not None and now - wall0 > cfg.max_wall_s:
                     log.warning("max_wall_s = %.1f s reached: stopping", cfg.max_wall_s)
                     break
+                self._release_link()
                 self._poll()
                 wait = self._wait
                 if wait is not None:
@@ -247,6 +256,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
                 self._tick_once()
         finally:
             self._finish_episode(aborted=not self._done)
+            self._drain_link()
             self.close()
         return list(self.results)
 
@@ -271,7 +281,13 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         return self._flying and self.autopilot.physics_running
 
     def _sleep(self, timeout_s: float) -> None:
-        """Wait for a datagram (on any link) or the timeout."""
+        """Wait for a datagram (on any link), the timeout, or the impaired link's next
+        release."""
+        imp = self.link_impairment
+        if imp is not None:
+            due = imp.next_release_s()
+            if due is not None:
+                timeout_s = min(timeout_s, due - time.monotonic())
         if timeout_s > 0:
             select.select([e.fileno() for e in self._endpoints], [], [], timeout_s)
 
@@ -293,6 +309,42 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         self._announce_events()
         self._maybe_log_stats()
 
+    def _release_link(self) -> None:
+        """Send what the impaired link releases now (MAVLink and camera; received datagrams
+        are released in :meth:`_poll`)."""
+        imp = self.link_impairment
+        if imp is None:
+            return
+        self.endpoint.release()
+        for datagram in imp.streams["camera_tx"].due(imp.clock()):
+            self._camera_sendto(datagram)
+
+    def _drain_link(self) -> None:
+        """Before closing: let the impaired link deliver what it still holds for the companion
+        (the disarm HEARTBEAT of the last touchdown), as a real link would after we stop."""
+        imp = self.link_impairment
+        if imp is None:
+            return
+        cfg = imp.config
+        deadline = time.monotonic() + 1e-3 * (cfg.delay_ms + cfg.jitter_ms) + 0.01
+        held = (imp.streams["mavlink_tx"], imp.streams["camera_tx"])
+        while any(s.held for s in held) and (now := time.monotonic()) < deadline:
+            due = min(t for s in held if (t := s.next_release_s()) is not None)
+            time.sleep(min(max(due - now, 0.0), 0.01))
+            self._release_link()
+
+    def _update_link_cut(self) -> None:
+        """The ``outage_s`` window, on flight time: log its start and end."""
+        imp = self.link_impairment
+        if imp is None:
+            return
+        cut = imp.config.in_outage(self.sim.time_s if self._flying else None)
+        if cut != imp.cut:
+            imp.cut = cut
+            what = "cut" if cut else "restored"
+            self._event("link_outage", f"link {what} at flight time {self.sim.time_s:.3f} s")
+            log.info("link %s at flight time %.3f s (outage_s)", what, self.sim.time_s)
+
     def _tick_once(self) -> None:
         running = self._physics_running()
         if running:
@@ -300,6 +352,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
             if self.clock.phase % self._substeps == 0:
                 self._log_commands(cmd)
             self.sim.step_physics(cmd)
+        self._update_link_cut()
         self.clock.tick += 1
         boundary = self.clock.phase % self._substeps == 0
         if boundary and not self._control_period():
@@ -415,16 +468,51 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         if frame.delivered:
             exposure_tick = max(self.clock.tick - self.sim.camera_latency_steps, 0)
             stamp_us = exposure_tick * 1_000_000 // self.clock.rate_hz
+            imp = self.link_impairment
             for datagram in encode_frame(frame.image, frame_id % 2**32, stamp_us):
-                try:
-                    self._camera_sock.sendto(datagram, self._camera_addr)
-                except OSError:
-                    self.camera_tx_errors += 1
+                if imp is None:
+                    self._camera_sendto(datagram)
+                else:
+                    imp.streams["camera_tx"].offer(datagram, imp.clock(), imp.cut)
         else:
             self.camera_frames_dropped += 1
             self._event("camera_frame_dropped", f"frame {frame_id} lost (frame_drop_prob)")
         self._log_frame(frame_id, frame, gt)
         return stamp_us
+
+    def _camera_sendto(self, datagram: bytes) -> None:
+        try:
+            self._camera_sock.sendto(datagram, self._camera_addr)
+        except OSError:
+            self.camera_tx_errors += 1
+
+
+def _link_impairment(scenario: Scenario, config: SitlConfig) -> LinkImpairment | None:
+    """The scenario's ``[link]`` with the ``--link-*`` flags over it; None for a perfect link.
+
+    Raises:
+        ConfigError: an impaired link in lockstep (delays are wall-clock time; a held answer
+            would stop the lockstep clock instead of arriving late).
+    """
+    base = scenario.link or LinkConfig(source=scenario.source)
+    cut = config.link_cut_at_s
+    link = base.with_overrides(
+        loss_prob=config.link_loss_prob,
+        delay_ms=config.link_delay_ms,
+        jitter_ms=config.link_jitter_ms,
+        duplicate_prob=config.link_duplicate_prob,
+        reorder_prob=config.link_reorder_prob,
+        outage_s=None if cut is None else (cut, math.inf),
+    )
+    if not link.active:
+        return None
+    if config.lockstep:
+        raise ConfigError(
+            f"{scenario.source}: [link] (or --link-*) impairs a real-time link, but this SITL "
+            "runs in lockstep, where a delayed answer would stop the clock instead of arriving "
+            "late; run with --no-lockstep (visland fly --realtime), or drop the impairment"
+        )
+    return LinkImpairment(link, config.seed, time.monotonic)
 
 
 def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:

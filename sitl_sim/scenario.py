@@ -6,7 +6,9 @@ pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everythi
 An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts; an
 optional ``[vehicle]`` section (:mod:`sitl_sim.airframe`) scales the vehicle file per episode;
 ``[visual]`` (:mod:`sitl_sim.visual`) draws ground families, sun, pad and camera effects;
-``[sensors]`` (:mod:`sitl_sim.sensor_faults`) adds sensor faults.
+``[sensors]`` (:mod:`sitl_sim.sensor_faults`) adds sensor faults; ``[link]``
+(:mod:`sitl_sim.link_impairment`) impairs the MAVLink SITL's real-time link (loss, delay,
+jitter, duplicates, reordering, outages).
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
 parallel workers and resumed runs agree.
@@ -26,6 +28,7 @@ from sitl_sim.airframe import AirframeConfig, airframe_config_from_table
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, number_pair, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
+from sitl_sim.link_impairment import LinkConfig, link_config_from_table
 from sitl_sim.sensor_faults import SensorFaultsConfig, sensor_faults_config_from_table
 from sitl_sim.visual import VisualConfig, visual_config_from_table
 from sitl_sim.wind import WindConfig, wind_config_from_table
@@ -56,7 +59,8 @@ class Scenario:
     """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, and the optional
     sections: the wind (None: still air), the airframe factors of ``[vehicle]`` (None: the
     vehicle file as is), the look of ``[visual]`` (None: the nominal ground and camera) and the
-    sensor faults (None: the sensors of the sim config, no faults)."""
+    sensor faults (None: the sensors of the sim config, no faults) and the link impairment
+    (None: a perfect link; only the real-time MAVLink SITL has a link to impair)."""
 
     roll_pitch_deg: tuple[float, float]
     yaw_deg: tuple[float, float]
@@ -72,6 +76,7 @@ class Scenario:
     visual: VisualConfig | None = None
     vehicle: AirframeConfig | None = None
     sensors: SensorFaultsConfig | None = None
+    link: LinkConfig | None = None
 
     def __post_init__(self) -> None:
         for key in _RANGE_KEYS:
@@ -96,7 +101,7 @@ class Scenario:
         d = asdict(self)
         d["world"] = self.world.name
         # an absent section is left out: a nominal scenario's record (in every log) is unchanged
-        for key in ("wind", "vehicle", "visual", "sensors"):
+        for key in ("wind", "vehicle", "visual", "sensors", "link"):
             section = getattr(self, key)
             if section is None:
                 del d[key]
@@ -105,7 +110,7 @@ class Scenario:
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual", "sensors")
+SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual", "sensors", "link")
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
@@ -159,6 +164,7 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     airframe = airframe_config_from_table(data["vehicle"], where) if "vehicle" in data else None
     visual = visual_config_from_table(data["visual"], where) if "visual" in data else None
     sensors = sensor_faults_config_from_table(data["sensors"], where) if "sensors" in data else None
+    link = link_config_from_table(data["link"], where) if "link" in data else None
     return Scenario(
         **ranges,
         sampler=str(sampler),
@@ -168,6 +174,7 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
         vehicle=airframe,
         visual=visual,
         sensors=sensors,
+        link=link,
     )
 
 

@@ -75,6 +75,24 @@ class SitlConfig:
     distance_rate_hz: float = option(10.0, "DISTANCE_SENSOR rate")
     groundtruth_rate_hz: float = option(50.0, "ODOMETRY rate with --groundtruth")
     max_wall_s: float | None = option(None, "stop after this many wall seconds (safety net)", float)
+    link_loss_prob: float | None = option(
+        None, "impaired link (real time): datagram loss probability (default: [link])", float
+    )
+    link_delay_ms: float | None = option(
+        None, "impaired link: fixed one-way delay, ms (default: the scenario's [link])", float
+    )
+    link_jitter_ms: float | None = option(
+        None, "impaired link: uniform extra delay [0, J] ms, order kept (default: [link])", float
+    )
+    link_duplicate_prob: float | None = option(
+        None, "impaired link: probability a datagram arrives twice (default: [link])", float
+    )
+    link_reorder_prob: float | None = option(
+        None, "impaired link: probability a datagram jumps the queue (default: [link])", float
+    )
+    link_cut_at_s: float | None = option(
+        None, "impaired link: dead for good from this flight time, s (default: [link])", float
+    )
 
     def __post_init__(self) -> None:
         for name in ("mavlink_port", "remote_port", "camera_port", "gcs_port", "gcs_remote_port"):
@@ -100,6 +118,14 @@ class SitlConfig:
             raise SitlError(f"first_episode = {self.first_episode}; expected >= 0")
         if self.episode_timeout_s is not None and not self.episode_timeout_s > 0:
             raise SitlError(f"episode_timeout_s = {self.episode_timeout_s}; expected > 0")
+        for name in ("link_loss_prob", "link_duplicate_prob", "link_reorder_prob"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise SitlError(f"{name} = {value}; expected a probability in [0, 1]")
+        for name in ("link_delay_ms", "link_jitter_ms", "link_cut_at_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0.0):
+                raise SitlError(f"{name} = {value}; expected a finite number >= 0")
         if self.signing_key is not None:
             try:
                 signing_key_bytes(self.signing_key)  # validates

@@ -59,6 +59,7 @@ if TYPE_CHECKING:
 
     from sitl_sim.autopilot import AutopilotParams, LandController
     from sitl_sim.config import SimConfig, VehicleConfig
+    from sitl_sim.link_impairment import LinkImpairment
     from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint, RxError
     from sitl_sim.scenario import InitialStateSampler, Scenario
     from sitl_sim.simulator import CameraFrame, Simulator
@@ -109,6 +110,7 @@ class EpisodeLifecycle:
     endpoint: MavlinkEndpoint
     gcs_endpoint: MavlinkEndpoint | None
     lockstep_timeouts: int
+    link_impairment: LinkImpairment | None
     land_controller: LandController
     _land_controller_factory: Callable[[VehicleConfig, Any], LandController]
     _land_controller_vehicle: VehicleConfig
@@ -118,6 +120,8 @@ class EpisodeLifecycle:
     def _start_episode(self, index: int) -> None:
         initial = self.sampler.sample(index)
         seed_key = (self.config.seed, index)
+        if self.link_impairment is not None:
+            self.link_impairment.start_episode(index)  # fates and counters from (seed, index)
         world = self._world(index)
         self.sim.reset(initial, np.random.SeedSequence(seed_key), world=world)
         hover_changed = self._tune_for_episode_vehicle()
@@ -205,6 +209,9 @@ class EpisodeLifecycle:
             record["gcs_link_stats"] = self.gcs_endpoint.stats.to_dict()
         record["lockstep_timeouts"] = self.lockstep_timeouts
         record.update(self._precland_record())
+        imp = self.link_impairment
+        if imp is not None:  # what the impaired link did in this episode, per stream
+            record["link_impairment"] = {"config": imp.config.to_dict(), "streams": imp.stats()}
         if ep.writer is not None:
             ep.writer.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, self.clock.time_s, record)
             ep.writer.close()

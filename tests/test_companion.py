@@ -607,10 +607,10 @@ def test_card_camera_stream_stopped_companion_requests_land_within_the_stale_lim
     t_fs = next(e["time_s"] for e in flight.topic("/events") if "LAND requested" in e["text"])
     t0 = min(m["rx_s"] - m["time_s"] for m in flight.topic("/camera/image"))  # log clock
     waited = t_fs - (last_frame_rx - t0)
-    # Never before the 300 ms limit. After it, a loaded machine may delay the loop pass that
+    # Never before the 600 ms limit. After it, a loaded machine may delay the loop pass that
     # notices, so the bound here is only "well before the SITL's own offboard-loss failsafe"
     # (10 frames x 0.5 s lockstep timeout); the exact 299/301 ms edge is tested at fake times.
-    assert 0.3 <= waited <= 0.3 + 2.0, waited
+    assert 0.6 <= waited <= 0.6 + 2.0, waited
     sitl_flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
     texts = [e["text"] for e in sitl_flight.topic("/events")]
     assert any(

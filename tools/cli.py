@@ -81,6 +81,14 @@ def _cmd_fly(args: argparse.Namespace) -> int:
     from training.evaluate import format_table
     from training.fly import DEFAULT_VISION_POLICY, FlyConfig, FlyError, fly, fly_many
 
+    link_args = _link_sitl_args(args)
+    if link_args and not getattr(args, "realtime", False):
+        print(
+            f"visland {args.command}: --link-* impair a real-time link; add --realtime "
+            "(in lockstep a delayed answer would stop the clock instead of arriving late)",
+            file=sys.stderr,
+        )
+        return 2
     mode = getattr(args, "companion_mode", "offboard")
     policy = args.policy
     if policy is None:  # fly's default: the expert flies; in landing-target mode, the shipped net
@@ -94,6 +102,7 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         realtime=getattr(args, "realtime", False),
         out=str(args.out) if getattr(args, "out", None) else None,
         progress=not args.json,
+        sitl_args=link_args,
     )
     # eval --transport mavlink --workers N = fly --instances N
     instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
@@ -121,6 +130,26 @@ def _cmd_fly(args: argparse.Namespace) -> int:
                 f"{report['out']}"
             )
     return 0
+
+
+_LINK_FLAGS = {
+    "link_loss": "--link-loss-prob",
+    "link_delay_ms": "--link-delay-ms",
+    "link_jitter_ms": "--link-jitter-ms",
+    "link_duplicate": "--link-duplicate-prob",
+    "link_reorder": "--link-reorder-prob",
+    "link_cut_at_s": "--link-cut-at-s",
+}
+"""``visland fly``'s link flags -> the SITL's (``sitl_sim.sitl_config``), which impairs the link."""
+
+
+def _link_sitl_args(args: argparse.Namespace) -> tuple[str, ...]:
+    out: list[str] = []
+    for name, flag in _LINK_FLAGS.items():
+        value = getattr(args, name, None)
+        if value is not None:
+            out += [flag, repr(float(value))]
+    return tuple(out)
 
 
 def _cmd_eval_suite(args: argparse.Namespace) -> int:
@@ -641,6 +670,37 @@ def _parser() -> argparse.ArgumentParser:
     fl.add_argument("--seed", type=int, default=EVAL_SEED, help="disjoint from training seeds")
     fl.add_argument("--scenario", type=Path, default=None)
     fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
+    link = fl.add_argument_group(
+        "impaired link (--realtime only; over the scenario's [link]; seeded by --seed)"
+    )
+    link.add_argument("--link-loss", type=float, default=None, metavar="P", help="loss probability")
+    link.add_argument(
+        "--link-delay-ms", type=float, default=None, metavar="D", help="fixed one-way delay, ms"
+    )
+    link.add_argument(
+        "--link-jitter-ms",
+        type=float,
+        default=None,
+        metavar="J",
+        help="extra delay uniform in [0, J] ms (each stream stays in order)",
+    )
+    link.add_argument(
+        "--link-duplicate", type=float, default=None, metavar="P", help="duplicate probability"
+    )
+    link.add_argument(
+        "--link-reorder",
+        type=float,
+        default=None,
+        metavar="P",
+        help="probability a datagram jumps the queue (needs a delay)",
+    )
+    link.add_argument(
+        "--link-cut-at-s",
+        type=float,
+        default=None,
+        metavar="T",
+        help="the link dies for good T s into each flight (failsafe test)",
+    )
     fl.add_argument(
         "--instances",
         type=int,

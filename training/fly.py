@@ -155,7 +155,11 @@ def sitl_log_name(seed: int, index: int) -> str:
     return f"sitl_seed{seed}_ep{index:04d}.mcap"
 
 
-def _results(sitl_dir: Path, seed: int, indices: range) -> list[tuple[int, EpisodeResult, str]]:
+def _results(
+    sitl_dir: Path, seed: int, indices: range
+) -> list[tuple[int, EpisodeResult, str, dict[str, Any]]]:
+    """Per finished episode: index, result, log path and extras of the record (the impaired
+    link's counts, ``link_impairment``, where the run had one)."""
     fields = EpisodeResult.__dataclass_fields__
     out = []
     for i in indices:
@@ -167,7 +171,8 @@ def _results(sitl_dir: Path, seed: int, indices: range) -> list[tuple[int, Episo
             continue
         values = {k: rec[-1][k] for k in fields}
         values = {k: (math.nan if v is None else v) for k, v in values.items()}
-        out.append((i, EpisodeResult(**values), str(path)))
+        extra = {k: rec[-1][k] for k in ("link_impairment",) if k in rec[-1]}
+        out.append((i, EpisodeResult(**values), str(path), extra))
     return out
 
 
@@ -286,14 +291,17 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     flights = companion_report.get("flights", [])
     return _report(
         cfg,
-        [r for _, r, _ in rows],
+        [r for _, r, _, _ in rows],
         sorted(comp_dir.glob("*.mcap")),
         {
             k: sum(1 for f in flights if f.get("result") == k)
             for k in sorted({f.get("result") for f in flights})
         },
         {"wall_s": wall, "out": str(out)},
-        [{"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path} for i, r, path in rows],
+        [
+            {"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path, **extra}
+            for i, r, path, extra in rows
+        ],
     )
 
 
@@ -316,9 +324,22 @@ def _report(
         **summarize(results),
         "latency_ms": latency_stats(companion_logs),
         "companion_flights": companion_flights,
+        **_link_totals(per_episode),
         **extra,
         "per_episode": per_episode,
     }
+
+
+def _link_totals(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
+    """``{"link_impairment": {stream: {counter: sum}}}`` over the episodes that had an impaired
+    link (empty when none had)."""
+    totals: dict[str, dict[str, int]] = {}
+    for row in per_episode:
+        for stream, counts in row.get("link_impairment", {}).get("streams", {}).items():
+            acc = totals.setdefault(stream, {})
+            for key, value in counts.items():
+                acc[key] = acc.get(key, 0) + value
+    return {"link_impairment": totals} if totals else {}
 
 
 def _chunks(indices: list[int], size: int) -> list[tuple[int, int]]:

@@ -23,7 +23,8 @@ chunk of the image bytes::
 
 A 128 x 128 mono8 frame (16 KiB) fits one datagram (the UDP maximum is 65,507 bytes on IPv4), so
 the SITL sends one datagram per frame; :func:`encode_frame` splits larger frames and
-:class:`FrameAssembler` joins them, dropping incomplete frames when newer ones complete.
+:class:`FrameAssembler` joins them (chunks in any order), dropping incomplete frames when newer ones
+complete.
 Malformed datagrams raise a :class:`CameraPacketError` subclass naming what was wrong.
 """
 
@@ -280,8 +281,11 @@ def decode_frame(datagram: bytes) -> CameraFrame:
 class FrameAssembler:
     """Joins chunks into frames; keeps at most ``max_pending`` incomplete frames (oldest dropped).
 
-    ``add`` returns the completed frame, or None while chunks are missing. ``dropped`` counts
-    incomplete frames evicted, ``corrupt`` frames whose CRC failed.
+    Chunks may arrive in any order. ``add`` returns the completed frame, or None while chunks
+    are missing. When a frame completes, every incomplete frame older than it (by ``frame_id``,
+    modulo 2**32) is dropped: on a lossy link its missing chunk may never come, and a newer
+    picture makes it useless anyway. ``dropped`` counts incomplete frames dropped, ``corrupt``
+    frames whose CRC failed.
     """
 
     def __init__(self, max_pending: int = 4) -> None:
@@ -296,6 +300,7 @@ class FrameAssembler:
         """Feed one datagram. Raises CameraPacketError for a malformed one."""
         packet = decode_packet(datagram)
         if packet.chunk_count == 1:
+            self._drop_older_than(packet.frame_id)
             return self._finish(packet, packet.chunk)
         entry = self._pending.get(packet.frame_id)
         if entry is None:
@@ -319,6 +324,7 @@ class FrameAssembler:
         if len(chunks) < packet.chunk_count:
             return None
         del self._pending[packet.frame_id]
+        self._drop_older_than(packet.frame_id)
         data = b"".join(chunks[k] for k in sorted(chunks))
         if len(data) != packet.image_size:
             raise InconsistentPacketError(
@@ -326,6 +332,12 @@ class FrameAssembler:
                 f"{packet.image_size}"
             )
         return self._finish(packet, data)
+
+    def _drop_older_than(self, frame_id: int) -> None:
+        for pending_id in list(self._pending):
+            if 0 < (frame_id - pending_id) % 2**32 < 2**31:  # serial arithmetic (RFC 1982)
+                del self._pending[pending_id]
+                self.dropped += 1
 
     def _finish(self, packet: CameraPacket, data: bytes) -> CameraFrame:
         try:
