@@ -32,6 +32,7 @@ from typing import Protocol
 import numpy as np
 
 from companion.contract import Command
+from sitl_sim.ardupilot_params import ArduParams
 from sitl_sim.precland import LteParams, PldParams
 
 __all__ = [
@@ -51,6 +52,10 @@ __all__ = [
     "mode_from_custom",
     "setpoint_from_target",
 ]
+
+_MAV_AUTOPILOT_PX4 = 12
+_MAV_STATE_STANDBY = 3
+_MAV_STATE_ACTIVE = 4
 
 FORCE_DISARM_MAGIC = 21196.0
 """MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air (PX4, ArduPilot)."""
@@ -169,6 +174,9 @@ class Setpoint:
     rate_frd_rad_s: np.ndarray
     attitude_quat_wxyz: np.ndarray | None
     type_mask: int
+    climb_rate_up_m_s: float | None = None
+    """ArduCopter's climb-rate reading of ``thrust`` (GUID_OPTIONS bit 3 clear): the demanded
+    climb rate, m/s up; ``thrust_norm`` is then the raw field. None: thrust is thrust."""
 
     @functools.cached_property
     def _rates_command(self) -> Command:
@@ -299,6 +307,9 @@ class AutopilotParams:
     """PLD_*: the precision land (AUTO.PRECLAND)."""
     ltest: LteParams = field(default_factory=LteParams)
     """LTEST_*: the landing-target estimator."""
+    ardu: ArduParams = field(default_factory=ArduParams)
+    """ArduCopter's parameters (the ``ardupilot`` profile only; ``mpc_thr_hover`` is its
+    MOT_THST_HOVER, ``pld`` its PLND_XY_DIST_MAX / PLND_TIMEOUT / PLND_RET_MAX)."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.com_of_loss_t_s <= 60.0:
@@ -317,23 +328,42 @@ class AutopilotEvent:
     """Something the SITL must announce (STATUSTEXT, an immediate HEARTBEAT, the log).
 
     Attributes:
-        kind: ``mode``, ``armed``, ``disarmed``, ``failsafe`` or ``takeover``.
-        text: a human-readable line (becomes STATUSTEXT).
+        kind: ``mode``, ``armed``, ``disarmed``, ``failsafe``, ``takeover``, ... .
+        text: a human-readable line (the flight log's event; the STATUSTEXT).
         severity: MAV_SEVERITY (2 critical, 4 warning, 6 info).
+        statustext: also sent as STATUSTEXT (False: the flight log only, e.g. an ArduCopter
+            mode change, which ArduPilot shows in the HEARTBEAT alone).
     """
 
     kind: str
     text: str
     severity: int = 6
+    statustext: bool = True
 
 
 class Autopilot:
     """Mode / arming / offboard state machine; feed it messages and sim time, read the command.
 
+    This class is the ``px4`` profile; :class:`sitl_sim.ardupilot.ArduCopter` overrides the
+    hooks marked *profile hook* for the ``ardupilot`` one.
+
     Args:
         params: the PX4 parameters.
         armed: start armed (a vehicle hovering at its initial state is flying, hence armed).
     """
+
+    profile = "px4"
+    hover_param = "MPC_THR_HOVER"
+    """The parameter that carries ``params.mpc_thr_hover`` on the wire."""
+    precland_needs_range = True
+    """AUTO.PRECLAND is refused without a distance to the ground (PX4 mode_requirements)."""
+    runs_free_when_unanswered = False
+    """In lockstep, after a frame's wait timed out in OFFBOARD, stop waiting until the client
+    answers again (True where the mode never ends by itself on a dead client: ArduCopter's
+    GUIDED_NOGPS; PX4 leaves OFFBOARD after COM_OF_LOSS_T)."""
+    acks_set_mode = False
+    """SET_MODE is answered with a COMMAND_ACK (command 11): ArduPilot does, PX4 does not."""
+    _armed_text = "Armed"
 
     def __init__(self, params: AutopilotParams, *, armed: bool = True) -> None:
         self.params = params
@@ -360,6 +390,72 @@ class Autopilot:
         events, self._events = self._events, []
         return events
 
+    # ------------------------------------------------------------------ profile hooks
+
+    @property
+    def mode_label(self) -> str:
+        """The mode's name as this autopilot calls it (logs, events)."""
+        return self.mode.label
+
+    def heartbeat(self) -> tuple[int, int, int, int]:
+        """HEARTBEAT ``(autopilot, base_mode, custom_mode, system_status)`` (type QUADROTOR)."""
+        return (
+            _MAV_AUTOPILOT_PX4,
+            base_mode(self.mode, self.armed),
+            custom_mode(self.mode),
+            _MAV_STATE_ACTIVE if self.armed else _MAV_STATE_STANDBY,
+        )
+
+    def mode_for_command(self, param2: float, param3: float) -> FlightMode | bool | None:
+        """The mode a DO_SET_MODE (custom flag set) asks for: PX4 main mode, sub mode."""
+        return mode_from_custom(int(param2), int(param3))
+
+    def mode_for_custom(self, custom: int) -> FlightMode | bool | None:
+        """The mode a SET_MODE ``custom_mode`` asks for."""
+        return mode_from_custom((custom >> 16) & 0xFF, (custom >> 24) & 0xFF)
+
+    def land_mode(self) -> FlightMode:
+        """What MAV_CMD_NAV_LAND selects."""
+        return FlightMode.LAND
+
+    def setpoint_from_message(
+        self,
+        type_mask: int,
+        q: tuple[float, float, float, float] | list[float],
+        body_rates: tuple[float, float, float],
+        thrust: float,
+        thrust_body: tuple[float, float, float] | None,
+        time_s: float,
+    ) -> Setpoint | None:
+        """A SET_ATTITUDE_TARGET read as this autopilot reads it (None: silently ignored).
+
+        Raises:
+            SetpointRejected: see :func:`setpoint_from_target`.
+        """
+        prev = self.setpoint
+        return setpoint_from_target(
+            type_mask,
+            q,
+            body_rates,
+            thrust,
+            thrust_body,
+            time_s,
+            prev.thrust_norm if prev is not None else None,
+        )
+
+    def flight_command(self, now_s: float, truth) -> Command | None:
+        """This autopilot's own command for the physics step, or None for the SITL's
+        (OFFBOARD setpoint, AUTO.LAND / AUTO.PRECLAND controllers). ``truth()`` gives the
+        ground truth, read only when needed."""
+        return None
+
+    def on_heartbeat(self, sysid: int, compid: int, now_s: float) -> None:
+        """A HEARTBEAT from another system or component (PX4 here: nothing to do)."""
+
+    def check_landing_target(self, frame: int, position_valid: int, distance: float) -> None:
+        """Refuse a LANDING_TARGET this autopilot drops before reading it (PX4: none here;
+        :func:`sitl_sim.precland.measurement_from_landing_target` does PX4's checks)."""
+
     # ------------------------------------------------------------------ inputs
 
     def on_setpoint(self, setpoint: Setpoint) -> None:
@@ -384,7 +480,7 @@ class Autopilot:
         if arm:
             if not self.armed:
                 self.armed = True
-                self._events.append(AutopilotEvent("armed", "Armed", 6))
+                self._events.append(AutopilotEvent("armed", self._armed_text, 6))
                 self._maybe_take_over()
             return MavResult.ACCEPTED
         if self.armed and in_air and not force:
@@ -425,4 +521,4 @@ class Autopilot:
     def _maybe_take_over(self) -> None:
         if not self.taken_over and self.armed and self.mode is not FlightMode.HOLD:
             self.taken_over = True
-            self._events.append(AutopilotEvent("takeover", f"Flight starts in {self.mode.label}"))
+            self._events.append(AutopilotEvent("takeover", f"Flight starts in {self.mode_label}"))

@@ -24,10 +24,8 @@ from sitl_sim.autopilot import (
     FlightMode,
     MavResult,
     SetpointRejected,
-    mode_from_custom,
-    setpoint_from_target,
 )
-from sitl_sim.params import WRITABLE, param_table, param_value_msg, with_param
+from sitl_sim.params import param_table, param_value_msg, with_param, writable
 
 if TYPE_CHECKING:
     from sitl_sim.autopilot import Autopilot, AutopilotParams
@@ -125,37 +123,44 @@ class MessageHandlers:
         )
 
     def _param_table(self) -> list[tuple[str, float, int]]:
-        return param_table(self.params, self.endpoint.sysid)
+        return param_table(self.params, self.endpoint.sysid, self.config.autopilot)
 
     def _send_param(self, index: int) -> None:
-        self._send(param_value_msg(self.endpoint.mav, self._param_table(), index))
+        self._send(
+            param_value_msg(self.endpoint.mav, self._param_table(), index, self.config.autopilot)
+        )
 
     # ------------------------------------------------------------------ message handlers
 
     def handle_heartbeat(self, msg: Any, inbound: Inbound) -> None:
-        """A client's heartbeat: nothing to do (the endpoint already remembers the peer)."""
+        """A client's heartbeat (the endpoint already remembers the peer): the autopilot's GCS
+        failsafe hears it (ArduCopter's FS_GCS_ENABLE; nothing for PX4 here)."""
+        self.autopilot.on_heartbeat(msg.get_srcSystem(), msg.get_srcComponent(), self.clock.time_s)
 
     def handle_set_attitude_target(self, msg: Any, inbound: Inbound) -> None:
-        """Setpoint (see :func:`~sitl_sim.autopilot.setpoint_from_target`); answers a frame in
-        lockstep."""
+        """Setpoint, read by the autopilot's profile (PX4:
+        :func:`~sitl_sim.autopilot.setpoint_from_target`; ArduCopter: :meth:`~sitl_sim.
+        ardupilot.ArduCopter.setpoint_from_message`); answers a frame in lockstep."""
         if not self._for_us(msg.target_system, msg.target_component):
             return
-        prev = self.autopilot.setpoint
         try:
-            sp = setpoint_from_target(
+            sp = self.autopilot.setpoint_from_message(
                 msg.type_mask,
                 msg.q,
                 (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate),
                 msg.thrust,
                 _thrust_body(msg),
                 self.clock.time_s,
-                prev.thrust_norm if prev is not None else None,
             )
         except SetpointRejected as exc:
             self._rx_endpoint.stats.rx_rejected_setpoints += 1
             self._event("setpoint_rejected", str(exc))
             return
+        if sp is None:
+            return  # ArduCopter outside GUIDED_NOGPS: ignored without a word
         self.autopilot.on_setpoint(sp)
+        if inbound.link == self.endpoint.name:
+            self._offboard_paced = True  # the client answers frames (again)
         wait = self._wait
         # Lockstep is paced by the offboard link alone: a ground station's setpoint flies (as
         # in PX4, offboard setpoints are accepted from any link) but never answers a frame.
@@ -187,12 +192,16 @@ class MessageHandlers:
         self._run_command(msg.command, params, msg)
 
     def handle_set_mode(self, msg: Any, inbound: Inbound) -> None:
-        """Legacy SET_MODE (no ACK, as PX4): custom_mode split into main/sub."""
+        """Legacy SET_MODE: PX4 splits custom_mode into main/sub and sends no ACK; ArduPilot
+        reads it as the mode number and answers with a COMMAND_ACK for "command" 11."""
         if not self._for_us(msg.target_system):
             return
-        main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
-        result = self.autopilot.request_mode(mode_from_custom(main, sub), self.clock.time_s)
-        self._event("set_mode", f"SET_MODE main {main} sub {sub}: {result.name}")
+        ap = self.autopilot
+        result = ap.request_mode(ap.mode_for_custom(msg.custom_mode), self.clock.time_s)
+        self._event("set_mode", f"SET_MODE custom_mode {msg.custom_mode}: {result.name}")
+        if ap.acks_set_mode:
+            self._ack(mavlink.MAVLINK_MSG_ID_SET_MODE, result, msg)
+        self._announce_events()
 
     def handle_param_request_list(self, msg: Any, inbound: Inbound) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
@@ -213,16 +222,19 @@ class MessageHandlers:
         # unknown parameter: PX4 stays silent (the client times out)
 
     def handle_param_set(self, msg: Any, inbound: Inbound) -> None:
-        """COM_OF_LOSS_T and COM_DISARM_LAND are writable; any other PARAM_SET is answered with
-        the unchanged value (the protocol's way of saying no)."""
+        """The profile's writable parameters (:func:`sitl_sim.params.writable`) change; any other
+        PARAM_SET, or a value out of range, is answered with the unchanged value (the
+        protocol's way of saying no)."""
         if not self._for_us(msg.target_system, msg.target_component):
             return
         names = [row[0] for row in self._param_table()]
         if msg.param_id not in names:
             return
-        if msg.param_id in WRITABLE:
+        if msg.param_id in writable(self.config.autopilot):
             try:
-                self.params = with_param(self.params, msg.param_id, msg.param_value)
+                self.params = with_param(
+                    self.params, msg.param_id, msg.param_value, self.config.autopilot
+                )
                 self.autopilot.params = self.params
             except ValueError as exc:
                 self._event("param_rejected", str(exc))
@@ -307,16 +319,21 @@ class MessageHandlers:
         if not all(math.isfinite(v) for v in p[:3]):
             return MavResult.DENIED
         if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return MavResult.DENIED  # PX4 modes are custom modes
-        mode = mode_from_custom(int(p[1]), int(p[2]))
-        if mode is FlightMode.PRECLAND and not math.isfinite(self._sample_now().range_m):
+            return MavResult.DENIED  # PX4 and ArduPilot modes are custom modes
+        ap = self.autopilot
+        mode = ap.mode_for_command(p[1], p[2])
+        if (
+            mode is FlightMode.PRECLAND
+            and ap.precland_needs_range
+            and not math.isfinite(self._sample_now().range_m)
+        ):
             # PX4 needs a local position and distance to the ground (mode_requirements.cpp)
             self._statustext(4, "Precision landing denied! Please land manually")
             return MavResult.TEMPORARILY_REJECTED
         return self.autopilot.request_mode(mode, self.clock.time_s)
 
     def _command_nav_land(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
-        return self.autopilot.request_mode(FlightMode.LAND, self.clock.time_s)
+        return self.autopilot.request_mode(self.autopilot.land_mode(), self.clock.time_s)
 
     def _command_request_message(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not math.isfinite(p[0]):

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import GroundTruth
-from sitl_sim.autopilot import FlightMode, base_mode, custom_mode
+from sitl_sim.autopilot import FlightMode
 from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.simulator import Simulator
 
@@ -58,7 +58,6 @@ ON_REQUEST = ("AUTOPILOT_VERSION", "HOME_POSITION")
 """Messages built only on request (MAV_CMD_REQUEST_MESSAGE), beside every stream's."""
 
 _MAV_TYPE_QUADROTOR = mavlink.MAV_TYPE_QUADROTOR
-_MAV_AUTOPILOT_PX4 = mavlink.MAV_AUTOPILOT_PX4
 _UINT16_MAX = 65_535
 _CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
@@ -198,14 +197,8 @@ class MessageBuilders:
                 self._send(self._builders[stream.msg_id]())
 
     def _build_heartbeat(self) -> Any:
-        ap = self.autopilot
-        return self.endpoint.mav.heartbeat_encode(
-            _MAV_TYPE_QUADROTOR,
-            _MAV_AUTOPILOT_PX4,
-            base_mode(ap.mode, ap.armed),
-            custom_mode(ap.mode),
-            mavlink.MAV_STATE_ACTIVE if ap.armed else mavlink.MAV_STATE_STANDBY,
-        )
+        # autopilot id, base_mode, custom_mode and state as the profile's autopilot sets them
+        return self.endpoint.mav.heartbeat_encode(_MAV_TYPE_QUADROTOR, *self.autopilot.heartbeat())
 
     def _build_sys_status(self) -> Any:
         st = self._total_stats()  # the system's counters: every link
@@ -343,8 +336,13 @@ class MessageBuilders:
         )
 
     def _build_autopilot_version(self) -> Any:
+        caps = _CAPABILITIES
+        if self.config.autopilot == "ardupilot":  # ArduPilot sends parameter values as floats
+            caps = (caps & ~mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE) | (
+                mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+            )
         return self.endpoint.mav.autopilot_version_encode(
-            _CAPABILITIES, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0
+            caps, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0
         )
 
     def _build_home_position(self) -> Any:

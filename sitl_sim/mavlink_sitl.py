@@ -74,7 +74,8 @@ from companion.contract import Command, GroundTruth
 from companion.contract.camera_packet import encode_frame
 from companion.contract.signing import signing_key_bytes
 from sitl_sim.airframe import check_airframe_can_hover
-from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
+from sitl_sim.ardupilot import ardupilot_params, new_autopilot
+from sitl_sim.autopilot import AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import ConfigError, SimError
 from sitl_sim.land_controller import CascadeLandController
@@ -83,6 +84,7 @@ from sitl_sim.mavlink_endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.mavlink_handlers import MessageHandlers
 from sitl_sim.mavlink_messages import MessageBuilders
 from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.params import parse_param_overrides, with_param
 from sitl_sim.scenario import InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.sitl_clock import FrameWait, Pacer, SimClock
@@ -137,8 +139,11 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         self._land_controller_factory = land_controller_factory or _default_land_controller
         self.land_controller = self._land_controller_factory(self.vehicle, sim_cfg.planet)
         self._land_controller_vehicle = self.vehicle
-        self.params = AutopilotParams(mpc_thr_hover=self.vehicle.hover_thrust_norm(sim_cfg.planet))
-        self.autopilot = Autopilot(self.params, armed=config.start_armed)
+        self.params = _initial_params(config, self.vehicle.hover_thrust_norm(sim_cfg.planet))
+        self.autopilot = new_autopilot(config.autopilot, self.params, armed=config.start_armed)
+        self._offboard_paced = True
+        """In lockstep, OFFBOARD frames wait for the client's answer (False after an unanswered
+        frame, for an autopilot that ``runs_free_when_unanswered``, until it answers again)."""
         self.sampler = InitialStateSampler(self.scenario, config.seed)
         self.link_impairment = _link_impairment(self.scenario, config)
         """The impaired offboard + camera link (None: a perfect link)."""
@@ -246,6 +251,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
                     if not wait.answered:
                         self.lockstep_timeouts += 1
                         self._precland_wait_timed_out()
+                        if self.autopilot.runs_free_when_unanswered:
+                            self._offboard_paced = False
                     self._wait = None
                 # Nobody paces HOLD or real time: the wall clock does (lockstep flight runs free).
                 paced = not self._physics_running() or not cfg.lockstep
@@ -367,7 +374,10 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
                 stamp_us is not None  # a lost frame has no answer to wait for
                 and self.config.lockstep
                 and self._physics_running()
-                and (ap.mode is FlightMode.OFFBOARD or self._precland_waits())
+                and (
+                    (ap.mode is FlightMode.OFFBOARD and self._offboard_paced)
+                    or self._precland_waits()
+                )
                 and ap.armed
             ):
                 # the companion stamps its answer with the frame's (exposure) time
@@ -381,6 +391,9 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         ap = self.autopilot
         if not ap.armed:
             return None  # disarmed: motors off
+        own = ap.flight_command(self.clock.time_s, self.sim.ground_truth)
+        if own is not None:
+            return own  # the profile's own (ArduCopter GUIDED_NOGPS, LAND)
         if ap.mode is FlightMode.OFFBOARD and ap.setpoint is not None:
             sp = ap.setpoint
             quat = self.sim.ground_truth().quat_wxyz if sp.attitude_quat_wxyz is not None else None
@@ -446,7 +459,7 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
             return
         for ev in events:
             self._event(ev.kind, ev.text)
-            if ev.kind != "takeover":
+            if ev.kind != "takeover" and ev.statustext:
                 self._statustext(ev.severity, ev.text)
             log.info("autopilot: %s", ev.text)
         # PX4 shows a mode/arming change in the next heartbeat; MAVSDK waits for it: send now.
@@ -513,6 +526,24 @@ def _link_impairment(scenario: Scenario, config: SitlConfig) -> LinkImpairment |
             "late; run with --no-lockstep (visland fly --realtime), or drop the impairment"
         )
     return LinkImpairment(link, config.seed, time.monotonic)
+
+
+def _initial_params(config: SitlConfig, hover_thrust_norm: float) -> AutopilotParams:
+    """The profile's parameters at their defaults, then ``config.param`` (``--param``).
+
+    Raises:
+        SitlError: a value the parameter rejects (names it).
+    """
+    if config.autopilot == "ardupilot":
+        params = ardupilot_params(hover_thrust_norm)
+    else:
+        params = AutopilotParams(mpc_thr_hover=hover_thrust_norm)
+    for name, value in parse_param_overrides(config.param, config.autopilot):
+        try:
+            params = with_param(params, name, value, config.autopilot)
+        except ValueError as exc:
+            raise SitlError(f"--param {name}={value:g}: {exc}") from None
+    return params
 
 
 def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:

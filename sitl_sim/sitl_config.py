@@ -11,6 +11,7 @@ from typing import Any
 from companion.contract.signing import SigningKeyError, signing_key_bytes
 from companion.options import add_arguments, option, redacted_dict, values_from_args
 from sitl_sim.mavlink_endpoint import SitlError
+from sitl_sim.params import parse_param_overrides
 
 __all__ = [
     "SitlConfig",
@@ -93,6 +94,18 @@ class SitlConfig:
     link_cut_at_s: float | None = option(
         None, "impaired link: dead for good from this flight time, s (default: [link])", float
     )
+    autopilot: str = option(
+        "px4",
+        "autopilot profile on the wire: px4 (PX4 modes, OFFBOARD) or ardupilot (ArduCopter 4.5: "
+        "GUIDED_NOGPS, GUID_OPTIONS, GUID_TIMEOUT, MOT_THST_HOVER, PLND_*)",
+        choices=("px4", "ardupilot"),
+    )
+    param: str | None = option(
+        None,
+        "parameters set at start, NAME=VALUE[,NAME=VALUE...] of the profile's writable ones "
+        "(as a parameter file loaded at boot), e.g. GUID_OPTIONS=8",
+        str,
+    )
 
     def __post_init__(self) -> None:
         for name in ("mavlink_port", "remote_port", "camera_port", "gcs_port", "gcs_remote_port"):
@@ -126,6 +139,12 @@ class SitlConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0.0):
                 raise SitlError(f"{name} = {value}; expected a finite number >= 0")
+        if self.autopilot not in ("px4", "ardupilot"):
+            raise SitlError(f"autopilot = {self.autopilot!r}; expected 'px4' or 'ardupilot'")
+        try:
+            parse_param_overrides(self.param, self.autopilot)
+        except ValueError as exc:
+            raise SitlError(str(exc)) from None
         if self.signing_key is not None:
             try:
                 signing_key_bytes(self.signing_key)  # validates

@@ -47,6 +47,7 @@ from companion.contract.topics import (
     mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter
+from sitl_sim.ardupilot import new_autopilot
 from sitl_sim.autopilot import Autopilot
 from sitl_sim.flight_record import command_msg, groundtruth_msg
 from sitl_sim.metrics import EpisodeResult
@@ -126,7 +127,10 @@ class EpisodeLifecycle:
         self.sim.reset(initial, np.random.SeedSequence(seed_key), world=world)
         hover_changed = self._tune_for_episode_vehicle()
         self._reset_samples()
-        self.autopilot = Autopilot(self.params, armed=self.config.start_armed)
+        self.autopilot = new_autopilot(
+            self.config.autopilot, self.params, armed=self.config.start_armed
+        )
+        self._offboard_paced = True
         self._reset_precland()
         self._reset_precland_counters()
         self._flying = False
@@ -165,9 +169,10 @@ class EpisodeLifecycle:
         )
         if hover_changed:
             # As PX4 announces a changed parameter: a client holding the old value hears it.
-            table = param_table(self.params, self.endpoint.sysid)
-            row = [name for name, _, _ in table].index("MPC_THR_HOVER")
-            self._send(param_value_msg(self.endpoint.mav, table, row))
+            profile = self.config.autopilot
+            table = param_table(self.params, self.endpoint.sysid, profile)
+            row = [name for name, _, _ in table].index(self.autopilot.hover_param)
+            self._send(param_value_msg(self.endpoint.mav, table, row, profile))
         self._statustext(6, f"Episode {index} ready: HOLD")
         self._send_heartbeat()
         log.info("episode %d: initial state %s", index, initial.to_dict())
@@ -242,7 +247,7 @@ class EpisodeLifecycle:
         self.clock.restart_phase()
         self._event(
             "flight",
-            f"flight starts at t = {self.clock.time_s:.3f} s in {self.autopilot.mode.label}",
+            f"flight starts at t = {self.clock.time_s:.3f} s in {self.autopilot.mode_label}",
         )
 
     def _episode_over(self) -> bool:
@@ -321,7 +326,7 @@ class EpisodeLifecycle:
             SCHEMA_AUTOPILOT_COMMAND,
             {
                 "flight_time_s": self.sim.time_s,
-                "mode": self.autopilot.mode.label,
+                "mode": self.autopilot.mode_label,
                 "armed": cmd is not None,
                 "thrust_norm": cmd.thrust_norm if cmd is not None else 0.0,
                 "rate_frd_rad_s": cmd.rate_frd_rad_s if cmd is not None else [0.0, 0.0, 0.0],
@@ -354,7 +359,7 @@ class EpisodeLifecycle:
                 **groundtruth_msg(gt, frame_id),  # the same record as the in-process path
                 "flight_time_s": gt.time_s,
                 "flying": self._flying,
-                "mode": ap.mode.label,
+                "mode": ap.mode_label,
                 "armed": ap.armed,
             },
         )

@@ -209,6 +209,9 @@ class PreclandLoop:
         counts = self.landing_targets
         counts["received"] += 1
         try:
+            self.autopilot.check_landing_target(
+                int(msg.frame), int(msg.position_valid), float(msg.distance)
+            )
             meas = measurement_from_landing_target(
                 int(msg.frame),
                 float(msg.angle_x),

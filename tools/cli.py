@@ -103,6 +103,8 @@ def _cmd_fly(args: argparse.Namespace) -> int:
         out=str(args.out) if getattr(args, "out", None) else None,
         progress=not args.json,
         sitl_args=link_args,
+        autopilot=getattr(args, "autopilot", "px4"),
+        sitl_params=tuple(getattr(args, "sitl_param", None) or ()),
     )
     # eval --transport mavlink --workers N = fly --instances N
     instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
@@ -665,6 +667,20 @@ def _parser() -> argparse.ArgumentParser:
         default="offboard",
         help="offboard: the companion flies the policy; landing-target: it streams "
         "LANDING_TARGET from the policy's camera estimator and the SITL's AUTO.PRECLAND lands",
+    )
+    fl.add_argument(
+        "--autopilot",
+        choices=("px4", "ardupilot"),
+        default="px4",
+        help="autopilot profile of the SITL and the companion; ardupilot sets GUID_OPTIONS=8 "
+        "(offboard) or PLND_ENABLED=1,PLND_TYPE=1 (landing-target) on the SITL first",
+    )
+    fl.add_argument(
+        "--sitl-param",
+        action="append",
+        metavar="NAME=VALUE",
+        help="a SITL parameter set at start, after the profile's setup (repeatable), e.g. "
+        "GUID_OPTIONS=0 to see the companion refuse",
     )
     fl.add_argument("--episodes", type=int, default=20)
     fl.add_argument("--seed", type=int, default=EVAL_SEED, help="disjoint from training seeds")

@@ -90,6 +90,26 @@ class FlyConfig:
     env: dict[str, str] = field(default_factory=dict)
     ports: tuple[int, int, int] | None = None
     """Loopback UDP ports (SITL MAVLink, companion MAVLink, camera); None: free ones."""
+    autopilot: str = "px4"
+    """The SITL's autopilot profile and the companion's (``px4`` or ``ardupilot``)."""
+    sitl_params: tuple[str, ...] = ()
+    """``NAME=VALUE`` parameters for the SITL's ``--param``, after the profile's setup
+    (:func:`setup_params`), so they win."""
+
+
+AUTOPILOTS = ("px4", "ardupilot")
+
+
+def setup_params(autopilot: str, companion_mode: str) -> tuple[str, ...]:
+    """The parameters a vehicle of this profile is configured with once, before a companion
+    can fly it (``--param`` of the SITL): ArduPilot needs GUID_OPTIONS bit 3 for thrust to be
+    thrust, and PLND_ENABLED = 1 with PLND_TYPE = 1 (MAVLink) to land on LANDING_TARGET. PX4
+    needs nothing."""
+    if autopilot != "ardupilot":
+        return ()
+    if companion_mode == "landing-target":
+        return ("PLND_ENABLED=1", "PLND_TYPE=1")
+    return ("GUID_OPTIONS=8",)
 
 
 COMPANION_MODES = ("offboard", "landing-target")
@@ -188,6 +208,9 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         raise ValueError(
             f"companion_mode = {cfg.companion_mode!r}; expected one of {COMPANION_MODES}"
         )
+    if cfg.autopilot not in AUTOPILOTS:
+        raise ValueError(f"autopilot = {cfg.autopilot!r}; expected one of {AUTOPILOTS}")
+    params = setup_params(cfg.autopilot, cfg.companion_mode) + tuple(cfg.sitl_params)
     privileged = policy_is_privileged(cfg.policy)
     if privileged and cfg.companion_mode == "landing-target":
         raise ValueError(
@@ -227,6 +250,9 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         "--render" if render else "--no-render",
         "--no-lockstep" if cfg.realtime else "--lockstep",
         *(["--scenario", cfg.scenario] if cfg.scenario else []),
+        "--autopilot",
+        cfg.autopilot,
+        *(["--param", ",".join(params)] if params else []),
         *cfg.sitl_args,
     ]
     comp_cmd = [
@@ -239,6 +265,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
         f"udp:127.0.0.1:{cam}",
         "--mode",
         cfg.companion_mode,
+        *(["--autopilot", cfg.autopilot] if cfg.autopilot != "px4" else []),
         "--flights",
         "0",  # until stopped: the SITL decides when the run is over
         "--log-dir",
@@ -321,6 +348,7 @@ def _report(
         "scenario": cfg.scenario or "configs/scenario.toml",
         "realtime": cfg.realtime,
         "companion_mode": cfg.companion_mode,
+        "autopilot": cfg.autopilot,
         **summarize(results),
         "latency_ms": latency_stats(companion_logs),
         "companion_flights": companion_flights,

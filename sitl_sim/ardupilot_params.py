@@ -1,0 +1,142 @@
+"""ArduCopter's flight-mode numbers and the ArduCopter parameters the SITL's ``ardupilot``
+profile models (names, units and defaults as ArduCopter 4.5's; sources in
+``shared/reference/mavlink_notes.md`` 1.4 and ``precland_notes.md`` 3). No I/O.
+
+Only what changes the behaviour on the wire is here; the precision land's ``PLND_XY_DIST_MAX``,
+``PLND_TIMEOUT`` and ``PLND_RET_MAX`` live in :class:`~sitl_sim.precland.PldParams` (the
+precision land the ``ardupilot`` profile reuses), ``MOT_THST_HOVER`` is
+``AutopilotParams.mpc_thr_hover`` (the episode vehicle's hover thrust, as a tuned copter learns
+it).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+__all__ = [
+    "GUID_OPTIONS_THRUST_AS_THRUST",
+    "NEEDS_POSITION",
+    "PLND_TYPE_MAVLINK",
+    "ArduParams",
+    "CopterMode",
+]
+
+GUID_OPTIONS_THRUST_AS_THRUST = 8
+"""GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET's ``thrust`` is thrust, not a climb-rate demand."""
+PLND_TYPE_MAVLINK = 1
+"""PLND_TYPE 1: the target comes from LANDING_TARGET (a companion computer)."""
+
+
+class CopterMode(enum.IntEnum):
+    """ArduCopter ``Mode::Number`` (the HEARTBEAT ``custom_mode``)."""
+
+    STABILIZE = 0
+    ACRO = 1
+    ALT_HOLD = 2
+    AUTO = 3
+    GUIDED = 4
+    LOITER = 5
+    RTL = 6
+    CIRCLE = 7
+    LAND = 9
+    DRIFT = 11
+    SPORT = 13
+    FLIP = 14
+    AUTOTUNE = 15
+    POSHOLD = 16
+    BRAKE = 17
+    THROW = 18
+    AVOID_ADSB = 19
+    GUIDED_NOGPS = 20
+    SMART_RTL = 21
+    FLOWHOLD = 22
+    FOLLOW = 23
+    ZIGZAG = 24
+    SYSTEMID = 25
+    AUTOROTATE = 26
+    AUTO_RTL = 27
+    TURTLE = 28
+
+
+NEEDS_POSITION = frozenset(
+    {
+        CopterMode.AUTO,
+        CopterMode.GUIDED,
+        CopterMode.LOITER,
+        CopterMode.RTL,
+        CopterMode.CIRCLE,
+        CopterMode.DRIFT,
+        CopterMode.POSHOLD,
+        CopterMode.BRAKE,
+        CopterMode.THROW,
+        CopterMode.AVOID_ADSB,
+        CopterMode.SMART_RTL,
+        CopterMode.FOLLOW,
+        CopterMode.ZIGZAG,
+        CopterMode.AUTO_RTL,
+    }
+)
+"""Modes whose ``requires_GPS()`` is true: refused without a position estimate ("Mode change to
+LOITER failed: requires position"), which this GPS-less vehicle never has."""
+
+
+@dataclass(frozen=True)
+class ArduParams:
+    """ArduCopter parameters (defaults as ArduCopter 4.5; units as the parameter's, converted
+    in the field name where ArduPilot uses centimetres)."""
+
+    guid_options: int = 0
+    """GUID_OPTIONS bitmask; bit 3 (8): SET_ATTITUDE_TARGET thrust is thrust (else climb rate)."""
+    guid_timeout_s: float = 3.0
+    """GUID_TIMEOUT: no SET_ATTITUDE_TARGET this long in GUIDED_NOGPS -> level, zero climb."""
+    fs_gcs_enable: int = 0
+    """FS_GCS_ENABLE: 0 off; any action (RTL, SmartRTL, Land, ...) lands here (no position)."""
+    fs_gcs_timeout_s: float = 5.0
+    """FS_GCS_TIMEOUT: no HEARTBEAT from SYSID_MYGCS this long -> GCS failsafe."""
+    sysid_mygcs: int = 255
+    """SYSID_MYGCS: the ground station whose HEARTBEAT keeps the GCS failsafe quiet."""
+    wpnav_speed_up_cm_s: float = 250.0
+    """WPNAV_SPEED_UP: climb rate at thrust 1.0 in the climb-rate reading, cm/s."""
+    wpnav_speed_dn_cm_s: float = 150.0
+    """WPNAV_SPEED_DN: descent rate at thrust 0.0 (and LAND's upper descent), cm/s."""
+    land_speed_cm_s: float = 50.0
+    """LAND_SPEED: LAND's final descent rate below LAND_ALT_LOW, cm/s."""
+    land_alt_low_cm: float = 1000.0
+    """LAND_ALT_LOW: LAND descends at WPNAV_SPEED_DN above this, at LAND_SPEED below, cm."""
+    disarm_delay_s: float = 10.0
+    """DISARM_DELAY: landed this long outside LAND -> auto-disarm (0: never)."""
+    plnd_enabled: int = 0
+    """PLND_ENABLED: LAND uses the precision-land target (applies at the next LAND here)."""
+    plnd_type: int = 0
+    """PLND_TYPE: 1 = MAVLink (LANDING_TARGET); any other value lands without a target."""
+
+    def __post_init__(self) -> None:
+        # ranges of ArduCopter's parameter tables
+        checks = (
+            ("GUID_OPTIONS", self.guid_options, 0, 2**31 - 1),
+            ("GUID_TIMEOUT", self.guid_timeout_s, 0.1, 5.0),
+            ("FS_GCS_ENABLE", self.fs_gcs_enable, 0, 7),
+            ("FS_GCS_TIMEOUT", self.fs_gcs_timeout_s, 2.0, 120.0),
+            ("SYSID_MYGCS", self.sysid_mygcs, 1, 255),
+            ("WPNAV_SPEED_UP", self.wpnav_speed_up_cm_s, 10.0, 1000.0),
+            ("WPNAV_SPEED_DN", self.wpnav_speed_dn_cm_s, 10.0, 500.0),
+            ("LAND_SPEED", self.land_speed_cm_s, 30.0, 200.0),
+            ("LAND_ALT_LOW", self.land_alt_low_cm, 100.0, 10000.0),
+            ("DISARM_DELAY", self.disarm_delay_s, 0.0, 127.0),
+            ("PLND_ENABLED", self.plnd_enabled, 0, 1),
+            ("PLND_TYPE", self.plnd_type, 0, 6),
+        )
+        for name, value, low, high in checks:
+            if not (math.isfinite(value) and low <= value <= high):
+                raise ValueError(f"{name} = {value}; expected [{low}, {high}]")
+
+    @property
+    def thrust_is_thrust(self) -> bool:
+        return bool(self.guid_options & GUID_OPTIONS_THRUST_AS_THRUST)
+
+    @property
+    def precland(self) -> bool:
+        """LAND flies the precision land (PLND_ENABLED = 1 and PLND_TYPE = MAVLink)."""
+        return self.plnd_enabled == 1 and self.plnd_type == PLND_TYPE_MAVLINK
