@@ -436,3 +436,24 @@ def test_estimator_fields_are_config_fields_that_no_weight_depends_on(tmp_path):
     control, cnn = ControlLSTM(cfg), PerceptionCNN(cfg)
     path = save_checkpoint(tmp_path / "a.pt", other, control, cnn, {})
     assert load_policy(path).config == other
+
+
+def test_estimator_predicts_across_a_lost_frame_in_one_step():
+    """A frame lost on the link: the next step is two periods later, and the estimator's
+    prediction over that gap equals two one-period predictions (the estimate is not left a
+    period behind, which a fixed step would do on every lost frame)."""
+    est = PadEstimator(NetConfig(kind="vision"))
+    level, accel = np.zeros(3), np.array([0.3, -0.2, -9.81 + 0.5])  # accelerating
+    start = est.step(est.initial_state(), np.array([3.0, -2.0, -40.0]), True, level, accel)
+    start = replace(
+        start, x=start.x + np.array([[0.0, 1.0], [0.0, -0.5], [0.0, 2.0]])[:, : start.x.shape[1]]
+    )
+    dt = est.cfg.control_dt_s
+    twice = est.step(est.step(start, None, False, level, accel), None, False, level, accel)
+    once = est.step(start, None, False, level, accel, dt_s=2 * dt)
+    assert np.allclose(once.x, twice.x, atol=1e-9)
+    assert not np.allclose(once.x, est.step(start, None, False, level, accel).x)
+    # an implausible gap (a restarted camera clock) is one period, as before
+    one = est.step(start, None, False, level, accel)
+    assert np.array_equal(est.step(start, None, False, level, accel, dt_s=-0.1).x, one.x)
+    assert np.array_equal(est.step(start, None, False, level, accel, dt_s=5.0).x, one.x)

@@ -16,6 +16,7 @@ module imports no torch: the board flies this exact code.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
 from itertools import pairwise
 from typing import Any
@@ -48,6 +49,9 @@ class PolicyState:
     the attitude at an image's exposure time is interpolated from them)."""
     last_image_time_s: float | None = None
     """Exposure time of the newest image used for a fix (a repeated image gives none)."""
+    last_step_time_s: float | None = None
+    """Exposure time of the image of the previous vision step: the estimator predicts across
+    the real gap, two periods after a frame lost on the link."""
 
 
 _MAX_CAMERA_LAG_S = 0.5
@@ -72,7 +76,7 @@ def attitude_at(history: tuple[tuple[float, np.ndarray], ...], t: float) -> np.n
     return history[-1][1]
 
 
-class PolicyCore:
+class PolicyCore(ABC):
     """A learned policy's ``initial_state`` / ``act`` over a backend's two networks.
 
     ``groundtruth`` (a :class:`companion.contract.GroundTruth`: the simulator's, or the
@@ -87,19 +91,19 @@ class PolicyCore:
 
     # the backend's networks -------------------------------------------------------------
 
+    @abstractmethod
     def perceive(self, image: np.ndarray) -> np.ndarray:
         """The CNN's raw output for one image: (tan_right, tan_forward, visibility logit)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def zero_state(self) -> tuple[Any, ...]:
         """The controller's recurrent state at the start of a flight."""
-        raise NotImplementedError
 
+    @abstractmethod
     def control_step(
         self, features: np.ndarray, state: tuple[Any, ...]
     ) -> tuple[np.ndarray, tuple[Any, ...]]:
         """One controller step: features (F,) float32 → raw command (4,) and the next state."""
-        raise NotImplementedError
 
     # the policy ---------------------------------------------------------------------------
 
@@ -209,13 +213,18 @@ class PolicyCore:
         ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
         """
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
+        dt = None
+        if math.isfinite(image_time_s):
+            if state.last_step_time_s is not None:
+                dt = image_time_s - state.last_step_time_s
+            state = replace(state, last_step_time_s=float(image_time_s))
         fix, fresh, lag, state = self._fix(
             raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
         )
         seen = fresh and vis >= self.config.visibility_threshold
         assert state.estimator is not None
         est = self._estimator.step(
-            state.estimator, fix, seen, attitude_rad, accel_frd_m_s2, fix_lag_s=lag
+            state.estimator, fix, seen, attitude_rad, accel_frd_m_s2, fix_lag_s=lag, dt_s=dt
         )
         feats = control_features(
             est.x[:, 0],

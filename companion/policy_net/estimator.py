@@ -27,6 +27,11 @@ class EstimatorState:
     """Consecutive horizontal fixes refused by the innovation gate."""
 
 
+MAX_STEP_DT_S = 1.0
+"""Longest gap between two steps the estimator predicts across (a longer one — a restarted
+camera, clocks that do not compare — is taken as one control period)."""
+
+
 class PadEstimator:
     """Pad-relative position and velocity from position fixes and the IMU (3 decoupled axes).
 
@@ -45,21 +50,22 @@ class PadEstimator:
 
     def __init__(self, cfg: NetConfig) -> None:
         self.cfg = cfg
-        dt = cfg.control_dt_s
+        self._n = 3 if cfg.accel_bias_states else 2
+        self._f, self._b, self._q = self._model(cfg.control_dt_s)
+
+    def _model(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Transition, acceleration input and process noise of one axis over ``dt`` seconds."""
+        cfg = self.cfg
         q = cfg.accel_noise_m_s2**2
         q_pv = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt * dt]])
-        if cfg.accel_bias_states:
-            self._n = 3
-            self._f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
-            self._b = np.array([0.5 * dt * dt, dt, 0.0])
-            self._q = np.zeros((3, 3))
-            self._q[:2, :2] = q_pv
-            self._q[2, 2] = cfg.accel_bias_walk_m_s2**2 * dt
-        else:
-            self._n = 2
-            self._f = np.array([[1.0, dt], [0.0, 1.0]])
-            self._b = np.array([0.5 * dt * dt, dt])
-            self._q = q_pv
+        if self._n == 3:
+            f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+            b = np.array([0.5 * dt * dt, dt, 0.0])
+            qm = np.zeros((3, 3))
+            qm[:2, :2] = q_pv
+            qm[2, 2] = cfg.accel_bias_walk_m_s2**2 * dt
+            return f, b, qm
+        return np.array([[1.0, dt], [0.0, 1.0]]), np.array([0.5 * dt * dt, dt]), q_pv
 
     def initial_state(self) -> EstimatorState:
         n = self._n
@@ -84,22 +90,32 @@ class PadEstimator:
         attitude_rad: np.ndarray,
         accel_frd_m_s2: np.ndarray,
         fix_lag_s: float = 0.0,
+        dt_s: float | None = None,
     ) -> EstimatorState:
         """One control period: predict from the last period's acceleration, then update.
 
         ``fix_lag_s``: the horizontal fix is where the vehicle was that long ago (a camera
         image's exposure time): it is measured as ``position - lag * velocity``, so the filter
-        itself carries it to now (the vertical fix, from the radar, is current)."""
+        itself carries it to now (the vertical fix, from the radar, is current).
+        ``dt_s``: the time since the previous step when it is not the control period (a frame
+        lost on the link: two periods); None, or outside (0, MAX_STEP_DT_S], is one period."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
         rejected, rejected_alt = state.rejected, state.rejected_altitude
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
         acc = rot @ np.asarray(accel_frd_m_s2, float) + np.array([0.0, 0.0, self.cfg.gravity_m_s2])
         if not np.all(np.isfinite(acc)):
             acc = np.zeros(3)
+        f, b, q = self._f, self._b, self._q
+        if (
+            dt_s is not None
+            and 0.0 < dt_s <= MAX_STEP_DT_S
+            and abs(dt_s - self.cfg.control_dt_s) > 1e-6
+        ):
+            f, b, q = self._model(float(dt_s))
         for axis in range(3):
             if init[axis]:
-                x[axis] = self._f @ x[axis] + self._b * acc[axis]
-                cov[axis] = self._f @ cov[axis] @ self._f.T + self._q
+                x[axis] = f @ x[axis] + b * acc[axis]
+                cov[axis] = f @ cov[axis] @ f.T + q
         if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
