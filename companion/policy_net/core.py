@@ -50,8 +50,8 @@ class PolicyState:
     last_image_time_s: float | None = None
     """Exposure time of the newest image used for a fix (a repeated image gives none)."""
     last_step_time_s: float | None = None
-    """Exposure time of the image of the previous vision step: the estimator predicts across
-    the real gap, two periods after a frame lost on the link."""
+    """ATTITUDE time of the previous vision step: the estimator predicts across the real gap,
+    two periods after a frame lost on the link."""
 
 
 _MAX_CAMERA_LAG_S = 0.5
@@ -213,11 +213,11 @@ class PolicyCore(ABC):
         ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
         """
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
-        dt = None
-        if math.isfinite(image_time_s):
+        dt = None  # the step's own time (its ATTITUDE's), not the image's: a repeated image
+        if math.isfinite(attitude_time_s):  # still comes one period after the previous step
             if state.last_step_time_s is not None:
-                dt = image_time_s - state.last_step_time_s
-            state = replace(state, last_step_time_s=float(image_time_s))
+                dt = attitude_time_s - state.last_step_time_s
+            state = replace(state, last_step_time_s=float(attitude_time_s))
         fix, fresh, lag, state = self._fix(
             raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
         )
