@@ -1,19 +1,33 @@
 """The types around one flight of the companion: its settings (:class:`OffboardConfig`, the
 companion config's flight part), the log it writes to (:class:`FlightRecorder`, the few calls
-the state machine makes) and how it ended (:class:`FlightOutcome`). The state machine itself is
-:mod:`companion.offboard`; its states and results are :mod:`companion.states`.
+the state machine makes), how it ended (:class:`FlightOutcome`) and what the two state machines
+share (:class:`FlightMachine`). The state machines themselves are :mod:`companion.offboard`
+(the policy flies) and :mod:`companion.landing_target` (the autopilot lands on LANDING_TARGET);
+their states and results are :mod:`companion.states`.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from companion.camera import ReceivedFrame
-from companion.states import Failsafe, FlightResult, TouchdownAction
+from companion.link import mavlink
+from companion.states import Failsafe, FlightResult, FlightState, TouchdownAction
 
-__all__ = ["FlightOutcome", "FlightRecorder", "OffboardConfig"]
+if TYPE_CHECKING:
+    from companion.link import MavlinkLink
+    from companion.safety import SafetyMonitor
+    from companion.telemetry import TelemetryStore
+
+__all__ = ["FlightMachine", "FlightOutcome", "FlightRecorder", "OffboardConfig"]
+
+log = logging.getLogger("visland.companion")
 
 
 @dataclass(frozen=True)
@@ -112,3 +126,110 @@ class FlightRecorder(Protocol):
     def flight_start(self, t: float, text: str, shadow: bool) -> None: ...
 
     def flush_pending(self) -> None: ...
+
+
+class FlightMachine(ABC):
+    """One flight's state machine, the part both modes share: the inputs it is fed by the
+    process loop, its state and outcome, events into the flight log, the mode ACK / HEARTBEAT
+    dispatch, the autopilot restart, and the wait for a SITL frame's telemetry.
+
+    Subclasses handle the ACK of their DO_SET_MODE (``_on_mode_ack``) and the autopilot's
+    HEARTBEAT (``_on_heartbeat``), and set ``_needs_odometry`` where they read ground truth.
+    """
+
+    def __init__(
+        self,
+        cfg: OffboardConfig,
+        link: MavlinkLink,
+        store: TelemetryStore,
+        camera_clock: str,
+        safety: SafetyMonitor,
+        log: FlightRecorder,
+        pump: Callable[[float], None],
+        clock: Callable[[], float],
+        index: int = 0,
+    ) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.store = store
+        self.camera_clock = camera_clock
+        self.safety = safety
+        self.log = log
+        self._pump = pump
+        self._clock = clock
+        self.outcome = FlightOutcome(index=index, log_path=str(log.path))
+        self.state = FlightState.WAITING
+        self._entered_s = clock()
+        self._created_s = clock()
+        self._wait_reason = ""
+        self._last_frame_rx: float | None = None
+        self._last_arm_s = -math.inf
+        self._params_requested_s = -math.inf
+        self._engage_attempts = 0
+        self._mode_acked = False
+
+    @property
+    def _needs_odometry(self) -> bool:
+        """Whether the flight reads ODOMETRY (a privileged policy): the frame waits for it."""
+        return False
+
+    @property
+    def done(self) -> bool:
+        return self.state is FlightState.DONE
+
+    def _event(self, kind: str, text: str) -> None:
+        self.log.event(self._clock(), kind, text, state=self.state.value)
+        self.outcome.events.append(f"{kind}: {text}")
+        log.info("flight %d %s: %s", self.outcome.index, kind, text)
+
+    def _enter(self, state: FlightState, text: str) -> None:
+        self._event("state", f"{self.state.value} -> {state.value}: {text}")
+        self.state = state
+        self._entered_s = self._clock()
+
+    def _finish(self, result: FlightResult, reason: str) -> None:
+        if self.done:
+            return
+        self.outcome.result = result
+        self.outcome.reason = reason
+        self._enter(FlightState.DONE, f"{result}: {reason}")
+
+    def on_message(self, msg: Any, rx_s: float) -> None:
+        """After the store has taken ``msg``: ACKs and mode/arming changes."""
+        name = msg.get_type()
+        if name == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_DO_SET_MODE:
+            self._on_mode_ack(int(msg.result))
+        elif name == "HEARTBEAT" and msg.get_srcComponent() == self.link.target_component:
+            self._on_heartbeat()
+
+    @abstractmethod
+    def _on_mode_ack(self, result: int) -> None:
+        """The autopilot's COMMAND_ACK of our DO_SET_MODE."""
+
+    @abstractmethod
+    def _on_heartbeat(self) -> None:
+        """A HEARTBEAT of the autopilot: its mode and arming state."""
+
+    def on_link_event(self, kind: str, text: str) -> None:
+        self._event("link_" + kind, text)
+        if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
+            self._finish(FlightResult.ABORTED, "the autopilot restarted during the flight")
+
+    def _sync(self, frame: ReceivedFrame) -> None:
+        """SITL frames: wait (briefly) for the telemetry stamped at the frame's time, which the
+        SITL sends just before the frame."""
+        if self.camera_clock != "autopilot":
+            return
+        t = frame.time_s - 1e-6
+        deadline = self._clock() + self.cfg.sync_timeout_s
+        store = self.store
+        while True:
+            needed = [store.attitude, store.imu, store.range]
+            if self._needs_odometry:
+                needed.append(store.odometry)
+            if all(s is not None and s.time_s >= t for s in needed):
+                return
+            left = deadline - self._clock()
+            if left <= 0:
+                return
+            self._pump(left)

@@ -53,7 +53,7 @@ import numpy as np
 
 from companion.camera import ReceivedFrame
 from companion.contract import Observation
-from companion.flight import FlightOutcome, FlightRecorder, OffboardConfig
+from companion.flight import FlightMachine, FlightRecorder, OffboardConfig
 from companion.link import MavlinkLink, mavlink
 from companion.policy_net.geometry import rotation_zyx
 from companion.safety import SafetyMonitor
@@ -197,7 +197,7 @@ class LandingTargetRecorder(FlightRecorder, Protocol):
     def landing_target(self, t: float, body: dict[str, Any]) -> None: ...
 
 
-class LandingTargetController:
+class LandingTargetController(FlightMachine):
     """One flight in landing-target mode; the same calls as
     :class:`~companion.offboard.FlightController` (``on_message``, ``on_frame``, ``on_tick``,
     ``hand_back``, ``done``, ``outcome``), fed by the same process loop."""
@@ -215,50 +215,13 @@ class LandingTargetController:
         clock: Callable[[], float],
         index: int = 0,
     ) -> None:
-        self.cfg = cfg
-        self.link = link
-        self.store = store
-        self.camera_clock = camera_clock
+        super().__init__(cfg, link, store, camera_clock, safety, log, pump, clock, index)
+        self.log: LandingTargetRecorder = log
         self.tracker = tracker
-        self.safety = safety
-        self.log = log
-        self._pump = pump
-        self._clock = clock
-        self.outcome = FlightOutcome(index=index, log_path=str(log.path))
-        self.state = FlightState.WAITING
-        self._entered_s = clock()
-        self._created_s = clock()
-        self._wait_reason = ""
-        self._last_frame_rx: float | None = None
         self._tracked_since: float | None = None
-        self._last_arm_s = -math.inf
-        self._params_requested_s = -math.inf
-        self._engage_attempts = 0
-        self._mode_acked = False
         tracker.reset()
 
     # ------------------------------------------------------------------ helpers
-
-    @property
-    def done(self) -> bool:
-        return self.state is FlightState.DONE
-
-    def _event(self, kind: str, text: str) -> None:
-        self.log.event(self._clock(), kind, text, state=self.state.value)
-        self.outcome.events.append(f"{kind}: {text}")
-        log.info("flight %d %s: %s", self.outcome.index, kind, text)
-
-    def _enter(self, state: FlightState, text: str) -> None:
-        self._event("state", f"{self.state.value} -> {state.value}: {text}")
-        self.state = state
-        self._entered_s = self._clock()
-
-    def _finish(self, result: FlightResult, reason: str) -> None:
-        if self.done:
-            return
-        self.outcome.result = result
-        self.outcome.reason = reason
-        self._enter(FlightState.DONE, f"{result}: {reason}")
 
     def _gate(self, now: float) -> str | None:
         """Why the landing cannot be handed to the autopilot yet (None: it can)."""
@@ -300,13 +263,6 @@ class LandingTargetController:
 
     # ------------------------------------------------------------------ inputs
 
-    def on_message(self, msg: Any, rx_s: float) -> None:
-        name = msg.get_type()
-        if name == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_DO_SET_MODE:
-            self._on_mode_ack(int(msg.result))
-        elif name == "HEARTBEAT" and msg.get_srcComponent() == self.link.target_component:
-            self._on_heartbeat()
-
     def _on_mode_ack(self, result: int) -> None:
         if self.state is not FlightState.ENGAGING or self._mode_acked:
             return
@@ -343,29 +299,6 @@ class LandingTargetController:
                 self._finish(FlightResult.HANDED_BACK, f"mode changed to {profile.mode_name(mode)}")
         elif self.state is FlightState.FLYING and not hb.armed:
             self._finish(FlightResult.SHADOW, "disarmed")
-
-    def on_link_event(self, kind: str, text: str) -> None:
-        self._event("link_" + kind, text)
-        if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
-            self._finish(FlightResult.ABORTED, "the autopilot restarted during the flight")
-
-    # ------------------------------------------------------------------ frames
-
-    def _sync(self, frame: ReceivedFrame) -> None:
-        """SITL frames: wait briefly for the telemetry stamped at the frame's time."""
-        if self.camera_clock != "autopilot":
-            return
-        t = frame.time_s - 1e-6
-        deadline = self._clock() + self.cfg.sync_timeout_s
-        store = self.store
-        while True:
-            att, imu, rng = store.attitude, store.imu, store.range
-            if all(s is not None and s.time_s >= t for s in (att, imu, rng)):
-                return
-            left = deadline - self._clock()
-            if left <= 0:
-                return
-            self._pump(left)
 
     def on_frame(self, frame: ReceivedFrame) -> None:
         self._last_frame_rx = frame.rx_s

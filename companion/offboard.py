@@ -31,12 +31,11 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.flight import FlightOutcome, FlightRecorder, OffboardConfig
+from companion.flight import FlightMachine, FlightRecorder, OffboardConfig
 from companion.link import MavlinkLink, mavlink
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyMonitor, TouchdownDetector
@@ -59,7 +58,7 @@ def _frame_ms(frame: ReceivedFrame) -> int:
     return round(frame.time_s * 1e6) // 1000
 
 
-class FlightController:
+class FlightController(FlightMachine):
     """One flight: fed messages, frames and ticks by the process loop (:mod:`companion.app`).
 
     Args:
@@ -88,56 +87,21 @@ class FlightController:
         clock: Callable[[], float],
         index: int = 0,
     ) -> None:
-        self.cfg = cfg
-        self.link = link
-        self.store = store
-        self.camera_clock = camera_clock
+        super().__init__(cfg, link, store, camera_clock, safety, log, pump, clock, index)
         self.runtime = runtime
-        self.safety = safety
-        self.log = log
-        self._pump = pump
-        self._clock = clock
-        self.outcome = FlightOutcome(index=index, log_path=str(log.path))
-        self.state = FlightState.WAITING
-        self._entered_s = clock()
-        self._wait_reason = ""
-        self._last_frame_rx: float | None = None
         self._last_prestream_s = -math.inf
-        self._last_arm_s = -math.inf
         self._last_mode_req_s = -math.inf
-        self._mode_acked = False
         self._mode_change_ap_s = math.inf
-        self._engage_attempts = 0
         self._land_confirmed = False
         self._touchdown = TouchdownDetector(cfg.touchdown_range_m)
         self._flight_start_rx = math.inf
-        self._created_s = clock()
         self._hover: float | None = None
-        self._params_requested_s = -math.inf
 
     # ------------------------------------------------------------------ helpers
 
     @property
-    def done(self) -> bool:
-        return self.state is FlightState.DONE
-
-    def _event(self, kind: str, text: str) -> None:
-        now = self._clock()
-        self.log.event(now, kind, text, state=self.state.value)
-        self.outcome.events.append(f"{kind}: {text}")
-        log.info("flight %d %s: %s", self.outcome.index, kind, text)
-
-    def _enter(self, state: FlightState, text: str) -> None:
-        self._event("state", f"{self.state.value} -> {state.value}: {text}")
-        self.state = state
-        self._entered_s = self._clock()
-
-    def _finish(self, result: FlightResult, reason: str) -> None:
-        if self.done:
-            return
-        self.outcome.result = result
-        self.outcome.reason = reason
-        self._enter(FlightState.DONE, f"{result}: {reason}")
+    def _needs_odometry(self) -> bool:
+        return self.runtime.privileged
 
     def _armed(self) -> bool:
         hb = self.store.heartbeat
@@ -230,14 +194,6 @@ class FlightController:
 
     # ------------------------------------------------------------------ inputs
 
-    def on_message(self, msg: Any, rx_s: float) -> None:
-        """After the store has taken ``msg``: ACKs and mode/arming changes."""
-        name = msg.get_type()
-        if name == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_DO_SET_MODE:
-            self._on_mode_ack(int(msg.result))
-        elif name == "HEARTBEAT" and msg.get_srcComponent() == self.link.target_component:
-            self._on_heartbeat()
-
     def _on_mode_ack(self, result: int) -> None:
         if self.state is FlightState.ENGAGING and not self._mode_acked:
             if result == mavlink.MAV_RESULT_ACCEPTED:
@@ -314,11 +270,6 @@ class FlightController:
         self._enter(FlightState.FLYING, text)
         self.log.flight_start(self._clock(), text, shadow=self.cfg.shadow)
 
-    def on_link_event(self, kind: str, text: str) -> None:
-        self._event("link_" + kind, text)
-        if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
-            self._finish(FlightResult.ABORTED, "the autopilot restarted during the flight")
-
     # ------------------------------------------------------------------ frames
 
     def on_frame(self, frame: ReceivedFrame) -> None:
@@ -367,32 +318,6 @@ class FlightController:
                 "latency_ms": ((handed or self._clock()) - frame.rx_s) * 1e3,
             },
         )
-
-    def _sync(self, frame: ReceivedFrame) -> None:
-        """SITL frames: wait (briefly) for the telemetry stamped at the frame's time, which the
-        SITL sends just before the frame."""
-        if self.camera_clock != "autopilot":
-            return
-        t = frame.time_s - 1e-6
-        deadline = self._clock() + self.cfg.sync_timeout_s
-        store = self.store
-        need_odo = self.runtime.privileged
-        while True:
-            att, imu, rng, odo = store.attitude, store.imu, store.range, store.odometry
-            if (
-                att is not None
-                and att.time_s >= t
-                and imu is not None
-                and imu.time_s >= t
-                and rng is not None
-                and rng.time_s >= t
-                and (not need_odo or (odo is not None and odo.time_s >= t))
-            ):
-                return
-            left = deadline - self._clock()
-            if left <= 0:
-                return
-            self._pump(left)
 
     def _policy_step(self, frame: ReceivedFrame) -> None:
         t_in = self._clock()
