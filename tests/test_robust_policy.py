@@ -214,6 +214,114 @@ def test_a_repeated_image_gives_no_new_fix():
     assert s2.last_image_time_s == 1.0
 
 
+def _fly_stale_radar(stamped: bool, ages_s: list[float]) -> tuple[float, float]:
+    """A vehicle descending at 4 m/s from 60 m while rolling +-0.3 rad; at step k the radar
+    reading at hand is ``ages_s[k % len]`` old — the previous step's reading again, as over a
+    jittery link where DISTANCE_SENSOR comes after the frame. ``stamped``: the policy gets the
+    reading's time stamp. Returns the mean altitude and the max vertical-velocity error."""
+    cfg = NetConfig(**ROBUST)
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    state = policy.initial_state()
+    alt_err, vel_err = [], []
+
+    def roll(s: float) -> float:
+        return 0.3 * math.sin(2.0 * s)
+
+    for k in range(120):
+        t = 1.0 + k * cfg.control_dt_s
+        t_r = t - ages_s[k % len(ages_s)]
+        att = np.array([roll(t), 0.0, 0.0])
+        range_m = (60.0 - 4.0 * (t_r - 1.0)) / math.cos(roll(t_r))
+        # the vertical specific force of a steady descent, in the body frame
+        accel = rotation_zyx(*att).T @ np.array([0.0, 0.0, -cfg.gravity_m_s2])
+        _, state = policy.vision_features(
+            np.array([0.0, 0.0, 10.0]),
+            att,
+            np.zeros(3),
+            accel,
+            range_m,
+            state,
+            image_time_s=t,
+            attitude_time_s=t,
+            range_time_s=t_r if stamped else math.nan,
+        )
+        if k >= 40:
+            alt_err.append(abs(-state.estimator.x[2, 0] - (60.0 - 4.0 * (t - 1.0))))
+            vel_err.append(abs(state.estimator.x[2, 1] - 4.0))
+    return float(np.mean(alt_err)), float(np.max(vel_err))
+
+
+def test_a_late_or_repeated_radar_reading_is_measured_at_its_own_time():
+    # a real-time pattern: fresh, the previous reading once or twice again
+    late = [0.0, 0.1, 0.2, 0.0, 0.1, 0.0, 0.1, 0.2]
+    alt_now, vel_now = _fly_stale_radar(False, late)
+    alt_own, vel_own = _fly_stale_radar(True, late)
+    # taken as "now": the altitude freezes and jumps (and is tilted by the wrong attitude)
+    assert alt_now > 0.3 and vel_now > 0.3
+    # at its own time, once: as good as a fresh reading every step
+    fresh_alt, fresh_vel = _fly_stale_radar(True, [0.0])
+    assert alt_own < 0.02 and vel_own < 0.02
+    assert fresh_alt < 0.02 and fresh_vel < 0.02
+    # fresh readings: the stamp changes nothing
+    assert _fly_stale_radar(False, [0.0]) == pytest.approx((fresh_alt, fresh_vel), abs=1e-9)
+
+
+def test_a_repeated_radar_reading_updates_nothing_vertical():
+    cfg = NetConfig(**ROBUST)
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    accel = np.array([0.0, 0.0, -9.80665])
+    kw = dict(rate_frd_rad_s=np.zeros(3), accel_frd_m_s2=accel)
+    raw = np.array([0.1, -0.05, 10.0])
+    _, s1 = policy.vision_features(
+        raw,
+        np.zeros(3),
+        range_m=20.0,
+        state=policy.initial_state(),
+        image_time_s=1.0,
+        attitude_time_s=1.0,
+        range_time_s=1.0,
+        **kw,
+    )
+    # the same reading again with a wrong range (it must not count), and one older than 0.5 s
+    for t, t_r, dt in ((1.1, 1.0, 0.1), (1.8, 1.2, 0.7)):
+        before = s1.estimator
+        _, s1 = policy.vision_features(
+            raw,
+            np.zeros(3),
+            range_m=25.0,
+            state=s1,
+            image_time_s=t,
+            attitude_time_s=t,
+            range_time_s=t_r,
+            **kw,
+        )
+        predicted = PadEstimator(cfg).step(before, None, False, np.zeros(3), accel, dt_s=dt)
+        assert s1.estimator.x[2] == pytest.approx(predicted.x[2], abs=1e-12)
+        assert s1.estimator.cov[2] == pytest.approx(predicted.cov[2], abs=1e-12)
+    assert s1.last_range_time_s == 1.2
+
+
+def test_a_reading_without_its_own_attitude_sample_is_trusted_less():
+    from companion.policy_net.core import _attitude_error_m
+
+    tilt = math.radians(45.0)
+    level, tilted = np.zeros(3), np.array([tilt, 0.0, 0.0])
+    history = ((1.0, tilted), (1.1, tilted))
+    rate = np.array([2.0, 0.0, 0.0])
+    # a sample of its own time (lockstep, in process): no extra error
+    assert _attitude_error_m(history, 1.1, rate, 127.0, 1) == 0.0
+    assert _attitude_error_m(history, 1.1, rate, 90.0, 2) == 0.0
+    # a radar reading 20 ms from the nearest sample at 2 rad/s, 45 deg, 127 m range (90 m
+    # altitude): 0.04 rad off, 127 sin(45) 0.04 = 3.6 m
+    assert _attitude_error_m(history, 1.12, rate, 127.0, 1) == pytest.approx(3.59, abs=0.01)
+    # an image 20 ms newer than the newest sample: 90 x 0.04 / cos^2(45) = 7.2 m; between the
+    # samples (a camera latency) it is interpolated as before
+    assert _attitude_error_m(history, 1.12, rate, 90.0, 2) == pytest.approx(7.2, abs=0.01)
+    assert _attitude_error_m(history, 1.05, rate, 90.0, 2) == 0.0
+    # level and still: nothing to be off by
+    assert _attitude_error_m(((1.0, level),), 1.02, np.zeros(3), 90.0, 2) == 0.0
+
+
 # ----------------------------------------------------------------------------- real flights
 
 

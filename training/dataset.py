@@ -65,6 +65,8 @@ class Episode:
     """(T,) the Observation's ATTITUDE time stamp."""
     hover_thrust_norm: np.ndarray | None = None
     """(T,) the Observation's hover thrust (NaN where the log has none)."""
+    range_time_s: np.ndarray | None = None
+    """(T,) the Observation's radar reading time stamp (NaN where the log has none)."""
     images: np.ndarray | None = None
     result: dict[str, Any] = field(default_factory=dict)
 
@@ -96,7 +98,7 @@ class Episode:
         return out
 
 
-_OPTIONAL = ("image_time_s", "attitude_time_s", "hover_thrust_norm")
+_OPTIONAL = ("image_time_s", "attitude_time_s", "hover_thrust_norm", "range_time_s")
 """Per-step arrays an Episode may lack (built by hand, e.g. in tests); NaN allowed in them."""
 
 
@@ -216,6 +218,10 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             attitude_time_s=np.array([m["attitude_time_s"] for m in o], dtype=float),
             hover_thrust_norm=np.array(
                 [m.get("hover_thrust_norm", math.nan) for m in o], dtype=float
+            ),
+            range_time_s=np.array(
+                [math.nan if m.get("range_time_s") is None else m["range_time_s"] for m in o],
+                dtype=float,
             ),
             images=images,
             result=(log.topic(TOPIC_RESULT) or [{}])[-1],

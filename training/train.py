@@ -139,6 +139,7 @@ def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
     hover = _per_step(ep, "hover_thrust_norm")
     image_t = _per_step(ep, "image_time_s")
     attitude_t = _per_step(ep, "attitude_time_s")
+    range_t = _per_step(ep, "range_time_s")
     for t in range(len(ep)):
         f, state = policy.vision_features(
             raw[t],
@@ -150,6 +151,7 @@ def vision_episode(policy: LearnedPolicy, ep: Episode) -> BufferedEpisode:
             hover_thrust_norm=float(hover[t]),
             image_time_s=float(image_t[t]),
             attitude_time_s=float(attitude_t[t]),
+            range_time_s=float(range_t[t]),
         )
         feats.append(f)
     return BufferedEpisode(ep.name, np.stack(feats), ep.label.astype(np.float32))

@@ -30,6 +30,7 @@ from companion.policy_net.geometry import (
     control_features,
     position_at_altitude,
     position_from_bearing,
+    rotation_zyx,
 )
 
 __all__ = ["PolicyCore", "PolicyState", "attitude_at"]
@@ -52,12 +53,37 @@ class PolicyState:
     last_step_time_s: float | None = None
     """ATTITUDE time of the previous vision step: the estimator predicts across the real gap,
     two periods after a frame lost on the link."""
+    last_range_time_s: float | None = None
+    """Time stamp of the newest radar reading used as an altitude fix: over a real link the
+    reading at hand is often the previous one again (DISTANCE_SENSOR late or lost), and a
+    reading is measured once."""
 
 
 _MAX_CAMERA_LAG_S = 0.5
 """A camera lag (ATTITUDE time minus image exposure time) beyond this, or negative, is taken as
 clocks that do not compare (e.g. a companion-clock camera): the fix is used as of now."""
 _ATTITUDE_HISTORY = 4
+
+
+@dataclass(frozen=True)
+class _Fix:
+    """One step's measurements for the estimator (see :meth:`PolicyCore._fix`)."""
+
+    position: np.ndarray | None
+    """(north, east) of the vehicle from the pad at the image's exposure, and down = minus the
+    radar's altitude at the reading's time; None: no geometry (invalid range, degenerate ray)."""
+    horizontal: bool
+    """The horizontal part is a new measurement (not a repeated image)."""
+    lag_s: float
+    """Age of the horizontal part at this step (s)."""
+    vertical: bool = True
+    """The radar reading is new (not the previous one again)."""
+    vertical_lag_s: float = 0.0
+    """Age of the radar reading at this step (s)."""
+    vertical_sigma_m: float = 0.0
+    """Extra altitude noise (m) from not knowing the attitude at the reading's own time."""
+    horizontal_sigma_m: float = 0.0
+    """Extra horizontal noise (m) from not knowing the attitude at the image's own time."""
 
 
 def _angle_lerp(a0: np.ndarray, a1: np.ndarray, w: float) -> np.ndarray:
@@ -74,6 +100,36 @@ def attitude_at(history: tuple[tuple[float, np.ndarray], ...], t: float) -> np.n
         if t <= t1:
             return a0 if t1 <= t0 else _angle_lerp(a0, a1, (t - t0) / (t1 - t0))
     return history[-1][1]
+
+
+def _attitude_error_m(
+    history: tuple[tuple[float, np.ndarray], ...],
+    t: float,
+    rate_frd_rad_s: np.ndarray | None,
+    size_m: float,
+    kind: int,
+) -> float:
+    """The error (m) of a measurement at ``t`` made through :func:`attitude_at` of the step's
+    ATTITUDE samples (one per frame) when none is of time ``t`` — on a real link the radar
+    reading and the image come with other periods' samples, and at 1-2 rad/s an attitude
+    20 ms off is 1-2 degrees: metres at 90 m. The attitude is taken as off by ``roll/pitch
+    rate x gap``, the gap being to the nearest sample (``kind`` 1, an altitude from a range
+    ``size_m`` along body down: ``size_m x sin(tilt) x angle``) or beyond the newest (``kind``
+    2, a bearing fix at altitude ``size_m``: ``size_m x angle / cos^2(tilt)``; an image between
+    samples, a camera latency, is interpolated as before). 0 when every reading has a sample of
+    its own time, as always in lockstep and in process."""
+    if kind == 1:
+        gap = min(abs(t - ti) for ti, _ in history)
+    else:
+        gap = max(t - history[-1][0], history[0][0] - t, 0.0)
+    if gap <= 1e-6 or rate_frd_rad_s is None:
+        return 0.0
+    held = attitude_at(history, t)
+    cos_tilt = max(math.cos(float(held[0])) * math.cos(float(held[1])), 0.1)
+    angle = math.hypot(float(rate_frd_rad_s[0]), float(rate_frd_rad_s[1])) * gap
+    if kind == 1:
+        return size_m * math.sqrt(1.0 - cos_tilt**2) * angle
+    return size_m * angle / cos_tilt**2
 
 
 class PolicyCore(ABC):
@@ -146,6 +202,7 @@ class PolicyCore(ABC):
             hover_thrust_norm=observation.hover_thrust_norm,
             image_time_s=observation.image_time_s,
             attitude_time_s=observation.attitude_time_s,
+            range_time_s=observation.range_time_s,
         )
 
     def _fix(
@@ -156,43 +213,93 @@ class PolicyCore(ABC):
         state: PolicyState,
         image_time_s: float,
         attitude_time_s: float,
-    ) -> tuple[np.ndarray | None, bool, float, PolicyState]:
-        """The position fix of this step, whether its horizontal part is new, how old that
-        horizontal part is (s), and the state with the attitude history advanced.
+        range_time_s: float = math.nan,
+        rate_frd_rad_s: np.ndarray | None = None,
+    ) -> tuple[_Fix, PolicyState]:
+        """This step's measurements and the state with the attitude history advanced.
 
-        With ``latency_compensation`` the horizontal fix is where the vehicle was at the
-        image's exposure: the bearing through the attitude then, scaled by the altitude then
-        (the radar's, less the estimated descent since); the estimator takes it as a delayed
-        measurement. The vertical fix is the radar's, now."""
+        With ``latency_compensation`` each measurement is taken at its own time: the horizontal
+        fix is where the vehicle was at the image's exposure (the bearing through the attitude
+        then, scaled by the altitude then); the vertical fix is the radar's altitude at the
+        reading's time (its range through the attitude then), a reading used once — over a
+        real link the newest DISTANCE_SENSOR at a frame is often the previous period's, and
+        taking it again as "now" freezes the altitude and then jumps it, which the estimator
+        reads as a vertical velocity. The estimator carries both to now. Without it (or
+        without times), every fix is as of now.
+
+        The range is turned into an altitude through the attitude at the reading's time,
+        interpolated from the ATTITUDE samples around it; a reading between or beyond them
+        (their times differ on a real link) gets the altitude error of an attitude off by
+        ``roll/pitch rate x gap``: ``altitude x tan(tilt) x rate x gap``; the image's bearing
+        likewise, ``altitude x rate x gap / cos^2(tilt)`` horizontally. Both are zero when the
+        reading and the image have an attitude sample of their own time (always in lockstep
+        and in process)."""
         cfg = self.config
-        fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
         if not (
             cfg.latency_compensation
             and math.isfinite(image_time_s)
             and math.isfinite(attitude_time_s)
         ):
-            return fix, True, 0.0, state
+            fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
+            return _Fix(fix, True, 0.0), state
         history = (*state.attitudes, (float(attitude_time_s), np.asarray(attitude_rad, float)))
         state = replace(state, attitudes=history[-_ATTITUDE_HISTORY:])
-        last = state.last_image_time_s
-        if last is not None and image_time_s <= last:
-            return fix, False, 0.0, state  # the same image again (a lost frame): radar only
-        state = replace(state, last_image_time_s=float(image_time_s))
-        lag = attitude_time_s - image_time_s
-        if fix is None or not 0.0 < lag <= _MAX_CAMERA_LAG_S:
-            return fix, True, 0.0, state
         est = state.estimator
         assert est is not None
-        descent = float(est.x[2, 1]) * lag if est.initialised[2] else 0.0
+        v_down = float(est.x[2, 1]) if est.initialised[2] else 0.0
+        # the radar reading: its age, whether it is new
+        r_lag, vertical = 0.0, True
+        if math.isfinite(range_time_s) and math.isfinite(range_m):
+            last_r = state.last_range_time_s
+            vertical = last_r is None or range_time_s > last_r
+            if vertical:
+                state = replace(state, last_range_time_s=float(range_time_s))
+            age = attitude_time_s - range_time_s
+            if 0.0 < age <= _MAX_CAMERA_LAG_S:
+                r_lag = age
+            elif age > _MAX_CAMERA_LAG_S:
+                vertical = False  # too old to measure with; it still scales the bearing
+        sigma_v = 0.0
+        if math.isfinite(range_time_s) and math.isfinite(range_m):
+            sigma_v = _attitude_error_m(history, range_time_s, rate_frd_rad_s, range_m, 1)
+        if r_lag > 0.0:
+            alt_r = range_m * float(rotation_zyx(*attitude_at(history, range_time_s))[2, 2])
+            fix = position_at_altitude(
+                float(raw[0]), float(raw[1]), attitude_rad, alt_r - v_down * r_lag
+            )
+            if fix is not None:
+                fix[2] = -alt_r
+        else:
+            fix = position_from_bearing(float(raw[0]), float(raw[1]), attitude_rad, range_m)
+        last = state.last_image_time_s
+        if last is not None and image_time_s <= last:
+            # the same image again (a lost frame): radar only
+            return _Fix(fix, False, 0.0, vertical, r_lag, sigma_v), state
+        state = replace(state, last_image_time_s=float(image_time_s))
+        lag = attitude_time_s - image_time_s
+        if fix is None or not -_MAX_CAMERA_LAG_S < lag <= _MAX_CAMERA_LAG_S:
+            return _Fix(fix, True, 0.0, vertical, r_lag, sigma_v), state
+        # the image is newer than the newest ATTITUDE (it came first over the link): the fix
+        # is as of now, through the newest attitude, with the error of that attitude's age
+        sigma_h = _attitude_error_m(history, image_time_s, rate_frd_rad_s, -float(fix[2]), 2)
+        if lag <= 0.0:
+            return _Fix(fix, True, 0.0, vertical, r_lag, sigma_v, sigma_h), state
+        # the altitude at the exposure: the radar's, carried from its time to the image's
+        alt_img = -float(fix[2]) + v_down * ((attitude_time_s - r_lag) - image_time_s)
         seen_from = position_at_altitude(
-            float(raw[0]),
-            float(raw[1]),
-            attitude_at(history, image_time_s),
-            -float(fix[2]) + descent,
+            float(raw[0]), float(raw[1]), attitude_at(history, image_time_s), alt_img
         )
         if seen_from is None:
-            return fix, False, 0.0, state
-        return np.array([seen_from[0], seen_from[1], fix[2]]), True, lag, state
+            return _Fix(fix, False, 0.0, vertical, r_lag, sigma_v), state
+        return _Fix(
+            np.array([seen_from[0], seen_from[1], fix[2]]),
+            True,
+            lag,
+            vertical,
+            r_lag,
+            sigma_v,
+            sigma_h,
+        ), state
 
     def vision_features(
         self,
@@ -205,6 +312,7 @@ class PolicyCore(ABC):
         hover_thrust_norm: float = math.nan,
         image_time_s: float = math.nan,
         attitude_time_s: float = math.nan,
+        range_time_s: float = math.nan,
     ) -> tuple[np.ndarray, PolicyState]:
         """Controller input from the CNN's output (``perceive``) and the sensors; estimator step.
 
@@ -218,13 +326,30 @@ class PolicyCore(ABC):
             if state.last_step_time_s is not None:
                 dt = attitude_time_s - state.last_step_time_s
             state = replace(state, last_step_time_s=float(attitude_time_s))
-        fix, fresh, lag, state = self._fix(
-            raw, attitude_rad, range_m, state, image_time_s, attitude_time_s
+        fix, state = self._fix(
+            raw,
+            attitude_rad,
+            range_m,
+            state,
+            image_time_s,
+            attitude_time_s,
+            range_time_s,
+            rate_frd_rad_s,
         )
-        seen = fresh and vis >= self.config.visibility_threshold
+        seen = fix.horizontal and vis >= self.config.visibility_threshold
         assert state.estimator is not None
         est = self._estimator.step(
-            state.estimator, fix, seen, attitude_rad, accel_frd_m_s2, fix_lag_s=lag, dt_s=dt
+            state.estimator,
+            fix.position,
+            seen,
+            attitude_rad,
+            accel_frd_m_s2,
+            fix_lag_s=fix.lag_s,
+            dt_s=dt,
+            vertical_fix=fix.vertical,
+            vertical_lag_s=fix.vertical_lag_s,
+            vertical_sigma_m=fix.vertical_sigma_m,
+            horizontal_sigma_m=fix.horizontal_sigma_m,
         )
         feats = control_features(
             est.x[:, 0],

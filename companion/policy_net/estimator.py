@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,12 +92,19 @@ class PadEstimator:
         accel_frd_m_s2: np.ndarray,
         fix_lag_s: float = 0.0,
         dt_s: float | None = None,
+        vertical_fix: bool = True,
+        vertical_lag_s: float = 0.0,
+        vertical_sigma_m: float = 0.0,
+        horizontal_sigma_m: float = 0.0,
     ) -> EstimatorState:
         """One control period: predict from the last period's acceleration, then update.
 
         ``fix_lag_s``: the horizontal fix is where the vehicle was that long ago (a camera
         image's exposure time): it is measured as ``position - lag * velocity``, so the filter
-        itself carries it to now (the vertical fix, from the radar, is current).
+        itself carries it to now. ``vertical_lag_s`` does the same for the vertical fix (the
+        radar reading's age); ``vertical_fix=False``: the vertical part is not a new
+        measurement (the same radar reading again) and only scales the horizontal one;
+        ``vertical_sigma_m`` / ``horizontal_sigma_m`` add to the fixes' noise (in quadrature).
         ``dt_s``: the time since the previous step when it is not the control period (a frame
         lost on the link: two periods); None, or outside (0, MAX_STEP_DT_S], is one period."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
@@ -119,17 +127,26 @@ class PadEstimator:
         if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
-            sigmas = (sigma_h, sigma_h, self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt)
+            if horizontal_sigma_m > 0.0:
+                sigma_h = math.hypot(sigma_h, float(horizontal_sigma_m))
+            sigma_v = self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt
+            if vertical_sigma_m > 0.0:
+                sigma_v = math.hypot(sigma_v, float(vertical_sigma_m))
+            sigmas = (sigma_h, sigma_h, sigma_v)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes: tuple[int, ...] = (0, 1, 2) if horizontal_fix else (2,)
-            if self.cfg.radar_gate_sigma > 0 and init[2]:
-                innov = float(fix_ned_m[2]) - x[2, 0]
+            if not vertical_fix:
+                axes = axes[:-1]
+            h_alt = np.zeros(self._n)
+            h_alt[:2] = (1.0, -float(vertical_lag_s))
+            if vertical_fix and self.cfg.radar_gate_sigma > 0 and init[2]:
+                innov = float(fix_ned_m[2]) - h_alt @ x[2]
                 if innov**2 > self.cfg.radar_gate_sigma**2 * (cov[2, 0, 0] + sigmas[2] ** 2):
                     rejected_alt += 1
                     if rejected_alt >= self.cfg.gate_reset_steps:
                         # the radar, not the prediction, is right: the altitude re-acquires
                         # from it; the velocity and bias estimates stay
-                        x[2, 0] = float(fix_ned_m[2])
+                        x[2, 0] = float(fix_ned_m[2]) + float(vertical_lag_s) * x[2, 1]
                         cov[2, 0, :] = 0.0
                         cov[2, :, 0] = 0.0
                         cov[2, 0, 0] = sigmas[2] ** 2
@@ -140,8 +157,6 @@ class PadEstimator:
                     rejected_alt = 0
             h_lag = np.zeros(self._n)
             h_lag[:2] = (1.0, -float(fix_lag_s))
-            h_now = np.zeros(self._n)
-            h_now[0] = 1.0
             if horizontal_fix and self.cfg.gate_sigma > 0 and init[0] and init[1]:
                 d2 = sum(
                     (float(fix_ned_m[a]) - h_lag @ x[a]) ** 2
@@ -154,7 +169,7 @@ class PadEstimator:
                         init[:2] = False  # re-acquire below from this fix
                         rejected = 0
                     else:
-                        axes = (2,)
+                        axes = axes[2:]
                 else:
                     rejected = 0
             for axis in axes:
@@ -163,7 +178,7 @@ class PadEstimator:
                     x[axis], cov[axis] = self._acquire(axis, z, sigmas[axis])
                     init[axis] = True
                     continue
-                h = h_now if axis == 2 else h_lag
+                h = h_alt if axis == 2 else h_lag
                 p = cov[axis]
                 ph = p @ h
                 s = h @ ph + sigmas[axis] ** 2
