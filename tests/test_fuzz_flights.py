@@ -84,7 +84,18 @@ def _fly(tmp: Path, name: str, ports: tuple[int, int, int], gcs: int) -> dict:
             episodes=EPISODES,
             out=str(tmp / name),
             ports=ports,
-            sitl_args=("--gcs", "--gcs-port", str(gcs), "--gcs-remote-port", str(free_udp_port())),
+            # the flood thread and both processes share 2 cores: a frame answered after the
+            # default 0.5 s would end lockstep for the episode (the SITL then runs free, as PX4
+            # does), which measures the machine, not the input handling under test
+            sitl_args=(
+                "--gcs",
+                "--gcs-port",
+                str(gcs),
+                "--gcs-remote-port",
+                str(free_udp_port()),
+                "--lockstep-timeout-s",
+                "5",
+            ),
             progress=False,
         )
     )
