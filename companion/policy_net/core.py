@@ -247,9 +247,10 @@ class PolicyCore(ABC):
         est = state.estimator
         assert est is not None
         v_down = float(est.x[2, 1]) if est.initialised[2] else 0.0
-        # the radar reading: its age, whether it is new
-        r_lag, vertical = 0.0, True
+        # the radar reading: its age, whether it is new, how well its attitude is known
+        r_lag, vertical, sigma_v = 0.0, True, 0.0
         if math.isfinite(range_time_s) and math.isfinite(range_m):
+            sigma_v = _attitude_error_m(history, range_time_s, rate_frd_rad_s, range_m, 1)
             last_r = state.last_range_time_s
             vertical = last_r is None or range_time_s > last_r
             if vertical:
@@ -259,9 +260,6 @@ class PolicyCore(ABC):
                 r_lag = age
             elif age > _MAX_CAMERA_LAG_S:
                 vertical = False  # too old to measure with; it still scales the bearing
-        sigma_v = 0.0
-        if math.isfinite(range_time_s) and math.isfinite(range_m):
-            sigma_v = _attitude_error_m(history, range_time_s, rate_frd_rad_s, range_m, 1)
         if r_lag > 0.0:
             alt_r = range_m * float(rotation_zyx(*attitude_at(history, range_time_s))[2, 2])
             fix = position_at_altitude(
