@@ -111,3 +111,17 @@ def test_board_install_flies_the_shipped_model_against_the_sitl(board_venv, tmp_
     assert report["per_episode"][0]["landing_error_m"] < 0.5
     log = (tmp_path / "fly" / "companion.log").read_text()
     assert "runtime onnx (auto)" in log, log[-2000:]
+
+
+def test_board_install_benches_the_onnx_policy_without_torch(board_venv):
+    """`visland bench policy --runtime onnx` on the board times the export the companion flies
+    (no torch to export or compare with); `--runtime torch` names the extra it needs."""
+    py, visland = str(board_venv / "bin" / "python"), str(board_venv / "bin" / "visland")
+    argv = [py, "-I", visland, "bench", "policy", "--checkpoint", str(SHIPPED)]
+    res = json.loads(_run([*argv, "--runtime", "onnx", "--json"], timeout=120).stdout)
+    assert set(res) == {"checkpoint", "steps", "threads", "onnx_alone"}
+    alone = res["onnx_alone"]
+    assert alone["kind"] == "vision" and 0 < alone["median_ms"] <= alone["p99_ms"]
+    res = subprocess.run([*argv, "--runtime", "torch"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    assert "needs the 'torch' extra" in res.stderr, res.stderr

@@ -188,6 +188,8 @@ def test_bench_policy_times_onnx_beside_torch_without_writing_beside_the_checkpo
     res = bench_policy(str(ckpt), steps=30, runtime="onnx")
     assert res["onnx"]["median_ms"] > 0 and res["shipped"]["median_ms"] > 0
     assert res["onnx_vs_torch"] == res["shipped"]["median_ms"] / res["onnx"]["median_ms"]
+    alone = res["onnx_alone"]  # the same graphs, consecutive steps with nothing in between
+    assert alone["kind"] == "vision" and 0 < alone["median_ms"] <= alone["p99_ms"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]  # the export was a copy's
     with pytest.raises(ValueError, match="runtime must be"):
         bench_policy(str(ckpt), steps=5, runtime="tensorrt")

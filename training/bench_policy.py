@@ -5,6 +5,12 @@ MPC, but gives no layer sizes. The baseline here is our reconstruction of that k
 a conventional CNN (32-64-128 channels, flatten, 256-unit MLP) regressing the 2-D position, then
 a 128-unit LSTM and MLP head — timed on the same machine in the same run, so the ratio is fair
 even on a shared, noisy CPU. Both run one thread, batch 1, as on a companion computer.
+
+``runtime = "onnx"`` adds the checkpoint on ONNX Runtime (the board's runtime) twice: interleaved
+with the torch nets (every step right after the 2.4M-parameter paper-style net has gone through
+the caches: the ratio to torch), and alone (consecutive steps, nothing else in between). Without
+torch (a board with ``visland[companion]``) only the second runs, on the export beside the
+checkpoint — the graphs the companion flies.
 """
 
 from __future__ import annotations
@@ -17,41 +23,44 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
-from torch import nn
 
 from companion.contract import Observation
-from companion.policy_net import LearnedPolicy, PolicyCore, load_policy, untrained_policy
+from companion.policy_net import PolicyCore
 
-__all__ = ["PaperStyleNet", "bench_policy"]
+__all__ = ["bench_policy", "paper_style_net"]
 
 
-class PaperStyleNet(nn.Module):
-    """CNN-MLP position regressor + LSTM-MLP controller of the paper's Fig. 2 kind."""
+def paper_style_net():
+    """CNN-MLP position regressor + LSTM-MLP controller of the paper's Fig. 2 kind (torch)."""
+    import torch
+    from torch import nn
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.cnn = nn.Sequential(
-            nn.Conv2d(1, 32, 5, stride=2, padding=2),
-            nn.ReLU(),
-            nn.Conv2d(32, 64, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(64, 128, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(128, 128, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Flatten(),
-            nn.Linear(128 * 8 * 8, 256),
-            nn.ReLU(),
-            nn.Linear(256, 2),
-        )
-        self.lstm = nn.LSTM(2 + 9, 128, batch_first=True)
-        self.head = nn.Sequential(nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 4))
+    class PaperStyleNet(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.cnn = nn.Sequential(
+                nn.Conv2d(1, 32, 5, stride=2, padding=2),
+                nn.ReLU(),
+                nn.Conv2d(32, 64, 3, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Conv2d(64, 128, 3, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Conv2d(128, 128, 3, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Flatten(),
+                nn.Linear(128 * 8 * 8, 256),
+                nn.ReLU(),
+                nn.Linear(256, 2),
+            )
+            self.lstm = nn.LSTM(2 + 9, 128, batch_first=True)
+            self.head = nn.Sequential(nn.Linear(128, 128), nn.ReLU(), nn.Linear(128, 4))
 
-    def forward(self, image, aux, state):
-        pos = self.cnn(image)
-        h, state = self.lstm(torch.cat([pos, aux], dim=1)[:, None], state)
-        return self.head(h[:, 0]), state
+        def forward(self, image, aux, state):
+            pos = self.cnn(image)
+            h, state = self.lstm(torch.cat([pos, aux], dim=1)[:, None], state)
+            return self.head(h[:, 0]), state
+
+    return PaperStyleNet()
 
 
 def _observation(rng: np.random.Generator, frame: int) -> Observation:
@@ -91,26 +100,39 @@ def _onnx_twin(checkpoint: str, folder: Path) -> PolicyCore:
     return load_onnx_policy(copy, threads=1)
 
 
+def _have_torch() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("torch") is not None
+
+
 def bench_policy(
     checkpoint: str | None = None, steps: int = 300, seed: int = 0, runtime: str = "torch"
 ) -> dict[str, Any]:
     """Time ``act()`` of the policy (shipped size if no checkpoint) and the paper-style net;
     with ``runtime = "onnx"`` the same checkpoint on ONNX Runtime too (exported to a temporary
-    copy), all interleaved in one run (``onnx``, ``onnx_vs_torch``)."""
+    copy), interleaved in one run (``onnx``, ``onnx_vs_torch``) and alone (``onnx_alone``).
+    Without torch, ``runtime = "onnx"`` times the export beside the checkpoint alone (the
+    other keys are absent)."""
     if runtime not in ("torch", "onnx"):
         raise ValueError(f"runtime must be 'torch' or 'onnx', got {runtime!r}")
     if runtime == "onnx" and checkpoint is None:
         raise ValueError("bench policy --runtime onnx needs a checkpoint (an exported network)")
+    if runtime == "onnx" and not _have_torch():
+        from companion.onnx_runtime import load_onnx_policy
+
+        res = _bench_alone(load_onnx_policy(checkpoint, threads=1), steps, seed)
+        return {"checkpoint": checkpoint, "steps": steps, "threads": 1, "onnx_alone": res}
     with tempfile.TemporaryDirectory(prefix="visland_bench_onnx_") as tmp:
         onnx = _onnx_twin(checkpoint, Path(tmp)) if runtime == "onnx" else None
-        return _bench(checkpoint, steps, seed, onnx)
+        res = _bench(checkpoint, steps, seed, onnx)
+        if onnx is not None:
+            res["onnx_alone"] = _bench_alone(onnx, steps, seed)
+        return res
 
 
-def _bench(
-    checkpoint: str | None, steps: int, seed: int, onnx: PolicyCore | None
-) -> dict[str, Any]:
-    torch.set_num_threads(1)
-    policy: LearnedPolicy = load_policy(checkpoint) if checkpoint else untrained_policy(seed)
+def _observations_for(policy: PolicyCore, steps: int, seed: int):
+    """``steps`` random observations, and the ground truth a privileged policy needs."""
     rng = np.random.default_rng(seed)
     obs = [_observation(rng, i) for i in range(steps)]
     gt = None
@@ -118,8 +140,35 @@ def _bench(
         from types import SimpleNamespace
 
         gt = SimpleNamespace(pos_ned_m=np.array([1.0, -1.0, -50.0]), vel_ned_m_s=np.zeros(3))
+    return obs, gt
+
+
+def _bench_alone(policy: PolicyCore, steps: int, seed: int) -> dict[str, Any]:
+    """``act()`` over consecutive steps with nothing else in between (after 20 warm-up steps)."""
+    obs, gt = _observations_for(policy, steps, seed)
+    state = policy.initial_state()
+    for _ in range(20):
+        _, state = policy.act(obs[0], gt, state)
+    state, times = policy.initial_state(), []
+    for o in obs:
+        t = time.perf_counter()
+        _, state = policy.act(o, gt, state)
+        times.append(time.perf_counter() - t)
+    return {**_stats(times), "kind": policy.config.kind}
+
+
+def _bench(
+    checkpoint: str | None, steps: int, seed: int, onnx: PolicyCore | None
+) -> dict[str, Any]:
+    import torch
+
+    from companion.policy_net import load_policy, untrained_policy
+
+    torch.set_num_threads(1)
+    policy = load_policy(checkpoint) if checkpoint else untrained_policy(seed)
+    obs, gt = _observations_for(policy, steps, seed)
     torch.manual_seed(seed)
-    paper = PaperStyleNet().eval()
+    paper = paper_style_net().eval()
     ours, theirs, on_onnx = [], [], []
     state = policy.initial_state()
     ostate = onnx.initial_state() if onnx is not None else None
