@@ -7,7 +7,8 @@ What it models (PX4 behaviour, ``shared/reference/mavlink_notes.md`` sections 6 
 * **Modes** — PX4 custom modes, ``custom_mode = (main << 16) | (sub << 24)``:
   HOLD (AUTO.LOITER, the episode's start: the vehicle is *frozen* at its state, an ideal position
   hold), OFFBOARD (the companion flies SET_ATTITUDE_TARGET setpoints) and LAND (AUTO.LAND: the
-  SITL's own land controller, on ground truth), PRECLAND (AUTO.PRECLAND: the precision land
+  SITL's own land controller, on ground truth, landing where the mode was engaged, as PX4's —
+  not on the pad, which the autopilot does not know), PRECLAND (AUTO.PRECLAND: the precision land
   of :mod:`sitl_sim.precland` on LANDING_TARGET, on the autopilot's own estimate). Other PX4
   modes (POSCTL, ALTCTL, ...) need GPS or sticks and are refused with TEMPORARILY_REJECTED,
   as PX4 refuses a mode whose requirements fail.

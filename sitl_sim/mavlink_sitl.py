@@ -70,6 +70,8 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from companion.contract import Command, GroundTruth
 from companion.contract.camera_packet import encode_frame
 from companion.contract.signing import signing_key_bytes
@@ -193,6 +195,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         self._frame_id = 0
         self._flying = False
         self._land_cmd: Command | None = None
+        self._land_point_ne: np.ndarray | None = None
+        """AUTO.LAND's landing point (north, east, pad frame): where the mode was engaged."""
         self._wait: FrameWait | None = None
         self._episode: Episode | None = None
         self._done = False
@@ -389,6 +393,8 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
 
     def _current_command(self) -> Command | None:
         ap = self.autopilot
+        if ap.mode is not FlightMode.LAND:
+            self._land_point_ne = None
         if not ap.armed:
             return None  # disarmed: motors off
         own = ap.flight_command(self.clock.time_s, self.sim.ground_truth)
@@ -401,10 +407,15 @@ class MavlinkSitl(MessageBuilders, MessageHandlers, EpisodeLifecycle, PreclandLo
         if self._land_cmd is None and ap.mode is FlightMode.PRECLAND:
             self._land_cmd = self._precland_command()  # on the autopilot's own estimate
         if self._land_cmd is None:  # LAND (or OFFBOARD without setpoint, impossible by rule)
+            # PX4's AUTO.LAND lands where it was engaged, holding that position (ideally, on
+            # ground truth, as HOLD holds ideally): not on the pad, which it does not know —
+            # a failsafe landing must not count as a landing on the pad
             gt = self.sim.ground_truth()
-            self._land_cmd = self.land_controller.command(
-                gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz
-            )
+            if self._land_point_ne is None:
+                self._land_point_ne = np.array(gt.pos_ned_m[:2], float)
+            rel = np.array(gt.pos_ned_m, float)
+            rel[:2] -= self._land_point_ne
+            self._land_cmd = self.land_controller.command(rel, gt.vel_ned_m_s, gt.quat_wxyz)
         return self._land_cmd
 
     def _control_step(self) -> bool:

@@ -242,6 +242,7 @@ class EpisodeLifecycle:
         self.sim.reset(ep.initial, np.random.SeedSequence(ep.seed_key), world=self._world(ep.index))
         self._reset_samples()
         self._reset_precland()
+        self._land_point_ne = None  # AUTO.LAND's point: where it is engaged in this flight
         self._precland_paced = paced  # a client pacing the frozen HOLD paces the flight
         self._flying = True
         self.clock.restart_phase()

@@ -791,6 +791,14 @@ def test_land_requests_fly_consecutive_episodes_each_with_its_log(start_sitl, cl
     assert sorted(p.name for p in log_dir.iterdir()) == [
         f"sitl_seed0_ep{i:04d}.mcap" for i in range(3)
     ]
+    # AUTO.LAND lands where it was engaged (here the frozen initial state), as PX4's: it does
+    # not know where the pad is, so a failsafe landing is no landing on the pad
+    for i, r in enumerate(results):
+        flight = read_log(log_dir / f"sitl_seed0_ep{i:04d}.mcap")
+        engaged = np.array(flight.topic("/episode/scenario")[0]["initial_state"]["pos_ned_m"])
+        touchdown = np.array(flight.topic("/groundtruth/state")[-1]["pos_ned_m"])
+        assert np.hypot(*(touchdown - engaged)[:2]) < 0.05, (engaged, touchdown)
+        assert abs(r.landing_error_m - np.hypot(*engaged[:2])) < 0.05, r
 
 
 def test_rendered_flight_log_has_every_record(start_sitl, client):
