@@ -19,12 +19,25 @@ changed the mode"). So a HEARTBEAT whose MAVLink sequence number is at most
 :data:`STALE_SEQ_WINDOW` behind the newest one received from that component is dropped and
 counted (``rx_stale_heartbeats``); further behind is a new stream (a restarted sender).
 
+On a UDP server port (``udpin:``) pymavlink sends every datagram to every address that ever sent
+one to the port, so a GCS, a scanner or a flood from elsewhere on the network would receive the
+setpoints too (and could steer the replies of a naive "last sender" link). The link *pins its
+peer*: the address the autopilot's HEARTBEAT came from (each datagram is parsed on its own — an
+incomplete message left by another datagram is dropped, as over UDP it can never complete — so
+every message has a known sender). Everything is then sent to that address only. The peer moves
+only when the link is lost (no autopilot HEARTBEAT for ``link_timeout_s``) and the autopilot is
+heard from a new address — a restarted autopilot on another port; a HEARTBEAT spoofing the
+autopilot's ids from elsewhere while it is alive is counted (``rx_peer_mismatch``) and moves
+nothing. Unsigned MAVLink cannot stop a spoof on a lost link: sign it (``signing_key``) or use a
+serial port where that matters.
+
 Autopilot *profiles* hold what differs between PX4 and ArduPilot: mode numbers, the
 hover-thrust parameter and the meaning of SET_ATTITUDE_TARGET's ``thrust``.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
@@ -245,10 +258,14 @@ class LinkCounters:
     restarts: int = 0
     port_errors: int = 0
     rx_stale_heartbeats: int = 0
+    rx_peer_mismatch: int = 0
+    """Autopilot HEARTBEATs from an address other than the pinned peer (udpin only)."""
     extra: dict[str, int] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- the link
+
+_UDP_MAX = 65_535
 
 
 class MavlinkLink:
@@ -310,6 +327,10 @@ class MavlinkLink:
         self._broken_since: float | None = None
         self.conn: Any = None
         self.last_send_call_s = 0.0
+        self.peer: tuple[str, int] | None = None
+        """udpin: the autopilot's address, the only one sent to once known."""
+        self._datagram_from: tuple[str, int] | None = None
+        self._leftover: tuple[int, int] | None = None
         self._open()
 
     # ------------------------------------------------------------------ connection
@@ -331,12 +352,58 @@ class MavlinkLink:
             self.close()
             raise LinkError(f"{self.url}: pymavlink chose {codec}, expected MAVLink 2 common")
         self.conn.mav.robust_parsing = True
+        if getattr(self.conn, "udp_server", False):
+            self._pin_udp_peer(self.conn)
         if self.signing_key is not None:
             self.conn.setup_signing(
                 self.signing_key,
                 sign_outgoing=True,
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED,
             )
+
+    def _pin_udp_peer(self, conn: Any) -> None:
+        """Replace a udpin connection's ``recv``/``write`` (module doc: the peer): ``recv``
+        parses each datagram on its own (the messages left in the parser first; an incomplete
+        one is dropped, as it can never complete over UDP) and notes its sender (keeping
+        pymavlink's ``clients`` as it does); ``write`` goes to the peer alone once known."""
+        port = conn.port
+        write_plain = conn.write
+
+        def recv(n: int | None = None) -> bytes | str:
+            mav = conn.mav
+            if mav.buf_len():
+                mark = (len(mav.buf), mav.buf_index)
+                if mark != self._leftover:
+                    self._leftover = mark
+                    return ""  # the parser takes the next message of this datagram first
+                # no progress: an incomplete message, which over UDP never completes (a
+                # datagram carries whole messages); it must not swallow the next datagram
+                mav.buf, mav.buf_index = bytearray(), 0
+                mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+                self.counters.rx_bad_data += 1
+            self._leftover = None
+            try:
+                data, addr = port.recvfrom(_UDP_MAX)
+            except OSError as exc:
+                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                    return ""
+                raise
+            conn.clients.add(addr)
+            conn.clients_last_alive[addr] = time.time()
+            self._datagram_from = addr  # every message parsed until the next datagram
+            return data
+
+        def write(buf: bytes) -> None:
+            if self.peer is None:
+                write_plain(buf)  # before the autopilot is heard: pymavlink's (every sender)
+                return
+            try:
+                port.sendto(buf, self.peer)
+            except OSError:
+                pass  # as pymavlink: a refused datagram is a lost one
+
+        conn.recv = recv
+        conn.write = write
 
     def fileno(self) -> int | None:
         """The file descriptor to ``select`` on (None while the port is being reopened)."""
@@ -438,6 +505,8 @@ class MavlinkLink:
                     f" on {self.url}",
                 )
             if (src_sys, src_comp) == (self.target_system, self.target_component):
+                if not self._from_peer():
+                    return False
                 if not self.connected and self._last_hb_rx_s > -math.inf:
                     self.counters.reconnects += 1
                     self._event("reconnected", f"autopilot {src_sys}/{src_comp} is back")
@@ -463,6 +532,22 @@ class MavlinkLink:
                 pending.result = msg.result
         elif name == "PARAM_VALUE":
             self._params[msg.param_id] = float(msg.param_value)
+        return True
+
+    def _from_peer(self) -> bool:
+        """udpin: whether the autopilot HEARTBEAT just parsed comes from the pinned peer,
+        pinning (or, on a lost link, moving) it; other transports: always."""
+        if self.conn is None or not getattr(self.conn, "udp_server", False):
+            return True
+        addr = self._datagram_from
+        if addr is None or addr == self.peer:
+            return True
+        if self.peer is not None and self.connected:
+            self.counters.rx_peer_mismatch += 1
+            return False
+        what = "pinned" if self.peer is None else f"moved from {self.peer[0]}:{self.peer[1]}"
+        self.peer = addr
+        self._event("peer", f"autopilot at {addr[0]}:{addr[1]} ({what}); sending only there")
         return True
 
     def _tick(self) -> None:
