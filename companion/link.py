@@ -260,6 +260,9 @@ class LinkCounters:
     rx_stale_heartbeats: int = 0
     rx_peer_mismatch: int = 0
     """Autopilot HEARTBEATs from an address other than the pinned peer (udpin only)."""
+    tx_errors: int = 0
+    """Datagrams to the pinned peer the OS would not send (too big, no route, no buffer);
+    lost, as any UDP datagram (udpin only)."""
     extra: dict[str, int] = field(default_factory=dict)
 
 
@@ -399,8 +402,8 @@ class MavlinkLink:
                 return
             try:
                 port.sendto(buf, self.peer)
-            except OSError:
-                pass  # as pymavlink: a refused datagram is a lost one
+            except OSError:  # as pymavlink: a datagram the OS refuses is lost, but counted
+                self.counters.tx_errors += 1
 
         conn.recv = recv
         conn.write = write

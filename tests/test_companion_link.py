@@ -122,6 +122,9 @@ def test_udpin_link_sends_only_to_the_autopilot(nodes):
         _setpoint(link)
         assert "SET_ATTITUDE_TARGET" in ap.received(timeout_s=2.0)
         assert stranger.received() == []
+        # a datagram the OS will not send (over UDP's 65,507 bytes) is lost and counted
+        link.conn.write(b"\x00" * 70_000)
+        assert link.counters.tx_errors == 1
     finally:
         link.close()
 
