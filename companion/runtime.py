@@ -20,7 +20,14 @@ from companion.contract import Command, GroundTruth, Observation, Policy, Policy
 
 _log = logging.getLogger("companion.runtime")
 
-__all__ = ["RUNTIMES", "PolicyRuntime", "StepResult", "load_policy_file", "resolve_runtime"]
+__all__ = [
+    "RUNTIMES",
+    "PolicyRuntime",
+    "StepResult",
+    "installed",
+    "load_policy_file",
+    "resolve_runtime",
+]
 
 RUNTIMES = ("auto", "torch", "onnx")
 """Backends of a learned checkpoint: ``torch`` (the checkpoint itself), ``onnx`` (its
@@ -121,12 +128,13 @@ def resolve_runtime(path: str | Path, runtime: str = "auto") -> str:
         return runtime
     from companion.onnx_runtime import onnx_paths
 
-    if onnx_paths(path)[1].is_file() and _installed("onnxruntime"):
+    if onnx_paths(path)[1].is_file() and installed("onnxruntime"):
         return "onnx"
     return "torch"
 
 
-def _installed(module: str) -> bool:
+def installed(module: str) -> bool:
+    """Whether ``module`` can be imported here (found, and not blocked in sys.modules)."""
     try:
         return importlib.util.find_spec(module) is not None
     except ValueError:  # in sys.modules as None: its import is blocked

@@ -26,6 +26,7 @@ import numpy as np
 
 from companion.contract import Observation
 from companion.policy_net import PolicyCore
+from companion.runtime import installed
 
 __all__ = ["bench_policy", "paper_style_net"]
 
@@ -100,12 +101,6 @@ def _onnx_twin(checkpoint: str, folder: Path) -> PolicyCore:
     return load_onnx_policy(copy, threads=1)
 
 
-def _have_torch() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("torch") is not None
-
-
 def bench_policy(
     checkpoint: str | None = None, steps: int = 300, seed: int = 0, runtime: str = "torch"
 ) -> dict[str, Any]:
@@ -118,7 +113,7 @@ def bench_policy(
         raise ValueError(f"runtime must be 'torch' or 'onnx', got {runtime!r}")
     if runtime == "onnx" and checkpoint is None:
         raise ValueError("bench policy --runtime onnx needs a checkpoint (an exported network)")
-    if runtime == "onnx" and not _have_torch():
+    if runtime == "onnx" and not installed("torch"):
         from companion.onnx_runtime import load_onnx_policy
 
         res = _bench_alone(load_onnx_policy(checkpoint, threads=1), steps, seed)
