@@ -78,6 +78,19 @@ def nodes() -> Iterator[dict[str, _Node]]:
             n.close()
 
 
+@pytest.fixture
+def udpin() -> Iterator[tuple[MavlinkLink, tuple[str, int], _Clock]]:
+    """A udpin link on a free loopback port (3 s link timeout, injected clock): the link, the
+    address to send to it, its clock."""
+    port = free_udp_port()
+    clock = _Clock()
+    link = MavlinkLink(f"udpin:127.0.0.1:{port}", clock=clock, link_timeout_s=3.0)
+    try:
+        yield link, ("127.0.0.1", port), clock
+    finally:
+        link.close()
+
+
 def _poll_until(link: MavlinkLink, done, what: str) -> None:
     for _ in range(200):
         link.poll(lambda _m, _t: None)
@@ -91,69 +104,57 @@ def _setpoint(link: MavlinkLink) -> None:
     assert link.send_setpoint(0.5, (0.0, 0.0, 0.0), 1000) is not None
 
 
-def test_udpin_link_sends_only_to_the_autopilot(nodes):
-    port = free_udp_port()
-    to = ("127.0.0.1", port)
-    clock = _Clock()
-    link = MavlinkLink(f"udpin:127.0.0.1:{port}", clock=clock, link_timeout_s=3.0)
-    try:
-        ap, stranger = nodes["autopilot"], nodes["stranger"]
-        # someone else on the network talks to the port first: garbage and a GCS's message
-        stranger.sock.sendto(b"\xfd\x09garbage" * 3, to)
-        stranger.send(stranger.mav.system_time_encode(0, 0), to)
-        link.poll(lambda _m, _t: None)
-        ap.heartbeat(to)
-        _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
-        assert link.peer == ap.sock.getsockname()
-        assert link.counters.rx_other_systems >= 1
-        stranger.received()  # what it got before the autopilot was heard (our HEARTBEAT)
+def test_udpin_link_sends_only_to_the_autopilot(nodes, udpin):
+    link, to, _ = udpin
+    ap, stranger = nodes["autopilot"], nodes["stranger"]
+    # someone else on the network talks to the port first: garbage and a GCS's message
+    stranger.sock.sendto(b"\xfd\x09garbage" * 3, to)
+    stranger.send(stranger.mav.system_time_encode(0, 0), to)
+    link.poll(lambda _m, _t: None)
+    ap.heartbeat(to)
+    _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
+    assert link.peer == ap.sock.getsockname()
+    assert link.counters.rx_other_systems >= 1
+    stranger.received()  # what it got before the autopilot was heard (our HEARTBEAT)
 
-        _setpoint(link)
-        assert "SET_ATTITUDE_TARGET" in ap.received(timeout_s=2.0)
-        # loopback delivers inside sendto: had the stranger been sent to, it would be waiting
-        assert stranger.received() == []
+    _setpoint(link)
+    assert "SET_ATTITUDE_TARGET" in ap.received(timeout_s=2.0)
+    # loopback delivers inside sendto: had the stranger been sent to, it would be waiting
+    assert stranger.received() == []
 
-        # a HEARTBEAT spoofing the autopilot from elsewhere while the autopilot is alive
-        spoof = _Node(1, 1, sock=stranger.sock)  # the stranger's socket, the autopilot's ids
-        spoof.mav.seq = 50  # ahead of the autopilot's: not a stale (reordered) HEARTBEAT
-        spoof.heartbeat(to)
-        _poll_until(link, lambda: link.counters.rx_peer_mismatch == 1, "the spoof")
-        assert link.peer == ap.sock.getsockname()
-        _setpoint(link)
-        assert "SET_ATTITUDE_TARGET" in ap.received(timeout_s=2.0)
-        assert stranger.received() == []
-        # a datagram the OS will not send (over UDP's 65,507 bytes) is lost and counted
-        link.conn.write(b"\x00" * 70_000)
-        assert link.counters.tx_errors == 1
-    finally:
-        link.close()
+    # a HEARTBEAT spoofing the autopilot from elsewhere while the autopilot is alive
+    spoof = _Node(1, 1, sock=stranger.sock)  # the stranger's socket, the autopilot's ids
+    spoof.mav.seq = 50  # ahead of the autopilot's: not a stale (reordered) HEARTBEAT
+    spoof.heartbeat(to)
+    _poll_until(link, lambda: link.counters.rx_peer_mismatch == 1, "the spoof")
+    assert link.peer == ap.sock.getsockname()
+    _setpoint(link)
+    assert "SET_ATTITUDE_TARGET" in ap.received(timeout_s=2.0)
+    assert stranger.received() == []
+    # a datagram the OS will not send (over UDP's 65,507 bytes) is lost and counted
+    link.conn.write(b"\x00" * 70_000)
+    assert link.counters.tx_errors == 1
 
 
-def test_udpin_peer_moves_only_after_the_link_is_lost(nodes):
-    port = free_udp_port()
-    to = ("127.0.0.1", port)
-    clock = _Clock()
-    link = MavlinkLink(f"udpin:127.0.0.1:{port}", clock=clock, link_timeout_s=3.0)
-    try:
-        ap, restarted = nodes["autopilot"], nodes["restarted"]
-        ap.heartbeat(to)
-        _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
-        # the autopilot goes silent; 3 s later the link is lost
-        clock.t += 3.5
-        link.poll(lambda _m, _t: None)
-        assert not link.connected
-        # it comes back from another port (restarted; its sequence numbers a new stream)
-        restarted.mav.seq = 100
-        restarted.heartbeat(to)
-        _poll_until(link, lambda: link.connected, "the restarted autopilot's HEARTBEAT")
-        assert link.peer == restarted.sock.getsockname()
-        assert any(e.kind == "peer" and "moved" in e.text for e in link.pop_events())
-        ap.received()
-        _setpoint(link)
-        assert "SET_ATTITUDE_TARGET" in restarted.received(timeout_s=2.0)
-        assert ap.received() == []
-    finally:
-        link.close()
+def test_udpin_peer_moves_only_after_the_link_is_lost(nodes, udpin):
+    link, to, clock = udpin
+    ap, restarted = nodes["autopilot"], nodes["restarted"]
+    ap.heartbeat(to)
+    _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
+    # the autopilot goes silent; 3 s later the link is lost
+    clock.t += 3.5
+    link.poll(lambda _m, _t: None)
+    assert not link.connected
+    # it comes back from another port (restarted; its sequence numbers a new stream)
+    restarted.mav.seq = 100
+    restarted.heartbeat(to)
+    _poll_until(link, lambda: link.connected, "the restarted autopilot's HEARTBEAT")
+    assert link.peer == restarted.sock.getsockname()
+    assert any(e.kind == "peer" and "moved" in e.text for e in link.pop_events())
+    ap.received()
+    _setpoint(link)
+    assert "SET_ATTITUDE_TARGET" in restarted.received(timeout_s=2.0)
+    assert ap.received() == []
 
 
 def test_udpout_links_have_no_peer(nodes):
