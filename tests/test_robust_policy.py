@@ -14,6 +14,7 @@ import torch
 
 from companion.contract import ContractError, Observation
 from companion.policy_net import (
+    CheckpointError,
     ControlLSTM,
     LearnedPolicy,
     NetConfig,
@@ -565,3 +566,53 @@ def test_estimator_predicts_across_a_lost_frame_in_one_step():
     one = est.step(start, None, False, level, accel)
     assert np.array_equal(est.step(start, None, False, level, accel, dt_s=-0.1).x, one.x)
     assert np.array_equal(est.step(start, None, False, level, accel, dt_s=5.0).x, one.x)
+
+
+def test_profile_net_options_are_config_fields_and_paper_keeps_the_defaults():
+    """The profile keys passed to NetConfig by name exist there; the paper and quick profiles
+    leave every one at NetConfig's default (their models fly as the paper-world model does),
+    and the robust profile's estimator settings are ones no weight depends on (the vision
+    stage applies them to trained networks)."""
+    from companion.policy_net import ESTIMATOR_FIELDS
+    from training.profiles import NET_OPTIONS, PROFILES
+
+    assert set(NET_OPTIONS) <= set(NetConfig.__dataclass_fields__)
+    default = NetConfig()
+    for name in ("paper", "quick"):
+        opts = PROFILES[name].net_options()
+        assert opts == {k: getattr(default, k) for k in NET_OPTIONS}, name
+    robust = PROFILES["robust"].net_options()
+    changed = {k for k in NET_OPTIONS if robust[k] != getattr(default, k)}
+    assert changed - set(ESTIMATOR_FIELDS) == {"hover_input"}
+    cfg = NetConfig(kind="vision", **robust)
+    assert (cfg.accel_noise_m_s2, cfg.visibility_threshold) == (0.1, 0.9)
+
+
+def test_an_unsure_bearing_starts_the_estimate_but_does_not_move_it():
+    """``acquire_threshold``: a pad probability of 0.7 starts the horizontal estimate (an
+    unfamiliar ground where the CNN is unsure of a pad it has right), but once there is one,
+    a bearing needs ``visibility_threshold`` (0.9) to be a fix — a tilted view's unsure answer
+    no longer moves it. Without the key, 0.9 is needed for both."""
+    cfg = NetConfig(**ROBUST, visibility_threshold=0.9, acquire_threshold=0.5)
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    strict = LearnedPolicy(replace(cfg, acquire_threshold=None), policy.control, policy.perception)
+    unsure = math.log(0.7 / 0.3)  # logit of p = 0.7
+    att, accel = np.zeros(3), np.array([0.0, 0.0, -9.80665])
+
+    def step(p, state, raw, t):
+        return p.vision_features(
+            np.array(raw), att, np.zeros(3), accel, 20.0, state, image_time_s=t, attitude_time_s=t
+        )[1]
+
+    s1 = step(policy, policy.initial_state(), [0.1, -0.05, unsure], 1.0)
+    assert s1.estimator.initialised.all()
+    assert np.allclose(s1.estimator.x[:2, 0], [0.05 * 20.0, -0.1 * 20.0], atol=1e-6)
+    moved = step(policy, s1, [0.11, -0.04, unsure], 1.1)  # 0.28 m away, unsure: no fix
+    predicted = PadEstimator(cfg).step(s1.estimator, None, False, att, accel, dt_s=0.1)
+    assert np.allclose(moved.estimator.x[:2], predicted.x[:2])
+    sure = step(policy, s1, [0.11, -0.04, 5.0], 1.1)  # the same bearing, sure of it: a fix
+    assert not np.allclose(sure.estimator.x[:2], predicted.x[:2])
+    s_strict = step(strict, strict.initial_state(), [0.1, -0.05, unsure], 1.0)
+    assert not s_strict.estimator.initialised[:2].any()
+    with pytest.raises(CheckpointError, match="acquire_threshold"):
+        NetConfig(acquire_threshold=1.5)

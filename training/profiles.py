@@ -9,10 +9,25 @@ from training.record import Record
 from training.seeds import EVAL_SEED
 from training.transport import Transport
 
-__all__ = ["PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Profile"]
+__all__ = ["NET_OPTIONS", "PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Profile"]
 
 ROLLOUT_TRANSPORTS = (Transport.MAVLINK.value, Transport.INPROCESS.value)
 """The values of the profile key ``rollouts`` (:class:`training.transport.Transport`)."""
+
+
+NET_OPTIONS = (
+    "hover_input",
+    "accel_bias_states",
+    "latency_compensation",
+    "radar_gate_sigma",
+    "alt_noise_fraction",
+    "accel_noise_m_s2",
+    "accel_bias_walk_m_s2",
+    "visibility_threshold",
+    "acquire_threshold",
+)
+"""The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
+(passed as they are to ``training.train.net_config_for``)."""
 
 
 class PipelineError(ValueError):
@@ -74,6 +89,18 @@ class Profile(Record):
     """The estimator's radar innovation gate (``NetConfig.radar_gate_sigma``; 0: none)."""
     alt_noise_fraction: float = 0.0
     """The radar noise that grows with range (``NetConfig.alt_noise_fraction``)."""
+    accel_noise_m_s2: float = 0.3
+    """The estimator's process noise: how far one IMU sample per control period is trusted
+    (``NetConfig.accel_noise_m_s2``)."""
+    accel_bias_walk_m_s2: float = 0.02
+    """Random walk of the estimator's acceleration-bias states
+    (``NetConfig.accel_bias_walk_m_s2``)."""
+    visibility_threshold: float = 0.5
+    """The CNN's pad probability at or above which its bearing is a fix
+    (``NetConfig.visibility_threshold``)."""
+    acquire_threshold: float | None = None
+    """... and at or above which a fix may start the estimate (``NetConfig.acquire_threshold``;
+    None: ``visibility_threshold``)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -85,6 +112,11 @@ class Profile(Record):
     eval_suite_baseline: str | None = None
     """A checkpoint the eval stage flies on ``eval_suite`` too, for the comparison (the
     paper-world model for the robust profile)."""
+
+    def net_options(self) -> dict[str, bool | float]:
+        """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
+        :data:`NET_OPTIONS`); the rest follow from the vehicle, the world and the camera."""
+        return {k: getattr(self, k) for k in NET_OPTIONS}
 
     def __post_init__(self) -> None:
         if self.rollouts not in ROLLOUT_TRANSPORTS:
@@ -160,6 +192,10 @@ PROFILES: dict[str, Profile] = {
         worlds="configs/train/robust.toml",
         radar_gate_sigma=5.0,
         alt_noise_fraction=0.002,
+        accel_noise_m_s2=0.1,
+        accel_bias_walk_m_s2=0.002,
+        visibility_threshold=0.9,
+        acquire_threshold=0.5,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

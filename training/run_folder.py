@@ -169,17 +169,8 @@ class Run:
         """The ``companion.policy_net.NetConfig`` of a ``privileged`` or ``vision`` policy."""
         from training.train import net_config_for  # torch: only where a stage trains
 
-        p = self.profile
         return net_config_for(
-            self.vehicle,
-            self.sim,
-            kind,
-            self.planet,
-            hover_input=p.hover_input,
-            accel_bias_states=p.accel_bias_states,
-            latency_compensation=p.latency_compensation,
-            radar_gate_sigma=p.radar_gate_sigma,
-            alt_noise_fraction=p.alt_noise_fraction,
+            self.vehicle, self.sim, kind, self.planet, **self.profile.net_options()
         )
 
     def metadata(self, stage: str, data: dict[str, Any]) -> dict[str, Any]:

@@ -58,23 +58,15 @@ def net_config_for(
     sim: SimConfig,
     kind: str,
     planet: Planet | None = None,
-    *,
-    hover_input: bool = False,
-    accel_bias_states: bool = False,
-    latency_compensation: bool = False,
-    radar_gate_sigma: float = 0.0,
-    alt_noise_fraction: float = 0.0,
+    **options: bool | float,
 ) -> NetConfig:
     """The network config matching a vehicle and world (hover thrust, rate limits, gravity),
-    with the robustness options of the profile (``NetConfig``)."""
+    with the profile's options (``Profile.net_options``: robustness switches and estimator
+    settings, :class:`NetConfig` fields by name; the defaults are the paper-world model's)."""
     planet = planet or sim.planet
     g = planet.gravity_m_s2
     return NetConfig(
-        hover_input=hover_input,
-        accel_bias_states=accel_bias_states,
-        latency_compensation=latency_compensation,
-        radar_gate_sigma=radar_gate_sigma,
-        alt_noise_fraction=alt_noise_fraction,
+        **options,
         kind=kind,
         hover_thrust_norm=vehicle.hover_thrust_norm(planet),
         max_rate_rad_s=tuple(float(v) for v in vehicle.rate_controller.max_rate_rad_s),

@@ -21,6 +21,7 @@ ESTIMATOR_FIELDS = (
     "alt_noise_m",
     "alt_noise_fraction",
     "visibility_threshold",
+    "acquire_threshold",
     "gate_sigma",
     "gate_reset_steps",
     "min_fix_altitude_m",
@@ -62,6 +63,13 @@ class NetConfig:
     bearing_noise_floor_m: float = 0.03
     alt_noise_m: float = 0.05
     visibility_threshold: float = 0.5
+    """The CNN's pad probability at or above which its bearing is a horizontal fix."""
+    acquire_threshold: float | None = None
+    """The pad probability at or above which a fix may *start* the horizontal estimate (while
+    it has none yet); None: ``visibility_threshold``. A lower one lets
+    an unfamiliar ground, where the CNN is unsure of a pad it has right, start the estimate,
+    while a high ``visibility_threshold`` keeps a confident-looking wrong answer out of an
+    estimate that has one (the innovation gate then refuses a wrong start)."""
     gate_sigma: float = 4.0
     """Innovation gate of the horizontal fix (Mahalanobis distance, 2 dof); 0 disables it."""
     gate_reset_steps: int = 10
@@ -109,6 +117,10 @@ class NetConfig:
             raise CheckpointError(
                 f"net config radar_gate_sigma: expected >= 0 (0: off), got {self.radar_gate_sigma}"
             )
+        for key in ("visibility_threshold", "acquire_threshold"):
+            value = getattr(self, key)
+            if value is not None and not 0.0 <= value <= 1.0:
+                raise CheckpointError(f"net config {key}: expected in [0, 1], got {value}")
         if len(self.accel_bias_sigma_m_s2) != 3 or min(self.accel_bias_sigma_m_s2) <= 0:
             raise CheckpointError(
                 "net config accel_bias_sigma_m_s2: expected 3 positive values, got "

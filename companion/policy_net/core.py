@@ -299,6 +299,14 @@ class PolicyCore(ABC):
             sigma_h,
         ), state
 
+    def fix_threshold(self, estimator: EstimatorState) -> float:
+        """The pad probability a bearing needs to be a horizontal fix: ``acquire_threshold``
+        while the estimate has no horizontal position yet, ``visibility_threshold`` after."""
+        cfg = self.config
+        if cfg.acquire_threshold is not None and not bool(np.all(estimator.initialised[:2])):
+            return cfg.acquire_threshold
+        return cfg.visibility_threshold
+
     def vision_features(
         self,
         raw: np.ndarray,
@@ -334,8 +342,8 @@ class PolicyCore(ABC):
             range_time_s,
             rate_frd_rad_s,
         )
-        seen = fix.horizontal and vis >= self.config.visibility_threshold
         assert state.estimator is not None
+        seen = fix.horizontal and vis >= self.fix_threshold(state.estimator)
         est = self._estimator.step(
             state.estimator,
             fix.position,
