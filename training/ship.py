@@ -190,6 +190,11 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
             ),
             (cfg.latency_compensation, "camera fixes at the image's exposure time"),
             (cfg.radar_gate_sigma > 0, f"a {cfg.radar_gate_sigma:g}-sigma radar gate"),
+            (
+                cfg.acquire_threshold is not None,
+                f"a bearing is a fix at pad probability ≥ {cfg.visibility_threshold:g}, the "
+                f"first one at ≥ {cfg.acquire_threshold}",
+            ),
         )
         if on
     ]
