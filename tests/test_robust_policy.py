@@ -616,3 +616,28 @@ def test_an_unsure_bearing_starts_the_estimate_but_does_not_move_it():
     assert not s_strict.estimator.initialised[:2].any()
     with pytest.raises(CheckpointError, match="acquire_threshold"):
         NetConfig(acquire_threshold=1.5)
+
+
+def test_a_profile_written_before_a_key_was_added_reads_with_the_old_behaviour():
+    """An ablation run's metrics.json holds the profile of its day: a key added since (marked
+    ``added``) reads as its default, the behaviour before it existed; a key that was always
+    there is still required, and an unknown one still refused."""
+    from training.profiles import Profile
+    from training.record import RecordError
+
+    old = PROFILES["robust_no_hover"].to_dict()
+    for key in ("accel_noise_m_s2", "accel_bias_walk_m_s2", "visibility_threshold"):
+        del old[key]
+    del old["acquire_threshold"]
+    read = Profile.from_dict(old, "metrics.json", ("profile",))
+    assert (read.accel_noise_m_s2, read.visibility_threshold, read.acquire_threshold) == (
+        0.3,
+        0.5,
+        None,
+    )
+    assert NetConfig(**read.net_options()).accel_bias_walk_m_s2 == NetConfig().accel_bias_walk_m_s2
+    del old["radar_gate_sigma"]
+    with pytest.raises(RecordError, match=r"profile.radar_gate_sigma is missing"):
+        Profile.from_dict(old, "metrics.json", ("profile",))
+    with pytest.raises(RecordError, match="unexpected field"):
+        Profile.from_dict({**PROFILES["robust"].to_dict(), "gate": 1}, "metrics.json")

@@ -3,7 +3,7 @@ pipeline's error type (no torch here: reports read a run's profile too)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from training.record import Record
 from training.seeds import EVAL_SEED
@@ -14,6 +14,11 @@ __all__ = ["NET_OPTIONS", "PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Pr
 ROLLOUT_TRANSPORTS = (Transport.MAVLINK.value, Transport.INPROCESS.value)
 """The values of the profile key ``rollouts`` (:class:`training.transport.Transport`)."""
 
+
+ADDED = {"added": True}
+"""Field metadata of a profile key added after run folders were made: a ``metrics.json`` of
+such a run (the ablation a report reads) has no such key, and reads as the default — the
+behaviour of the runs made before it (``training.record``)."""
 
 NET_OPTIONS = (
     "hover_input",
@@ -89,16 +94,16 @@ class Profile(Record):
     """The estimator's radar innovation gate (``NetConfig.radar_gate_sigma``; 0: none)."""
     alt_noise_fraction: float = 0.0
     """The radar noise that grows with range (``NetConfig.alt_noise_fraction``)."""
-    accel_noise_m_s2: float = 0.3
+    accel_noise_m_s2: float = field(default=0.3, metadata=ADDED)
     """The estimator's process noise: how far one IMU sample per control period is trusted
     (``NetConfig.accel_noise_m_s2``)."""
-    accel_bias_walk_m_s2: float = 0.02
+    accel_bias_walk_m_s2: float = field(default=0.02, metadata=ADDED)
     """Random walk of the estimator's acceleration-bias states
     (``NetConfig.accel_bias_walk_m_s2``)."""
-    visibility_threshold: float = 0.5
+    visibility_threshold: float = field(default=0.5, metadata=ADDED)
     """The CNN's pad probability at or above which its bearing is a fix
     (``NetConfig.visibility_threshold``)."""
-    acquire_threshold: float | None = None
+    acquire_threshold: float | None = field(default=None, metadata=ADDED)
     """... and at or above which a fix may start the estimate (``NetConfig.acquire_threshold``;
     None: ``visibility_threshold``)."""
     vision_dagger_from_prior: bool = False

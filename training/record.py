@@ -13,7 +13,10 @@ Field metadata (``dataclasses.field(metadata=...)``):
 - ``omit_none``: the key is absent when the value is None (a missing key reads as None);
 - ``prefix``: a ``dict[str, X]`` field whose entries are spread into the object as
   ``<prefix><name>`` keys (the keys of the object starting with the prefix read back into it);
-- ``what``: how an error names the expected value (e.g. ``"[north, east] in m"``).
+- ``what``: how an error names the expected value (e.g. ``"[north, east] in m"``);
+- ``added``: a key added after records were written; a missing one reads as the field's
+  default, which must be the behaviour before the key existed (e.g. a profile key that is off
+  by default).
 """
 
 from __future__ import annotations
@@ -195,6 +198,9 @@ class Record:
             if f.name not in data:
                 if f.metadata.get("omit_none"):
                     kwargs[f.name] = None
+                    continue
+                if f.metadata.get("added") and f.default is not dataclasses.MISSING:
+                    kwargs[f.name] = f.default
                     continue
                 raise RecordError(
                     f"{where(source, at)} is missing; expected {what or describe(tp)}"
