@@ -118,7 +118,7 @@ class Profile(Record):
     """A checkpoint the eval stage flies on ``eval_suite`` too, for the comparison (the
     paper-world model for the robust profile)."""
 
-    def net_options(self) -> dict[str, bool | float]:
+    def net_options(self) -> dict[str, bool | float | None]:
         """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
         :data:`NET_OPTIONS`); the rest follow from the vehicle, the world and the camera."""
         return {k: getattr(self, k) for k in NET_OPTIONS}

@@ -58,7 +58,7 @@ def net_config_for(
     sim: SimConfig,
     kind: str,
     planet: Planet | None = None,
-    **options: bool | float,
+    **options: bool | float | None,
 ) -> NetConfig:
     """The network config matching a vehicle and world (hover thrust, rate limits, gravity),
     with the profile's options (``Profile.net_options``: robustness switches and estimator
