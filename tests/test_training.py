@@ -420,6 +420,40 @@ def test_redo_reruns_a_stage_and_drops_the_later_records(tmp_path):
         run_pipeline(run, "quick", stages=("vision",), progress=False)
 
 
+def test_a_finished_run_takes_new_estimator_settings_and_flies_vision_and_eval_again(tmp_path):
+    """Only the estimator's settings differ: the trained stages stay, vision and eval lose
+    their records (they fly with the estimator), profile.json says what changed; any other
+    difference is still another run."""
+    import json
+    from dataclasses import replace
+
+    from training.profiles import ESTIMATOR_KEYS, PROFILES, PipelineError
+    from training.run_folder import Run
+
+    assert "visibility_threshold" in ESTIMATOR_KEYS and "hover_input" not in ESTIMATOR_KEYS
+    run = tmp_path / "run"
+    (run / "stages").mkdir(parents=True)
+    quick = PROFILES["quick"]
+    (run / "profile.json").write_text(json.dumps({"profile": quick.to_dict(), "scenario": None}))
+    for stage in ("dagger", "perception", "vision", "eval"):
+        (run / "stages" / f"{stage}.json").write_text("{}")
+    Run(run, replace(quick, visibility_threshold=0.9), progress=False).close()
+    assert sorted(p.stem for p in (run / "stages").iterdir()) == ["dagger", "perception"]
+    prof = json.loads((run / "profile.json").read_text())
+    assert prof["profile"]["visibility_threshold"] == 0.9
+    change = prof["estimator_changed"][0]["keys"]
+    assert change == {"visibility_threshold": {"from": 0.5, "to": 0.9}}
+    # the same settings again: nothing more is removed or recorded
+    (run / "stages" / "vision.json").write_text("{}")
+    Run(run, replace(quick, visibility_threshold=0.9), progress=False).close()
+    assert (run / "stages" / "vision.json").exists()
+    assert len(json.loads((run / "profile.json").read_text())["estimator_changed"]) == 1
+    # a network key with it: another run, and nothing is touched
+    with pytest.raises(PipelineError, match="another profile"):
+        Run(run, replace(quick, visibility_threshold=0.8, hover_input=True), progress=False)
+    assert (run / "stages" / "vision.json").exists()
+
+
 def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
     """Privileged validation cannot tell BC and DAgger controllers apart (millimetres for
     all), so each one that landed every flight becomes a vision candidate."""

@@ -5,11 +5,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from companion.policy_net.config import ESTIMATOR_FIELDS
 from training.record import Record
 from training.seeds import EVAL_SEED
 from training.transport import Transport
 
-__all__ = ["NET_OPTIONS", "PROFILES", "ROLLOUT_TRANSPORTS", "PipelineError", "Profile"]
+__all__ = [
+    "ESTIMATOR_KEYS",
+    "NET_OPTIONS",
+    "PROFILES",
+    "ROLLOUT_TRANSPORTS",
+    "PipelineError",
+    "Profile",
+]
 
 ROLLOUT_TRANSPORTS = (Transport.MAVLINK.value, Transport.INPROCESS.value)
 """The values of the profile key ``rollouts`` (:class:`training.transport.Transport`)."""
@@ -33,6 +41,11 @@ NET_OPTIONS = (
 )
 """The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
 (passed as they are to ``training.train.net_config_for``)."""
+
+ESTIMATOR_KEYS = tuple(k for k in NET_OPTIONS if k in ESTIMATOR_FIELDS)
+"""The profile keys no network weight depends on (the pad estimator's settings): a finished
+run may change them, and the stages that fly with the estimator (``vision``, ``eval``) run
+again (``training.run_folder.Run``)."""
 
 
 class PipelineError(ValueError):
@@ -200,7 +213,7 @@ PROFILES: dict[str, Profile] = {
         accel_noise_m_s2=0.1,
         accel_bias_walk_m_s2=0.002,
         visibility_threshold=0.9,
-        acquire_threshold=0.5,
+        acquire_threshold=0.75,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

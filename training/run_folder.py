@@ -21,10 +21,10 @@ from tqdm import tqdm
 from companion.flightlog import jsonable
 from sitl_sim.config import load_sim, load_vehicle, planet
 from training.backend import Backend, LocalBackend
-from training.profiles import PipelineError, Profile
+from training.profiles import ESTIMATOR_KEYS, PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
-from training.stages.records import StageRecord, record_type
+from training.stages.records import STAGES, StageRecord, record_type
 from training.worlds import load_worlds, single_world
 
 __all__ = ["Run"]
@@ -84,6 +84,7 @@ class Run:
                 theirs["profile"] = {**theirs["profile"], **{k: mine["profile"][k] for k in added}}
                 theirs.setdefault("upgraded", []).append({"commit": self.commit, "keys": added})
                 path.write_text(json.dumps(theirs, indent=2))
+            self._change_estimator(path, theirs, mine)
             if {k: theirs.get(k) for k in mine} != mine:
                 prof = theirs.get("profile") or {}
                 keys = sorted(k for k in mine["profile"] if prof.get(k) != mine["profile"][k])
@@ -96,6 +97,30 @@ class Run:
                 )
         else:
             path.write_text(json.dumps(mine, indent=2))
+
+    def _change_estimator(self, path: Path, theirs: dict, mine: dict) -> None:
+        """A run whose profile differs from this one only in estimator settings
+        (:data:`ESTIMATOR_KEYS`) takes the new ones: no network weight depends on them, so the
+        trained stages stay, and the stages that fly with the estimator (``vision`` on) lose
+        their records and run again. ``profile.json`` lists each change (``estimator_changed``:
+        commit, old and new values)."""
+        prof = theirs.get("profile") or {}
+        if prof.get("name") != self.profile.name or theirs.get("scenario") != mine["scenario"]:
+            return
+        new = mine["profile"]
+        differ = {k for k in new if k in prof and prof[k] != new[k]}
+        if not differ or not differ <= set(ESTIMATOR_KEYS):
+            return
+        theirs["profile"] = {**prof, **{k: new[k] for k in differ}}
+        theirs.setdefault("estimator_changed", []).append(
+            {"commit": self.commit, "keys": {k: {"from": prof[k], "to": new[k]} for k in differ}}
+        )
+        for stage in STAGES[STAGES.index("vision") :]:
+            record = self.record_path(stage)
+            if record.exists():
+                record.unlink()
+                self.say(f"stage {stage}: record removed (estimator settings changed)")
+        path.write_text(json.dumps(theirs, indent=2))
 
     def log(self, name: str, value: float, step: int) -> None:
         if self._tb is None:
