@@ -585,7 +585,8 @@ def test_profile_net_options_are_config_fields_and_paper_keeps_the_defaults():
     changed = {k for k in NET_OPTIONS if robust[k] != getattr(default, k)}
     assert changed - set(ESTIMATOR_FIELDS) == {"hover_input"}
     cfg = NetConfig(kind="vision", **robust)
-    assert (cfg.accel_noise_m_s2, cfg.visibility_threshold) == (0.1, 0.9)
+    assert (cfg.accel_noise_m_s2, cfg.visibility_threshold) == (0.06, 0.9)
+    assert (cfg.unsure_threshold, cfg.unsure_sigma_scale) == (0.5, 3.0)
 
 
 def test_an_unsure_bearing_starts_the_estimate_but_does_not_move_it():
@@ -618,6 +619,59 @@ def test_an_unsure_bearing_starts_the_estimate_but_does_not_move_it():
         NetConfig(acquire_threshold=1.5)
 
 
+def test_an_unsure_fix_moves_an_estimate_it_agrees_with_and_never_re_acquires_it():
+    """``unsure_threshold``: a bearing the CNN is unsure of (0.5 <= p < 0.9) updates an
+    estimate it agrees with, by less than a sure one; one far from the estimate (a tilted view
+    without the pad) is dropped however often it comes, where as many sure ones re-acquire;
+    it never starts an estimate."""
+    cfg = NetConfig(**ROBUST, visibility_threshold=0.9, unsure_threshold=0.5)
+    est = PadEstimator(cfg)
+    level, accel = np.zeros(3), np.array([0.0, 0.0, -9.80665])
+    start = est.initial_state()
+    never = est.step(start, np.array([2.0, -1.0, -20.0]), True, level, accel, unsure=True)
+    assert not never.initialised[:2].any()
+    s0 = est.step(start, np.array([2.0, -1.0, -20.0]), True, level, accel)
+    for _ in range(5):
+        s0 = est.step(s0, np.array([2.0, -1.0, -20.0]), True, level, accel)
+    near = np.array([2.3, -0.8, -20.0])
+    predicted = est.step(s0, None, False, level, accel)
+    unsure = est.step(s0, near, True, level, accel, unsure=True)
+    sure = est.step(s0, near, True, level, accel)
+    moved, moved_sure = (np.linalg.norm(s.x[:2, 0] - predicted.x[:2, 0]) for s in (unsure, sure))
+    assert 0.0 < moved < 0.5 * moved_sure
+    far = np.array([12.0, 6.0, -20.0])
+    s_unsure, s_sure = s0, s0
+    for _ in range(cfg.gate_reset_steps + 3):
+        s_unsure = est.step(s_unsure, far, True, level, accel, unsure=True)
+        s_sure = est.step(s_sure, far, True, level, accel)
+    assert s_unsure.rejected == 0
+    assert np.allclose(s_unsure.x[:2, 0], [2.0, -1.0], atol=0.05)
+    assert np.allclose(s_sure.x[:2, 0], far[:2], atol=0.5)  # the sure ones re-acquired
+
+    # the policy core: which bearings are unsure, and the same through vision_features
+    policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
+    assert not policy.unsure_fix(0.7, start)  # no estimate to agree with
+    assert policy.unsure_fix(0.7, s0) and policy.unsure_fix(0.5, s0)
+    assert not policy.unsure_fix(0.49, s0) and not policy.unsure_fix(0.9, s0)
+    off = LearnedPolicy(replace(cfg, unsure_threshold=None), policy.control, policy.perception)
+    assert not off.unsure_fix(0.7, s0)
+    logit = math.log(0.7 / 0.3)
+    bearing = [0.04, -0.115, logit]  # the image bearing of a fix at (2.3, -0.8) from 20 m
+
+    def step(p):
+        state = replace(p.initial_state(), estimator=s0)
+        return p.vision_features(np.array(bearing), level, np.zeros(3), accel, 20.0, state)[1]
+
+    assert np.allclose(step(off).estimator.x, predicted.x)
+    assert not np.allclose(step(policy).estimator.x[:2], predicted.x[:2])
+    with pytest.raises(CheckpointError, match="unsure_threshold: needs the innovation gate"):
+        NetConfig(unsure_threshold=0.5, gate_sigma=0.0)
+    with pytest.raises(CheckpointError, match="unsure_sigma_scale"):
+        NetConfig(unsure_sigma_scale=0.5)
+    with pytest.raises(CheckpointError, match="unsure_threshold"):
+        NetConfig(unsure_threshold=-0.1)
+
+
 def test_a_profile_written_before_a_key_was_added_reads_with_the_old_behaviour():
     """An ablation run's metrics.json holds the profile of its day: a key added since (marked
     ``added``) reads as its default, the behaviour before it existed; a key that was always
@@ -628,13 +682,15 @@ def test_a_profile_written_before_a_key_was_added_reads_with_the_old_behaviour()
     old = PROFILES["robust_no_hover"].to_dict()
     for key in ("accel_noise_m_s2", "accel_bias_walk_m_s2", "visibility_threshold"):
         del old[key]
-    del old["acquire_threshold"]
+    for key in ("acquire_threshold", "unsure_threshold", "unsure_sigma_scale"):
+        del old[key]
     read = Profile.from_dict(old, "metrics.json", ("profile",))
     assert (read.accel_noise_m_s2, read.visibility_threshold, read.acquire_threshold) == (
         0.3,
         0.5,
         None,
     )
+    assert read.unsure_threshold is None
     assert NetConfig(**read.net_options()).accel_bias_walk_m_s2 == NetConfig().accel_bias_walk_m_s2
     del old["radar_gate_sigma"]
     with pytest.raises(RecordError, match=r"profile.radar_gate_sigma is missing"):

@@ -38,6 +38,8 @@ NET_OPTIONS = (
     "accel_bias_walk_m_s2",
     "visibility_threshold",
     "acquire_threshold",
+    "unsure_threshold",
+    "unsure_sigma_scale",
 )
 """The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
 (passed as they are to ``training.train.net_config_for``)."""
@@ -119,6 +121,11 @@ class Profile(Record):
     acquire_threshold: float | None = field(default=None, metadata=ADDED)
     """... and at or above which a fix may start the estimate (``NetConfig.acquire_threshold``;
     None: ``visibility_threshold``)."""
+    unsure_threshold: float | None = field(default=None, metadata=ADDED)
+    """... and at or above which, below ``visibility_threshold``, a fix is an unsure one: used
+    only when it agrees with the estimate (``NetConfig.unsure_threshold``; None: not used)."""
+    unsure_sigma_scale: float = field(default=2.0, metadata=ADDED)
+    """Factor on an unsure fix's noise (``NetConfig.unsure_sigma_scale``)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -210,10 +217,12 @@ PROFILES: dict[str, Profile] = {
         worlds="configs/train/robust.toml",
         radar_gate_sigma=5.0,
         alt_noise_fraction=0.002,
-        accel_noise_m_s2=0.1,
+        accel_noise_m_s2=0.06,
         accel_bias_walk_m_s2=0.002,
         visibility_threshold=0.9,
         acquire_threshold=0.75,
+        unsure_threshold=0.5,
+        unsure_sigma_scale=3.0,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

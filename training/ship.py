@@ -195,6 +195,11 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
                 f"a bearing is a fix at pad probability ≥ {cfg.visibility_threshold:g}, the "
                 f"first one at ≥ {cfg.acquire_threshold}",
             ),
+            (
+                cfg.unsure_threshold is not None,
+                f"a bearing at ≥ {cfg.unsure_threshold} (unsure) is a fix only where it agrees "
+                f"with the estimate, its noise {cfg.unsure_sigma_scale:g}× larger",
+            ),
         )
         if on
     ]

@@ -22,6 +22,8 @@ ESTIMATOR_FIELDS = (
     "alt_noise_fraction",
     "visibility_threshold",
     "acquire_threshold",
+    "unsure_threshold",
+    "unsure_sigma_scale",
     "gate_sigma",
     "gate_reset_steps",
     "min_fix_altitude_m",
@@ -70,6 +72,17 @@ class NetConfig:
     an unfamiliar ground, where the CNN is unsure of a pad it has right, start the estimate,
     while a high ``visibility_threshold`` keeps a confident-looking wrong answer out of an
     estimate that has one (the innovation gate then refuses a wrong start)."""
+    unsure_threshold: float | None = None
+    """A bearing whose pad probability is at or above this but below ``visibility_threshold``
+    is an *unsure* fix: it updates an estimate that already has a horizontal position only if
+    it passes the innovation gate (``gate_sigma``, with its noise times
+    ``unsure_sigma_scale``), and a refused one never counts towards a re-acquisition. On
+    ground the CNN has not seen it is often right but unsure of a pad it sees, and without
+    these fixes the estimate flies a whole descent on the IMU; the gate keeps the unsure
+    answers of a view without the pad out. None: a bearing below ``visibility_threshold`` is
+    not used (an estimate without a position still starts at ``acquire_threshold``)."""
+    unsure_sigma_scale: float = 2.0
+    """Factor on an unsure fix's horizontal 1-sigma (``unsure_threshold``)."""
     gate_sigma: float = 4.0
     """Innovation gate of the horizontal fix (Mahalanobis distance, 2 dof); 0 disables it."""
     gate_reset_steps: int = 10
@@ -117,10 +130,19 @@ class NetConfig:
             raise CheckpointError(
                 f"net config radar_gate_sigma: expected >= 0 (0: off), got {self.radar_gate_sigma}"
             )
-        for key in ("visibility_threshold", "acquire_threshold"):
+        for key in ("visibility_threshold", "acquire_threshold", "unsure_threshold"):
             value = getattr(self, key)
             if value is not None and not 0.0 <= value <= 1.0:
                 raise CheckpointError(f"net config {key}: expected in [0, 1], got {value}")
+        if self.unsure_threshold is not None and not self.gate_sigma > 0:
+            raise CheckpointError(
+                "net config unsure_threshold: needs the innovation gate (gate_sigma > 0), got "
+                f"gate_sigma {self.gate_sigma}"
+            )
+        if not (math.isfinite(self.unsure_sigma_scale) and self.unsure_sigma_scale >= 1.0):
+            raise CheckpointError(
+                f"net config unsure_sigma_scale: expected >= 1, got {self.unsure_sigma_scale}"
+            )
         if len(self.accel_bias_sigma_m_s2) != 3 or min(self.accel_bias_sigma_m_s2) <= 0:
             raise CheckpointError(
                 "net config accel_bias_sigma_m_s2: expected 3 positive values, got "

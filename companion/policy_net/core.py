@@ -307,6 +307,17 @@ class PolicyCore(ABC):
             return cfg.acquire_threshold
         return cfg.visibility_threshold
 
+    def unsure_fix(self, vis: float, estimator: EstimatorState) -> bool:
+        """Whether a bearing of pad probability ``vis`` is an unsure fix: at or above
+        ``unsure_threshold``, below the fix threshold, and the estimate has a horizontal
+        position for the innovation gate to hold it against."""
+        cfg = self.config
+        return (
+            cfg.unsure_threshold is not None
+            and cfg.unsure_threshold <= vis < self.fix_threshold(estimator)
+            and bool(np.all(estimator.initialised[:2]))
+        )
+
     def vision_features(
         self,
         raw: np.ndarray,
@@ -344,10 +355,11 @@ class PolicyCore(ABC):
         )
         assert state.estimator is not None
         seen = fix.horizontal and vis >= self.fix_threshold(state.estimator)
+        unsure = self.unsure_fix(vis, state.estimator) and fix.horizontal and not seen
         est = self._estimator.step(
             state.estimator,
             fix.position,
-            seen,
+            seen or unsure,
             attitude_rad,
             accel_frd_m_s2,
             fix_lag_s=fix.lag_s,
@@ -356,6 +368,7 @@ class PolicyCore(ABC):
             vertical_lag_s=fix.vertical_lag_s,
             vertical_sigma_m=fix.vertical_sigma_m,
             horizontal_sigma_m=fix.horizontal_sigma_m,
+            unsure=unsure,
         )
         feats = control_features(
             est.x[:, 0],

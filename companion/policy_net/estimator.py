@@ -96,6 +96,7 @@ class PadEstimator:
         vertical_lag_s: float = 0.0,
         vertical_sigma_m: float = 0.0,
         horizontal_sigma_m: float = 0.0,
+        unsure: bool = False,
     ) -> EstimatorState:
         """One control period: predict from the last period's acceleration, then update.
 
@@ -106,7 +107,10 @@ class PadEstimator:
         measurement (the same radar reading again) and only scales the horizontal one;
         ``vertical_sigma_m`` / ``horizontal_sigma_m`` add to the fixes' noise (in quadrature).
         ``dt_s``: the time since the previous step when it is not the control period (a frame
-        lost on the link: two periods); None, or outside (0, MAX_STEP_DT_S], is one period."""
+        lost on the link: two periods); None, or outside (0, MAX_STEP_DT_S], is one period.
+        ``unsure``: the horizontal fix is an unsure one (``NetConfig.unsure_threshold``): it
+        never starts the estimate, its noise is ``unsure_sigma_scale`` times larger, and a
+        gate refusal drops it without counting towards a re-acquisition."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
         rejected, rejected_alt = state.rejected, state.rejected_altitude
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
@@ -129,6 +133,9 @@ class PadEstimator:
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
             if horizontal_sigma_m > 0.0:
                 sigma_h = math.hypot(sigma_h, float(horizontal_sigma_m))
+            if unsure:
+                sigma_h *= self.cfg.unsure_sigma_scale
+                horizontal_fix = horizontal_fix and bool(init[0] and init[1])
             sigma_v = self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt
             if vertical_sigma_m > 0.0:
                 sigma_v = math.hypot(sigma_v, float(vertical_sigma_m))
@@ -163,7 +170,10 @@ class PadEstimator:
                     / (h_lag @ cov[a] @ h_lag + sigma_h**2)
                     for a in (0, 1)
                 )
-                if d2 > self.cfg.gate_sigma**2:
+                if unsure:
+                    if d2 > self.cfg.gate_sigma**2:
+                        axes = axes[2:]
+                elif d2 > self.cfg.gate_sigma**2:
                     rejected += 1
                     if rejected >= self.cfg.gate_reset_steps:
                         init[:2] = False  # re-acquire below from this fix
