@@ -452,6 +452,18 @@ def test_a_finished_run_takes_new_estimator_settings_and_flies_vision_and_eval_a
     with pytest.raises(PipelineError, match="another profile"):
         Run(run, replace(quick, visibility_threshold=0.8, hover_input=True), progress=False)
     assert (run / "stages" / "vision.json").exists()
+    # an estimator key the run's profile.json predates enters at its default (the behaviour
+    # the run had): a new value is a change like any other
+    prof = json.loads((run / "profile.json").read_text())
+    del prof["profile"]["unsure_threshold"]
+    (run / "profile.json").write_text(json.dumps(prof))
+    Run(run, replace(quick, visibility_threshold=0.9, unsure_threshold=0.5), progress=False).close()
+    assert not (run / "stages" / "vision.json").exists()
+    prof = json.loads((run / "profile.json").read_text())
+    assert prof["upgraded"][-1]["keys"] == ["unsure_threshold"]
+    change = prof["estimator_changed"][-1]["keys"]
+    assert change == {"unsure_threshold": {"from": None, "to": 0.5}}
+    assert prof["profile"]["unsure_threshold"] == 0.5
 
 
 def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):

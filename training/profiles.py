@@ -3,7 +3,7 @@ pipeline's error type (no torch here: reports read a run's profile too)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 from companion.policy_net.config import ESTIMATOR_FIELDS
 from training.record import Record
@@ -142,6 +142,12 @@ class Profile(Record):
         """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
         :data:`NET_OPTIONS`); the rest follow from the vehicle, the world and the camera."""
         return {k: getattr(self, k) for k in NET_OPTIONS}
+
+    @classmethod
+    def added_defaults(cls) -> dict[str, object]:
+        """The keys marked :data:`ADDED` and their defaults: the behaviour of a run made before
+        each existed."""
+        return {f.name: f.default for f in fields(cls) if f.metadata.get("added")}
 
     def __post_init__(self) -> None:
         if self.rollouts not in ROLLOUT_TRANSPORTS:

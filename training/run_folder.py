@@ -80,8 +80,14 @@ class Run:
             added = sorted(set(mine["profile"]) - set(theirs.get("profile", {})))
             if added and theirs.get("profile", {}).get("name") == self.profile.name:
                 # a run started before these profile keys existed: the stages it has done keep
-                # their records (and commits); stages run from now on use the new keys
-                theirs["profile"] = {**theirs["profile"], **{k: mine["profile"][k] for k in added}}
+                # their records (and commits); stages run from now on use the new keys. A key
+                # marked ``added`` enters at its default, the behaviour those stages had, so a
+                # new value of an estimator key is then a change like any other (below)
+                before = Profile.added_defaults()
+                theirs["profile"] = {
+                    **theirs["profile"],
+                    **{k: before.get(k, mine["profile"][k]) for k in added},
+                }
                 theirs.setdefault("upgraded", []).append({"commit": self.commit, "keys": added})
                 path.write_text(json.dumps(theirs, indent=2))
             self._change_estimator(path, theirs, mine)
