@@ -586,7 +586,11 @@ def test_profile_net_options_are_config_fields_and_paper_keeps_the_defaults():
     assert changed - set(ESTIMATOR_FIELDS) == {"hover_input"}
     cfg = NetConfig(kind="vision", **robust)
     assert (cfg.accel_noise_m_s2, cfg.visibility_threshold) == (0.06, 0.9)
-    assert (cfg.unsure_threshold, cfg.unsure_sigma_scale) == (0.5, 3.0)
+    assert (cfg.unsure_threshold, cfg.unsure_sigma_scale, cfg.unsure_max_tilt_deg) == (
+        0.5,
+        3.0,
+        15.0,
+    )
 
 
 def test_an_unsure_bearing_starts_the_estimate_but_does_not_move_it():
@@ -647,6 +651,17 @@ def test_an_unsure_fix_moves_an_estimate_it_agrees_with_and_never_re_acquires_it
     assert s_unsure.rejected == 0
     assert np.allclose(s_unsure.x[:2, 0], [2.0, -1.0], atol=0.05)
     assert np.allclose(s_sure.x[:2, 0], far[:2], atol=0.5)  # the sure ones re-acquired
+    # from a view tilted beyond unsure_max_tilt_deg an unsure fix is not used; a sure one is
+    capped = PadEstimator(replace(cfg, unsure_max_tilt_deg=15.0))
+    tilted = np.radians([12.0, 12.0, 0.0])  # 17° together
+    tilted_accel = rotation_zyx(*tilted).T @ -np.array([0.0, 0.0, 9.80665])
+    predicted_tilted = capped.step(s0, None, False, tilted, tilted_accel)
+    dropped = capped.step(s0, near, True, tilted, tilted_accel, unsure=True)
+    assert np.allclose(dropped.x, predicted_tilted.x)
+    taken = capped.step(s0, near, True, tilted, tilted_accel)
+    assert not np.allclose(taken.x[:2], predicted_tilted.x[:2])
+    level_fix = capped.step(s0, near, True, level, accel, unsure=True)
+    assert np.allclose(level_fix.x, unsure.x)
 
     # the policy core: which bearings are unsure, and the same through vision_features
     policy = LearnedPolicy(cfg, ControlLSTM(cfg), PerceptionCNN(cfg))
@@ -670,6 +685,8 @@ def test_an_unsure_fix_moves_an_estimate_it_agrees_with_and_never_re_acquires_it
         NetConfig(unsure_sigma_scale=0.5)
     with pytest.raises(CheckpointError, match="unsure_threshold"):
         NetConfig(unsure_threshold=-0.1)
+    with pytest.raises(CheckpointError, match="unsure_max_tilt_deg"):
+        NetConfig(unsure_max_tilt_deg=0.0)
 
 
 def test_a_profile_written_before_a_key_was_added_reads_with_the_old_behaviour():
@@ -682,7 +699,12 @@ def test_a_profile_written_before_a_key_was_added_reads_with_the_old_behaviour()
     old = PROFILES["robust_no_hover"].to_dict()
     for key in ("accel_noise_m_s2", "accel_bias_walk_m_s2", "visibility_threshold"):
         del old[key]
-    for key in ("acquire_threshold", "unsure_threshold", "unsure_sigma_scale"):
+    for key in (
+        "acquire_threshold",
+        "unsure_threshold",
+        "unsure_sigma_scale",
+        "unsure_max_tilt_deg",
+    ):
         del old[key]
     read = Profile.from_dict(old, "metrics.json", ("profile",))
     assert (read.accel_noise_m_s2, read.visibility_threshold, read.acquire_threshold) == (

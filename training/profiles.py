@@ -40,6 +40,7 @@ NET_OPTIONS = (
     "acquire_threshold",
     "unsure_threshold",
     "unsure_sigma_scale",
+    "unsure_max_tilt_deg",
 )
 """The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
 (passed as they are to ``training.train.net_config_for``)."""
@@ -126,6 +127,8 @@ class Profile(Record):
     only when it agrees with the estimate (``NetConfig.unsure_threshold``; None: not used)."""
     unsure_sigma_scale: float = field(default=2.0, metadata=ADDED)
     """Factor on an unsure fix's noise (``NetConfig.unsure_sigma_scale``)."""
+    unsure_max_tilt_deg: float | None = field(default=None, metadata=ADDED)
+    """No unsure fix from a view tilted beyond this (``NetConfig.unsure_max_tilt_deg``)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -229,6 +232,7 @@ PROFILES: dict[str, Profile] = {
         acquire_threshold=0.75,
         unsure_threshold=0.5,
         unsure_sigma_scale=3.0,
+        unsure_max_tilt_deg=15.0,
         vision_dagger_from_prior=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",

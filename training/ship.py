@@ -198,7 +198,12 @@ def ship(run: str | Path, out: str | Path = "models", name: str = "visland_visio
             (
                 cfg.unsure_threshold is not None,
                 f"a bearing at ≥ {cfg.unsure_threshold} (unsure) is a fix only where it agrees "
-                f"with the estimate, its noise {cfg.unsure_sigma_scale:g}× larger",
+                f"with the estimate, its noise {cfg.unsure_sigma_scale:g}× larger"
+                + (
+                    f", from a view tilted ≤ {cfg.unsure_max_tilt_deg:g}°"
+                    if cfg.unsure_max_tilt_deg is not None
+                    else ""
+                ),
             ),
         )
         if on

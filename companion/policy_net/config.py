@@ -24,6 +24,7 @@ ESTIMATOR_FIELDS = (
     "acquire_threshold",
     "unsure_threshold",
     "unsure_sigma_scale",
+    "unsure_max_tilt_deg",
     "gate_sigma",
     "gate_reset_steps",
     "min_fix_altitude_m",
@@ -83,6 +84,11 @@ class NetConfig:
     not used (an estimate without a position still starts at ``acquire_threshold``)."""
     unsure_sigma_scale: float = 2.0
     """Factor on an unsure fix's horizontal 1-sigma (``unsure_threshold``)."""
+    unsure_max_tilt_deg: float | None = None
+    """An unsure fix is not used from a view tilted (roll and pitch together) beyond this: the
+    ground below is then near the image's edge (half the field of view is 22.5°), where the
+    CNN's unsure answers come from views without the pad (severe wind holds 15-20° for
+    seconds). None: any tilt."""
     gate_sigma: float = 4.0
     """Innovation gate of the horizontal fix (Mahalanobis distance, 2 dof); 0 disables it."""
     gate_reset_steps: int = 10
@@ -138,6 +144,11 @@ class NetConfig:
             raise CheckpointError(
                 "net config unsure_threshold: needs the innovation gate (gate_sigma > 0), got "
                 f"gate_sigma {self.gate_sigma}"
+            )
+        tilt = self.unsure_max_tilt_deg
+        if tilt is not None and not 0.0 < tilt <= 90.0:
+            raise CheckpointError(
+                f"net config unsure_max_tilt_deg: expected in (0, 90] or None, got {tilt}"
             )
         if not (math.isfinite(self.unsure_sigma_scale) and self.unsure_sigma_scale >= 1.0):
             raise CheckpointError(

@@ -109,8 +109,9 @@ class PadEstimator:
         ``dt_s``: the time since the previous step when it is not the control period (a frame
         lost on the link: two periods); None, or outside (0, MAX_STEP_DT_S], is one period.
         ``unsure``: the horizontal fix is an unsure one (``NetConfig.unsure_threshold``): it
-        never starts the estimate, its noise is ``unsure_sigma_scale`` times larger, and a
-        gate refusal drops it without counting towards a re-acquisition."""
+        never starts the estimate, is not used from a view tilted beyond
+        ``unsure_max_tilt_deg``, its noise is ``unsure_sigma_scale`` times larger, and a gate
+        refusal drops it without counting towards a re-acquisition."""
         x, cov, init = state.x.copy(), state.cov.copy(), state.initialised.copy()
         rejected, rejected_alt = state.rejected, state.rejected_altitude
         rot = rotation_zyx(*(float(a) for a in attitude_rad))
@@ -135,7 +136,9 @@ class PadEstimator:
                 sigma_h = math.hypot(sigma_h, float(horizontal_sigma_m))
             if unsure:
                 sigma_h *= self.cfg.unsure_sigma_scale
-                horizontal_fix = horizontal_fix and bool(init[0] and init[1])
+                limit = self.cfg.unsure_max_tilt_deg
+                level = limit is None or float(rot[2, 2]) >= math.cos(math.radians(limit))
+                horizontal_fix = horizontal_fix and bool(init[0] and init[1]) and level
             sigma_v = self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt
             if vertical_sigma_m > 0.0:
                 sigma_v = math.hypot(sigma_v, float(vertical_sigma_m))
