@@ -243,7 +243,9 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   {_fmt(perception.get("val_bearing_error_px_median"), 2)} px, p95
   {_fmt(perception.get("val_bearing_error_px_p95"), 2)} px.
 - pipeline wall time recorded in `pipeline_time.json` (2 CPU cores): {total_s / 60:.1f} min
-  over {len(session_times)} completed session(s); an interrupted session is not recorded.
+  over {len(session_times)} completed session(s); an interrupted session is not recorded, and
+  every stage run again counts (a finished run that takes new estimator settings flies vision
+  and eval again), so this is more than one end-to-end run.
 
 {suite_section}## Results in the paper's world ({metrics["episodes"]} evaluation episodes,
 seed {metrics["eval_seed"]}, disjoint from training)
