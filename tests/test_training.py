@@ -466,6 +466,52 @@ def test_a_finished_run_takes_new_estimator_settings_and_flies_vision_and_eval_a
     assert prof["profile"]["unsure_threshold"] == 0.5
 
 
+def test_an_estimator_ablation_starts_from_another_runs_trained_stages(tmp_path):
+    """``visland pipeline --from RUN``: a new run folder whose profile differs from RUN's only
+    in estimator settings takes RUN's records of collect through perception (not vision or
+    eval) and says so in profile.json; anything else is refused with the keys named, and a
+    refused start leaves no record behind."""
+    import json
+    from dataclasses import replace
+
+    from training.profiles import PROFILES, PipelineError
+    from training.report import _started_from
+    from training.run_folder import Run
+
+    quick = PROFILES["quick"]
+    src = tmp_path / "src"
+    (src / "stages").mkdir(parents=True)
+    (src / "profile.json").write_text(json.dumps({"profile": quick.to_dict(), "scenario": None}))
+    for stage in ("collect", "bc", "dagger", "dagger_r0", "perception", "vision", "eval"):
+        (src / "stages" / f"{stage}.json").write_text(json.dumps({"stage": stage}))
+    run = Run(tmp_path / "abl", replace(quick, visibility_threshold=0.9), progress=False)
+    try:
+        taken = run.start_from(src)
+    finally:
+        run.close()
+    assert sorted(taken) == ["bc", "collect", "dagger", "dagger_r0", "perception"]
+    got = sorted(p.stem for p in (tmp_path / "abl" / "stages").iterdir())
+    assert got == ["bc", "collect", "dagger", "dagger_r0", "perception"]
+    prof = json.loads((tmp_path / "abl" / "profile.json").read_text())
+    assert prof["started_from"]["run"] == str(src)
+    assert _started_from(tmp_path / "abl") == str(src)
+    assert _started_from(src) is None
+    again = Run(tmp_path / "abl", replace(quick, visibility_threshold=0.9), progress=False)
+    with pytest.raises(PipelineError, match="needs a new run folder"):
+        again.start_from(src)
+    again.close()
+    other = Run(tmp_path / "net", replace(quick, bc_steps=quick.bc_steps + 1), progress=False)
+    with pytest.raises(PipelineError, match="differs in bc_steps"):
+        other.start_from(src)
+    (src / "stages" / "perception.json").unlink()
+    partial = Run(tmp_path / "partial", quick, progress=False)
+    with pytest.raises(PipelineError, match="stages perception have not finished"):
+        partial.start_from(src)
+    assert not any((tmp_path / "partial" / "stages").iterdir())
+    other.close()
+    partial.close()
+
+
 def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
     """Privileged validation cannot tell BC and DAgger controllers apart (millimetres for
     all), so each one that landed every flight becomes a vision candidate."""

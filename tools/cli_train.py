@@ -33,6 +33,7 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
             stages=stages,
             progress=not args.no_progress,
             backend=backend,
+            start_from=args.start_from,
         )
     metrics = Path(args.out) / "metrics.json"
     if args.json:
@@ -123,6 +124,16 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     pp.add_argument("--stages", default=None, help=f"comma list (default all: {','.join(STAGES)})")
     pp.add_argument("--no-progress", action="store_true")
     pp.add_argument("--json", action="store_true")
+    pp.add_argument(
+        "--from",
+        dest="start_from",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="a new run folder takes RUN's trained stages (collect to perception) and flies "
+        "vision and eval with this profile's estimator settings: an estimator ablation "
+        "without training again (the profiles may differ only in estimator settings)",
+    )
     add_backend_arguments(pp)
     pp.set_defaults(func=_cmd_pipeline)
 

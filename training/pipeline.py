@@ -55,6 +55,7 @@ def run_pipeline(
     progress: bool = True,
     redo: str | None = None,
     backend: Backend | None = None,
+    start_from: str | Path | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run (or resume) the stages in order; returns the stage records (their JSON).
 
@@ -62,9 +63,18 @@ def run_pipeline(
 
     ``redo``: run this stage again although it has finished; the records of the stages after it
     (which were built on it) are removed too, so they run again when asked for.
+
+    ``start_from``: a finished run whose trained stages a new run folder takes
+    (:meth:`Run.start_from`: an estimator ablation without training again).
     """
     prof = PROFILES[profile] if isinstance(profile, str) else profile
     run = Run(out, prof, scenario, progress, backend=backend)
+    if start_from is not None:
+        try:
+            run.start_from(start_from)
+        except PipelineError:
+            run.close()
+            raise
     if redo is not None:
         if redo not in STAGES:
             run.close()

@@ -247,3 +247,13 @@ PROFILES: dict[str, Profile] = {
 PROFILES["robust_no_hover"] = replace(
     PROFILES["robust"], name="robust_no_hover", hover_input=False, eval_suite_baseline=None
 )
+
+# Ablation of the estimator settings chosen on validation after the first robust model: the
+# robust networks (`visland pipeline --profile robust_first_estimator --from runs/robust`) with
+# that model's estimator — process noise 0.3, bias walk 0.02, a fix at p >= 0.5, no unsure fixes.
+PROFILES["robust_first_estimator"] = replace(
+    PROFILES["robust"],
+    name="robust_first_estimator",
+    eval_suite_baseline=None,
+    **Profile.added_defaults(),
+)

@@ -177,6 +177,16 @@ def _add_trajectories(
     return mismatches
 
 
+def _started_from(run: Path) -> str | None:
+    """The run whose trained stages ``run`` took (``profile.json`` ``started_from``), if any."""
+    try:
+        data = json.loads((run / "profile.json").read_text())
+    except (OSError, ValueError):
+        return None
+    start = data.get("started_from") if isinstance(data, dict) else None
+    return str(start["run"]) if isinstance(start, dict) and "run" in start else None
+
+
 def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
     """Per suite condition, the run's success and mean error beside each ablation run's (the
     profile keys it changed named in its column); empty without ablations or a suite."""
@@ -195,13 +205,18 @@ def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
             for k in mine
             if k not in ("name", "eval_suite_baseline") and theirs.get(k) != mine[k]
         ]
+        start = _started_from(Path(run))
+        if start:
+            changed.append(f"the networks of {start}")
         columns.append((f"{run}: {', '.join(changed) or 'same profile'}", other))
     head = ["condition", f"{metrics.profile.name} (shipped)"] + [c[0] for c in columns]
     lines = [
         "### Ablations on the suite",
         "",
         "Each cell: success and mean landing error; the same suite and seeds, each run trained "
-        "from scratch by its profile (`visland pipeline --profile P`).",
+        "from scratch by its profile (`visland pipeline --profile P`) unless its column names "
+        "the networks it took (`visland pipeline --profile P --from RUN`: the same networks, "
+        "another estimator).",
         "",
         "| " + " | ".join(head) + " |",
         "|---|" + "---:|" * (len(head) - 1),

@@ -128,6 +128,55 @@ class Run:
                 self.say(f"stage {stage}: record removed (estimator settings changed)")
         path.write_text(json.dumps(theirs, indent=2))
 
+    def start_from(self, other: str | Path) -> list[str]:
+        """Begin this (empty) run from ``other``'s trained stages, for an estimator ablation:
+        the two profiles may differ only in estimator settings (:data:`ESTIMATOR_KEYS`) and in
+        what the eval stage flies beside the run, so every network ``other`` trained (collect
+        through perception) is this run's too; their records are copied (they keep pointing at
+        ``other``'s checkpoints and flights) and the vision and eval stages run here with this
+        profile's estimator. ``profile.json`` records it (``started_from``: run, commit,
+        stages). Returns the stages taken.
+
+        Raises:
+            PipelineError: this run has stage records already, ``other`` is not a run folder,
+                or the profiles differ in anything else (named)."""
+        src = Path(other)
+        if any(self.record_path(s).exists() for s in STAGES):
+            raise PipelineError(f"{self.root}: --from needs a new run folder (it has stages)")
+        try:
+            theirs = json.loads((src / "profile.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise PipelineError(f"{src}/profile.json: not a run folder's profile ({exc})") from exc
+        prof = {**Profile.added_defaults(), **(theirs.get("profile") or {})}
+        mine = self.profile.to_dict()
+        free = set(ESTIMATOR_KEYS) | {"name", "eval_suite_baseline"}
+        differ = sorted(k for k in mine if k not in free and prof.get(k) != mine[k])
+        if theirs.get("scenario") != self.scenario_path:
+            differ.append("scenario")
+        if differ:
+            raise PipelineError(
+                f"--from {src}: its profile differs in {', '.join(differ)} (only estimator "
+                f"settings may: {', '.join(ESTIMATOR_KEYS)}); train this run from scratch"
+            )
+        trained = STAGES[: STAGES.index("vision")]
+        taken = []
+        for record in sorted((src / "stages").glob("*.json")):
+            stage = record.stem.split("_r")[0]
+            if stage in trained:
+                (self.root / "stages" / record.name).write_text(record.read_text())
+                taken.append(record.stem)
+        missing = [s for s in trained if s not in taken]
+        if missing:
+            for name in taken:
+                self.record_path(name).unlink()
+            raise PipelineError(f"--from {src}: stages {', '.join(missing)} have not finished")
+        path = self.root / "profile.json"
+        data = json.loads(path.read_text())
+        data["started_from"] = {"run": str(src), "commit": self.commit, "stages": taken}
+        path.write_text(json.dumps(data, indent=2))
+        self.say(f"started from {src}: {', '.join(taken)}")
+        return taken
+
     def log(self, name: str, value: float, step: int) -> None:
         if self._tb is None:
             try:
