@@ -147,7 +147,9 @@ class Run:
             theirs = json.loads((src / "profile.json").read_text())
         except (OSError, ValueError) as exc:
             raise PipelineError(f"{src}/profile.json: not a run folder's profile ({exc})") from exc
-        prof = {**Profile.added_defaults(), **(theirs.get("profile") or {})}
+        if not isinstance(theirs, dict) or not isinstance(theirs.get("profile"), dict):
+            raise PipelineError(f"{src}/profile.json: expected an object with a 'profile' object")
+        prof = {**Profile.added_defaults(), **theirs["profile"]}
         mine = self.profile.to_dict()
         free = set(ESTIMATOR_KEYS) | {"name", "eval_suite_baseline"}
         differ = sorted(k for k in mine if k not in free and prof.get(k) != mine[k])
