@@ -12,6 +12,7 @@ from training.transport import Transport
 
 __all__ = [
     "ESTIMATOR_KEYS",
+    "LABEL_KEYS",
     "NET_OPTIONS",
     "PROFILES",
     "ROLLOUT_TRANSPORTS",
@@ -44,6 +45,10 @@ NET_OPTIONS = (
 )
 """The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
 (passed as they are to ``training.train.net_config_for``)."""
+
+LABEL_KEYS = ("name", "eval_suite_baseline")
+"""The profile keys that name a run and what its eval stage flies beside it: two runs that
+differ only in them trained and flew the same (an ablation's profile differs in them too)."""
 
 ESTIMATOR_KEYS = tuple(k for k in NET_OPTIONS if k in ESTIMATOR_FIELDS)
 """The profile keys no network weight depends on (the pad estimator's settings): a finished

@@ -23,6 +23,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from training.profiles import LABEL_KEYS
 from training.report_figures import (
     FIGURE_PATTERNS,
     SCATTER_VIEW_M,
@@ -201,9 +202,7 @@ def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
             raise ReportError(f"{run}/metrics.json: no suite results (its profile flies none)")
         theirs = other.profile.to_dict()
         changed = [
-            f"{k}={theirs[k]}"
-            for k in mine
-            if k not in ("name", "eval_suite_baseline") and theirs.get(k) != mine[k]
+            f"{k}={theirs[k]}" for k in mine if k not in LABEL_KEYS and theirs.get(k) != mine[k]
         ]
         start = _started_from(Path(run))
         if start:

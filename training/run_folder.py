@@ -21,7 +21,7 @@ from tqdm import tqdm
 from companion.flightlog import jsonable
 from sitl_sim.config import load_sim, load_vehicle, planet
 from training.backend import Backend, LocalBackend
-from training.profiles import ESTIMATOR_KEYS, PipelineError, Profile
+from training.profiles import ESTIMATOR_KEYS, LABEL_KEYS, PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
 from training.stages.records import STAGES, StageRecord, record_type
@@ -151,7 +151,7 @@ class Run:
             raise PipelineError(f"{src}/profile.json: expected an object with a 'profile' object")
         prof = {**Profile.added_defaults(), **theirs["profile"]}
         mine = self.profile.to_dict()
-        free = set(ESTIMATOR_KEYS) | {"name", "eval_suite_baseline"}
+        free = set(ESTIMATOR_KEYS) | set(LABEL_KEYS)
         differ = sorted(k for k in mine if k not in free and prof.get(k) != mine[k])
         if theirs.get("scenario") != self.scenario_path:
             differ.append("scenario")
