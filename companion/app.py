@@ -27,7 +27,6 @@ import signal
 import sys
 import threading
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,8 @@ from typing import Any
 
 from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
-from companion.flight import OffboardConfig
+from companion.files import read_toml
+from companion.flight import FlightContext, OffboardConfig
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
 from companion.offboard import FlightController
 from companion.options import option, redacted_dict
@@ -77,7 +77,7 @@ class CompanionConfig:
         "serial:/dev/ttyX:BAUD",
     )
     baud: int = option(921_600, "serial baud rate")
-    autopilot: str = option("px4", "autopilot profile", choices=("px4", "ardupilot"))
+    autopilot: str = option("px4", "autopilot profile", choices=tuple(PROFILES))
     camera: str = option(
         "udp:127.0.0.1:5600", "camera: udp:HOST:PORT (SITL), opencv:DEVICE|FILE|PIPELINE, mcap:LOG"
     )
@@ -211,14 +211,12 @@ class CompanionConfig:
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """The ``[companion]`` table of a TOML file, checked against the config's fields."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise CompanionError(f"{path}: no such config file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise CompanionError(f"{path}: not valid TOML: {exc}") from None
+    """The ``[companion]`` table of a TOML file, checked against the config's fields.
+
+    Raises:
+        CompanionError: the file is missing or not TOML, or the table is missing or wrong.
+    """
+    data = read_toml(path, CompanionError)
     table = data.get("companion")
     if not isinstance(table, dict):
         raise CompanionError(f"{path}: expected a [companion] table")
@@ -376,33 +374,20 @@ class Companion:
             "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
         }
         flog = self.flight_log = CompanionLog(path, meta, self._clock)
-        if self.tracker is not None:
-            from companion.landing_target import LandingTargetController
-
-            return LandingTargetController(
-                self.flight_cfg,
-                self.link,
-                self.store,
-                self.camera.clock,
-                self.tracker,
-                self.safety,
-                flog,
-                self._pump,
-                self._clock,
-                index,
-            )
-        return FlightController(
+        ctx = FlightContext(
             self.flight_cfg,
             self.link,
             self.store,
             self.camera.clock,
-            self.runtime,
             self.safety,
-            flog,
             self._pump,
             self._clock,
-            index,
         )
+        if self.tracker is not None:
+            from companion.landing_target import LandingTargetController
+
+            return LandingTargetController(ctx, self.tracker, flog, index)
+        return FlightController(ctx, self.runtime, flog, index)
 
     def _close_flight(self) -> None:
         flight, flog = self.flight, self.flight_log

@@ -1,9 +1,10 @@
 """The types around one flight of the companion: its settings (:class:`OffboardConfig`, the
-companion config's flight part), the log it writes to (:class:`FlightRecorder`, the few calls
-the state machine makes), how it ended (:class:`FlightOutcome`) and what the two state machines
-share (:class:`FlightMachine`). The state machines themselves are :mod:`companion.offboard`
-(the policy flies) and :mod:`companion.landing_target` (the autopilot lands on LANDING_TARGET);
-their states and results are :mod:`companion.states`.
+companion config's flight part), what the process hands every flight (:class:`FlightContext`),
+the log it writes to (:class:`FlightRecorder`, the few calls the state machine makes), how it
+ended (:class:`FlightOutcome`) and what the two state machines share (:class:`FlightMachine`).
+The state machines themselves are :mod:`companion.offboard` (the policy flies) and
+:mod:`companion.landing_target` (the autopilot lands on LANDING_TARGET); their states and
+results are :mod:`companion.states`.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
     from companion.safety import SafetyMonitor
     from companion.telemetry import TelemetryStore
 
-__all__ = ["FlightMachine", "FlightOutcome", "FlightRecorder", "OffboardConfig"]
+__all__ = ["FlightContext", "FlightMachine", "FlightOutcome", "FlightRecorder", "OffboardConfig"]
 
 log = logging.getLogger("visland.companion")
 
@@ -76,6 +77,29 @@ class OffboardConfig:
             raise ValueError(f"prestream_rate_hz = {self.prestream_rate_hz}; expected (2, 100]")
         if not 0.0 <= self.hover_thrust <= 1.0:
             raise ValueError(f"hover_thrust = {self.hover_thrust}; expected in [0, 1]")
+
+
+@dataclass(frozen=True)
+class FlightContext:
+    """What the process hands each flight's state machine, whatever its mode.
+
+    Attributes:
+        cfg: the state machine's settings.
+        link: the MAVLink link (sends setpoints/commands; in shadow mode only listens).
+        store: the telemetry store the process loop feeds.
+        camera_clock: ``autopilot`` (SITL frames) or ``companion`` (a local camera).
+        safety: the safety monitor.
+        pump: ``pump(timeout_s)`` receives MAVLink for up to ``timeout_s`` (frame sync).
+        clock: the companion's monotonic clock.
+    """
+
+    cfg: OffboardConfig
+    link: MavlinkLink
+    store: TelemetryStore
+    camera_clock: str
+    safety: SafetyMonitor
+    pump: Callable[[float], None]
+    clock: Callable[[], float]
 
 
 @dataclass
@@ -135,28 +159,22 @@ class FlightMachine(ABC):
 
     Subclasses handle the ACK of their DO_SET_MODE (``_on_mode_ack``) and the autopilot's
     HEARTBEAT (``_on_heartbeat``), and set ``_needs_odometry`` where they read ground truth.
+
+    Args:
+        ctx: what the process hands every flight (settings, link, store, safety, clocks).
+        log: this flight's log (a :class:`FlightRecorder`).
+        index: flight number.
     """
 
-    def __init__(
-        self,
-        cfg: OffboardConfig,
-        link: MavlinkLink,
-        store: TelemetryStore,
-        camera_clock: str,
-        safety: SafetyMonitor,
-        log: FlightRecorder,
-        pump: Callable[[float], None],
-        clock: Callable[[], float],
-        index: int = 0,
-    ) -> None:
-        self.cfg = cfg
-        self.link = link
-        self.store = store
-        self.camera_clock = camera_clock
-        self.safety = safety
+    def __init__(self, ctx: FlightContext, log: FlightRecorder, index: int = 0) -> None:
+        self.cfg = ctx.cfg
+        self.link = ctx.link
+        self.store = ctx.store
+        self.camera_clock = ctx.camera_clock
+        self.safety = ctx.safety
         self.log = log
-        self._pump = pump
-        self._clock = clock
+        self._pump = ctx.pump
+        self._clock = clock = ctx.clock
         self.outcome = FlightOutcome(index=index, log_path=str(log.path))
         self.state = FlightState.WAITING
         self._entered_s = clock()

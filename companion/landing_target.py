@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -53,12 +52,11 @@ import numpy as np
 
 from companion.camera import ReceivedFrame
 from companion.contract import Observation
-from companion.flight import FlightMachine, FlightRecorder, OffboardConfig
-from companion.link import MavlinkLink, mavlink
+from companion.flight import FlightContext, FlightMachine, FlightRecorder
+from companion.link import mavlink
 from companion.policy_net.geometry import rotation_zyx
-from companion.safety import SafetyMonitor
 from companion.states import FlightResult, FlightState
-from companion.telemetry import TelemetryStore, assemble_observation
+from companion.telemetry import assemble_observation
 
 __all__ = [
     "LandingTargetController",
@@ -200,22 +198,19 @@ class LandingTargetRecorder(FlightRecorder, Protocol):
 class LandingTargetController(FlightMachine):
     """One flight in landing-target mode; the same calls as
     :class:`~companion.offboard.FlightController` (``on_message``, ``on_frame``, ``on_tick``,
-    ``hand_back``, ``done``, ``outcome``), fed by the same process loop."""
+    ``hand_back``, ``done``, ``outcome``), fed by the same process loop.
+
+    Args:
+        ctx: what the process hands every flight (settings, link, store, safety, clocks).
+        tracker: the vision policy's perception and pad estimator.
+        log: this flight's log (with its LANDING_TARGET topic).
+        index: flight number.
+    """
 
     def __init__(
-        self,
-        cfg: OffboardConfig,
-        link: MavlinkLink,
-        store: TelemetryStore,
-        camera_clock: str,
-        tracker: PadTracker,
-        safety: SafetyMonitor,
-        log: LandingTargetRecorder,
-        pump: Callable[[float], None],
-        clock: Callable[[], float],
-        index: int = 0,
+        self, ctx: FlightContext, tracker: PadTracker, log: LandingTargetRecorder, index: int = 0
     ) -> None:
-        super().__init__(cfg, link, store, camera_clock, safety, log, pump, clock, index)
+        super().__init__(ctx, log, index)
         self.log: LandingTargetRecorder = log
         self.tracker = tracker
         self._tracked_since: float | None = None
@@ -382,8 +377,7 @@ class LandingTargetController(FlightMachine):
                 self._mode_acked = False
                 profile = self.link.profile
                 self._enter(
-                    FlightState.ENGAGING,
-                    f"pad tracked: requesting {profile.mode_name(_custom(profile))}",
+                    FlightState.ENGAGING, f"pad tracked: requesting {profile.precland.label}"
                 )
                 self.link.request_mode(profile.precland, armed=True)
         elif state is FlightState.ENGAGING and now - self._entered_s > self.cfg.engage_timeout_s:
@@ -397,9 +391,3 @@ class LandingTargetController(FlightMachine):
         if self.state is FlightState.FLYING and not self.cfg.shadow:
             self._event("hand_back", f"{reason}: LANDING_TARGET stream stops; the autopilot lands")
         self._finish(FlightResult.ABORTED, reason)
-
-
-def _custom(profile: Any) -> int:
-    """The precision-land mode as a HEARTBEAT custom_mode (for its name)."""
-    main, sub = profile.precland
-    return (main << 16) | (sub << 24) if profile.name == "px4" else main

@@ -30,17 +30,16 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 
 import numpy as np
 
 from companion.camera import ReceivedFrame
-from companion.flight import FlightMachine, FlightRecorder, OffboardConfig
-from companion.link import MavlinkLink, mavlink
+from companion.flight import FlightContext, FlightMachine, FlightRecorder
+from companion.link import mavlink
 from companion.runtime import PolicyRuntime
-from companion.safety import SafetyMonitor, TouchdownDetector
+from companion.safety import TouchdownDetector
 from companion.states import Failsafe, FailsafeReason, FlightResult, FlightState, TouchdownAction
-from companion.telemetry import TelemetryStore, assemble_observation
+from companion.telemetry import assemble_observation
 
 __all__ = ["FlightController"]
 
@@ -62,38 +61,22 @@ class FlightController(FlightMachine):
     """One flight: fed messages, frames and ticks by the process loop (:mod:`companion.app`).
 
     Args:
-        cfg: the state machine's settings.
-        link: the MAVLink link (sends setpoints/commands; in shadow mode only listens).
-        store: the telemetry store the loop feeds.
-        camera_clock: ``autopilot`` (SITL frames) or ``companion`` (a local camera).
+        ctx: what the process hands every flight (settings, link, store, safety, clocks).
         runtime: the policy runtime.
-        safety: the safety monitor.
         log: this flight's log (a :class:`FlightRecorder`).
-        pump: ``pump(timeout_s)`` receives MAVLink for up to ``timeout_s`` (frame sync).
-        clock: the companion's monotonic clock.
         index: flight number.
     """
 
     def __init__(
-        self,
-        cfg: OffboardConfig,
-        link: MavlinkLink,
-        store: TelemetryStore,
-        camera_clock: str,
-        runtime: PolicyRuntime,
-        safety: SafetyMonitor,
-        log: FlightRecorder,
-        pump: Callable[[float], None],
-        clock: Callable[[], float],
-        index: int = 0,
+        self, ctx: FlightContext, runtime: PolicyRuntime, log: FlightRecorder, index: int = 0
     ) -> None:
-        super().__init__(cfg, link, store, camera_clock, safety, log, pump, clock, index)
+        super().__init__(ctx, log, index)
         self.runtime = runtime
         self._last_prestream_s = -math.inf
         self._last_mode_req_s = -math.inf
         self._mode_change_ap_s = math.inf
         self._land_confirmed = False
-        self._touchdown = TouchdownDetector(cfg.touchdown_range_m)
+        self._touchdown = TouchdownDetector(ctx.cfg.touchdown_range_m)
         self._flight_start_rx = math.inf
         self._hover: float | None = None
 

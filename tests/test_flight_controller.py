@@ -21,7 +21,7 @@ import pytest
 
 from companion.camera import ReceivedFrame
 from companion.contract import Command
-from companion.flight import OffboardConfig
+from companion.flight import FlightContext, OffboardConfig
 from companion.link import PX4, mavlink
 from companion.offboard import FlightController
 from companion.runtime import PolicyRuntime
@@ -175,17 +175,16 @@ class Rig:
         self.runtime = PolicyRuntime(self.policy, "constant")
         self.pumped: list[float] = []
         self.frame_id = 0
-        self.fc = FlightController(
+        ctx = FlightContext(
             OffboardConfig(shadow=shadow, on_touchdown=on_touchdown),
             self.link,  # type: ignore[arg-type]
             self.store,
             camera_clock,
-            self.runtime,
             SafetyMonitor(SafetyConfig(max_age_s=max_age_s)),
-            self.log,
             self._pump,
             self.clock,
         )
+        self.fc = FlightController(ctx, self.runtime, self.log)
 
     # ------------------------------------------------------------------ the world
 

@@ -12,10 +12,13 @@ module                 what it fixes
 ``topics``             every flight-log topic name and schema name
 ``camera_packet``      the UDP camera frame format (header, chunks, CRC, assembler)
 ``signing``            MAVLink 2 signing key parsing and PX4's unsigned allow-list
+``autopilots``         the autopilot profiles (PX4, ArduPilot) as one table: mode numbers
+                       (enums), parameters, arming rules; the companion's link and the
+                       SITL's autopilots both read it
 =====================  ===============================================================
 
-It depends on numpy and the standard library (``signing`` on pymavlink's dialect, imported
-only by whoever needs it). Nothing here imports another visland package.
+It depends on numpy and the standard library (``signing`` and ``autopilots`` on pymavlink's
+dialect, imported only by whoever needs them). Nothing here imports another visland package.
 """
 
 from companion.contract.messages import (

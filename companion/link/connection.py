@@ -1,4 +1,4 @@
-"""The companion's MAVLink link: connection, own HEARTBEAT, autopilot discovery, reconnect.
+"""The companion's MAVLink connection: the port, our HEARTBEAT, autopilot discovery, reconnect.
 
 Any pymavlink connection string works (``udpin:0.0.0.0:14540``, ``udpout:10.0.0.1:14580``,
 ``tcp:127.0.0.1:5760``, ``/dev/ttyAMA0`` with ``baud``, or ``serial:/dev/ttyAMA0:921600``).
@@ -9,8 +9,8 @@ The companion announces itself as an onboard controller (``MAV_TYPE_ONBOARD_CONT
 ``MAV_AUTOPILOT_INVALID``, component 191 = ``MAV_COMP_ID_ONBOARD_COMPUTER``) at 1 Hz,
 discovers the autopilot from the first HEARTBEAT of a component whose ``autopilot`` is not
 INVALID, and watches the link: no autopilot HEARTBEAT for ``link_timeout_s`` = *lost*; the next
-one = *reconnected* (streams re-requested); ``time_boot_ms`` going backwards = the autopilot
-*restarted*. A broken serial/TCP port is reopened every ``reopen_period_s``.
+one = *reconnected*; ``time_boot_ms`` going backwards = the autopilot *restarted*. A broken
+serial/TCP port is reopened every ``reopen_period_s``.
 
 On a lossy link datagrams may be duplicated or reordered. Telemetry carries time stamps (the
 store drops late samples); a HEARTBEAT does not, and a stale one would show an old mode or
@@ -21,18 +21,19 @@ counted (``rx_stale_heartbeats``); further behind is a new stream (a restarted s
 
 On a UDP server port (``udpin:``) pymavlink sends every datagram to every address that ever sent
 one to the port, so a GCS, a scanner or a flood from elsewhere on the network would receive the
-setpoints too (and could steer the replies of a naive "last sender" link). The link *pins its
-peer*: the address the autopilot's HEARTBEAT came from (each datagram is parsed on its own — an
-incomplete message left by another datagram is dropped, as over UDP it can never complete — so
-every message has a known sender). Everything is then sent to that address only. The peer moves
-only when the link is lost (no autopilot HEARTBEAT for ``link_timeout_s``) and the autopilot is
-heard from a new address — a restarted autopilot on another port; a HEARTBEAT spoofing the
-autopilot's ids from elsewhere while it is alive is counted (``rx_peer_mismatch``) and moves
-nothing. Unsigned MAVLink cannot stop a spoof on a lost link: sign it (``signing_key``) or use a
-serial port where that matters.
+setpoints too (and could steer the replies of a naive "last sender" link). The connection *pins
+its peer*: the address the autopilot's HEARTBEAT came from (each datagram is parsed on its own —
+an incomplete message left by another datagram is dropped, as over UDP it can never complete —
+so every message has a known sender). Everything is then sent to that address only. The peer
+moves only when the link is lost (no autopilot HEARTBEAT for ``link_timeout_s``) and the
+autopilot is heard from a new address — a restarted autopilot on another port; a HEARTBEAT
+spoofing the autopilot's ids from elsewhere while it is alive is counted (``rx_peer_mismatch``)
+and moves nothing. Unsigned MAVLink cannot stop a spoof on a lost link: sign it
+(``signing_key``) or use a serial port where that matters.
 
-Autopilot *profiles* hold what differs between PX4 and ArduPilot: mode numbers, the
-hover-thrust parameter and the meaning of SET_ATTITUDE_TARGET's ``thrust``.
+What goes over the connection (commands, parameters, setpoints) is
+:class:`companion.link.protocol.LinkProtocol`'s; what differs between autopilots is the
+contract's table (:mod:`companion.contract.autopilots`).
 """
 
 from __future__ import annotations
@@ -57,13 +58,12 @@ from companion.contract.signing import UNSIGNED_ALLOWED
 mavutil.set_dialect("common")  # v20.common, whatever MAVLINK_DIALECT said
 
 __all__ = [
-    "ARDUPILOT",
-    "PROFILES",
-    "PX4",
-    "AutopilotProfile",
+    "COMPANION_COMPID",
+    "STALE_SEQ_WINDOW",
+    "LinkCounters",
     "LinkError",
     "LinkEvent",
-    "MavlinkLink",
+    "MavlinkConnection",
     "mavlink",
     "parse_connection",
 ]
@@ -78,128 +78,11 @@ duplicate or a reordered datagram). An autopilot streams ~170 messages/s here, s
 of traffic: far more than a reordered datagram is overtaken by (delay + jitter ~0.1 s), far
 less than the 256 at which the u8 sequence wraps."""
 
+_UDP_MAX = 65_535
+
 
 class LinkError(Exception):
     """The link cannot be opened or a parameter of it is invalid (names the value)."""
-
-
-# --------------------------------------------------------------------------- profiles
-
-
-@dataclass(frozen=True)
-class AutopilotProfile:
-    """What differs between autopilots for an offboard rate controller.
-
-    Attributes:
-        name: ``px4`` or ``ardupilot``.
-        offboard: DO_SET_MODE (param2, param3) of the mode that takes SET_ATTITUDE_TARGET
-            (PX4 OFFBOARD = main 6; ArduPilot GUIDED_NOGPS = 20).
-        land: DO_SET_MODE params of the landing mode (PX4 AUTO.LAND 4/6; ArduPilot LAND 9).
-        hold: DO_SET_MODE params of the hand-back hold mode (PX4 AUTO.LOITER 4/3; ArduPilot
-            ALT_HOLD 2: LOITER needs a position estimate, which a GPS-less vehicle lacks).
-        hover_param: the parameter holding the hover thrust (PX4 MPC_THR_HOVER, ArduPilot
-            MOT_THST_HOVER).
-        thrust_param: a parameter that must have ``thrust_param_bits`` set for ``thrust`` to be
-            collective thrust, or None when it always is (PX4). ArduPilot reads ``thrust`` as a
-            climb-rate demand (0.5 = hold altitude) unless GUID_OPTIONS bit 3 (8) is set.
-        precland: DO_SET_MODE params of the mode that lands on LANDING_TARGET (PX4
-            AUTO.PRECLAND 4/9; ArduPilot LAND 9, which uses the target when PLND_ENABLED = 1).
-        landing_target_position: send LANDING_TARGET's x, y, z with ``position_valid = 1`` in
-            MAV_FRAME_BODY_FRD (ArduPilot reads them, divided by ``distance``); PX4 drops a
-            body-frame position outright ("coordinate frame 12 unsupported"), so for PX4 the
-            angle form alone is sent.
-        precland_param: a parameter that must be 1 for the precision land to use the target
-            (ArduPilot PLND_ENABLED), or None (PX4: AUTO.PRECLAND always does).
-    """
-
-    name: str
-    offboard: tuple[int, int]
-    land: tuple[int, int]
-    hold: tuple[int, int]
-    hover_param: str
-    thrust_param: str | None = None
-    thrust_param_bits: int = 0
-    precland: tuple[int, int] = (4, 9)
-    landing_target_position: bool = False
-    precland_param: str | None = None
-
-    @staticmethod
-    def _main_sub(custom_mode: int) -> tuple[int, int]:
-        return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-
-    def _matches(self, custom_mode: int, mode: tuple[int, int]) -> bool:
-        if self.name == "px4":
-            main, sub = self._main_sub(custom_mode)
-            return main == mode[0] and (mode[0] == 6 or sub == mode[1])
-        return custom_mode == mode[0]
-
-    def is_offboard(self, custom_mode: int) -> bool:
-        return self._matches(custom_mode, self.offboard)
-
-    def is_land(self, custom_mode: int) -> bool:
-        if self.name == "px4":
-            main, sub = self._main_sub(custom_mode)
-            return main == 4 and sub in (6, 9)  # AUTO.LAND or AUTO.PRECLAND
-        return self._matches(custom_mode, self.land)
-
-    def is_precland(self, custom_mode: int) -> bool:
-        return self._matches(custom_mode, self.precland)
-
-    def is_hold(self, custom_mode: int) -> bool:
-        return self._matches(custom_mode, self.hold)
-
-    def mode_name(self, custom_mode: int) -> str:
-        if self.name == "px4":
-            main, sub = self._main_sub(custom_mode)
-            names = {
-                (6, 0): "OFFBOARD",
-                (4, 3): "AUTO.LOITER",
-                (4, 6): "AUTO.LAND",
-                (4, 9): "AUTO.PRECLAND",
-                (4, 5): "AUTO.RTL",
-                (3, 0): "POSCTL",
-                (2, 0): "ALTCTL",
-                (1, 0): "MANUAL",
-                (7, 0): "STABILIZED",
-            }
-            return names.get((main, sub), f"PX4 {main}/{sub}")
-        names = {
-            0: "STABILIZE",
-            2: "ALT_HOLD",
-            4: "GUIDED",
-            5: "LOITER",
-            9: "LAND",
-            20: "GUIDED_NOGPS",
-        }
-        return names.get(custom_mode, f"ArduPilot {custom_mode}")
-
-    def set_mode_params(self, mode: tuple[int, int], armed: bool) -> tuple[float, float, float]:
-        """DO_SET_MODE param1..3 (param1 = CUSTOM_MODE_ENABLED, + SAFETY_ARMED when armed)."""
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
-            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
-        )
-        return float(base), float(mode[0]), float(mode[1])
-
-
-PX4 = AutopilotProfile(
-    name="px4", offboard=(6, 0), land=(4, 6), hold=(4, 3), hover_param="MPC_THR_HOVER"
-)
-ARDUPILOT = AutopilotProfile(
-    name="ardupilot",
-    offboard=(20, 0),
-    land=(9, 0),
-    hold=(2, 0),
-    hover_param="MOT_THST_HOVER",
-    thrust_param="GUID_OPTIONS",
-    thrust_param_bits=8,
-    precland=(9, 0),
-    landing_target_position=True,
-    precland_param="PLND_ENABLED",
-)
-PROFILES = {"px4": PX4, "ardupilot": ARDUPILOT}
-
-
-# --------------------------------------------------------------------------- helpers
 
 
 def parse_connection(url: str, baud: int) -> tuple[str, int]:
@@ -229,24 +112,17 @@ def parse_connection(url: str, baud: int) -> tuple[str, int]:
 @dataclass(frozen=True)
 class LinkEvent:
     """Something that happened to the link: ``discovered``, ``lost``, ``reconnected``,
-    ``restarted``, ``port_error``, ``port_reopened``."""
+    ``restarted``, ``peer``, ``port_error``, ``port_reopened``."""
 
     kind: str
     text: str
 
 
 @dataclass
-class _PendingCommand:
-    command: int
-    params: tuple[float, ...]
-    sent_s: float
-    attempts: int
-    result: int | None = None
-
-
-@dataclass
 class LinkCounters:
-    """What the link has seen (reported in the flight log and at exit)."""
+    """What the link has seen (reported in the flight log and at exit). The connection counts
+    what it receives and its port's errors; :class:`~companion.link.protocol.LinkProtocol`
+    counts the ``tx_`` messages it sends."""
 
     rx_messages: int = 0
     rx_bad_data: int = 0
@@ -266,25 +142,23 @@ class LinkCounters:
     extra: dict[str, int] = field(default_factory=dict)
 
 
-# --------------------------------------------------------------------------- the link
-
-_UDP_MAX = 65_535
-
-
-class MavlinkLink:
-    """One MAVLink 2 connection to one autopilot.
+class MavlinkConnection:
+    """One MAVLink 2 port to one autopilot: receiving, sending, and watching the link.
 
     Args:
         url: pymavlink connection string (see the module doc).
         baud: serial baud rate.
-        profile: the autopilot profile.
         sysid: our system id; None = take the autopilot's once discovered (the convention for a
             component on the vehicle), 1 until then.
         compid: our component id (191, onboard computer).
         signing_key: 32-byte MAVLink 2 signing secret (None: unsigned).
         link_timeout_s: no autopilot HEARTBEAT for this long = link lost.
         heartbeat_period_s: our HEARTBEAT period.
+        reopen_period_s: a broken port is reopened this often.
         clock: monotonic clock (injectable for tests).
+
+    Raises:
+        LinkError: a parameter is invalid or the port cannot be opened.
     """
 
     def __init__(
@@ -292,7 +166,6 @@ class MavlinkLink:
         url: str,
         *,
         baud: int = 57_600,
-        profile: AutopilotProfile = PX4,
         sysid: int | None = None,
         compid: int = COMPANION_COMPID,
         signing_key: bytes | None = None,
@@ -307,7 +180,6 @@ class MavlinkLink:
         if signing_key is not None and len(signing_key) != 32:
             raise LinkError(f"signing key of {len(signing_key)} bytes; expected 32")
         self.url = url
-        self.profile = profile
         self._fixed_sysid = sysid
         self.compid = compid
         self.signing_key = signing_key
@@ -324,9 +196,6 @@ class MavlinkLink:
         self._last_hb_tx_s = -math.inf
         self._last_boot_ms: int | None = None
         self._newest_seq: dict[tuple[int, int], int] = {}
-        self._pending: dict[int, _PendingCommand] = {}
-        self._acks: dict[int, int] = {}
-        self._params: dict[str, float] = {}
         self._broken_since: float | None = None
         self.conn: Any = None
         self.last_send_call_s = 0.0
@@ -336,7 +205,7 @@ class MavlinkLink:
         self._leftover: tuple[int, int] | None = None
         self._open()
 
-    # ------------------------------------------------------------------ connection
+    # ------------------------------------------------------------------ the port
 
     def _open(self) -> None:
         try:
@@ -407,6 +276,11 @@ class MavlinkLink:
 
         conn.recv = recv
         conn.write = write
+
+    @property
+    def is_open(self) -> bool:
+        """The port is open (False while a broken one waits to be reopened)."""
+        return self.conn is not None
 
     def fileno(self) -> int | None:
         """The file descriptor to ``select`` on (None while the port is being reopened)."""
@@ -494,10 +368,9 @@ class MavlinkLink:
 
     def _accept(self, msg: Any, rx: float) -> bool:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
-        name = msg.get_type()
         if self._stale(msg, (src_sys, src_comp)):
             return False
-        if name == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID:
+        if msg.get_type() == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID:
             if self.target_system is None:
                 self.target_system, self.target_component = src_sys, src_comp
                 if self._fixed_sysid is None:
@@ -528,13 +401,6 @@ class MavlinkLink:
                     f"autopilot clock went back from {self._last_boot_ms} to {boot_ms} ms",
                 )
             self._last_boot_ms = boot_ms
-        if name == "COMMAND_ACK":
-            self._acks[msg.command] = msg.result
-            pending = self._pending.get(msg.command)
-            if pending is not None:
-                pending.result = msg.result
-        elif name == "PARAM_VALUE":
-            self._params[msg.param_id] = float(msg.param_value)
         return True
 
     def _from_peer(self) -> bool:
@@ -557,7 +423,7 @@ class MavlinkLink:
         now = self._clock()
         if self.conn is not None and now - self._last_hb_tx_s >= self.heartbeat_period_s:
             self._last_hb_tx_s = now
-            self._send(
+            self.send(
                 self.conn.mav.heartbeat_encode(
                     mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
                     mavlink.MAV_AUTOPILOT_INVALID,
@@ -571,11 +437,6 @@ class MavlinkLink:
             self._event(
                 "lost", f"no HEARTBEAT from the autopilot for {now - self._last_hb_rx_s:.1f} s"
             )
-        for pending in list(self._pending.values()):
-            if pending.result is None and now - pending.sent_s >= 0.5 and pending.attempts < 4:
-                pending.attempts += 1
-                pending.sent_s = now
-                self._send_command(pending.command, pending.params, confirmation=pending.attempts)
 
     def _event(self, kind: str, text: str) -> None:
         self.events.append(LinkEvent(kind, text))
@@ -591,7 +452,8 @@ class MavlinkLink:
 
     # ------------------------------------------------------------------ sending
 
-    def _send(self, msg: Any) -> bool:
+    def send(self, msg: Any) -> bool:
+        """Pack and send ``msg``; False when not sent (no port, or the port broke)."""
         if msg is None or self.conn is None:
             return False
         try:
@@ -601,28 +463,14 @@ class MavlinkLink:
             return False
         return True
 
-    def send_setpoint(self, thrust: float, rate_frd_rad_s, time_boot_ms: int) -> float | None:
-        """SET_ATTITUDE_TARGET, type_mask 128 (attitude ignored): thrust + FRD body rates.
-
-        Returns the monotonic time the packed datagram was handed to the OS (None: not sent).
-        ``last_send_call_s`` is how long the send call took: on a loopback link a busy machine
-        may run the receiver inside it, which is not the companion's latency.
-        """
+    def send_timed(self, msg: Any) -> float | None:
+        """Send ``msg`` as :meth:`send`, with the monotonic time the packed datagram was handed
+        to the OS taken just before the write (None: not sent). ``last_send_call_s`` is how
+        long the write took: on a loopback link a busy machine may run the receiver inside it,
+        which is not the companion's latency."""
         conn = self.conn
-        if conn is None or self.target_system is None:
+        if conn is None:
             return None
-        r = rate_frd_rad_s
-        msg = conn.mav.set_attitude_target_encode(
-            int(time_boot_ms) & 0xFFFFFFFF,
-            self.target_system,
-            self.target_component,
-            mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE,
-            [1.0, 0.0, 0.0, 0.0],
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(thrust),
-        )
         mav = conn.mav
         buf = msg.pack(mav)  # as MAVLink.send, with the hand-off time taken before the write
         handed = self._clock()
@@ -635,114 +483,4 @@ class MavlinkLink:
         mav.seq = (mav.seq + 1) % 256
         mav.total_packets_sent += 1
         mav.total_bytes_sent += len(buf)
-        self.counters.tx_setpoints += 1
         return handed
-
-    def send_landing_target(
-        self,
-        time_usec: int,
-        angle_x_rad: float,
-        angle_y_rad: float,
-        distance_m: float,
-        pos_frd_m: tuple[float, float, float] | None,
-        target_type: int = mavlink.LANDING_TARGET_TYPE_VISION_OTHER,
-        target_num: int = 0,
-    ) -> float | None:
-        """LANDING_TARGET (MAVLink 2, with its extensions) in MAV_FRAME_BODY_FRD: the angles
-        (rad) and slant distance (m) always; ``pos_frd_m`` (the target in body FRD) with
-        ``position_valid = 1`` when given. Returns the hand-off time (None: not sent)."""
-        conn = self.conn
-        if conn is None or self.target_system is None:
-            return None
-        valid = pos_frd_m is not None
-        x, y, z = pos_frd_m if pos_frd_m is not None else (0.0, 0.0, 0.0)
-        msg = conn.mav.landing_target_encode(
-            int(time_usec),
-            int(target_num),
-            mavlink.MAV_FRAME_BODY_FRD,
-            float(angle_x_rad),
-            float(angle_y_rad),
-            float(distance_m),
-            0.0,  # size_x, size_y: unknown (neither autopilot reads them)
-            0.0,
-            float(x),
-            float(y),
-            float(z),
-            [1.0, 0.0, 0.0, 0.0],
-            int(target_type),
-            1 if valid else 0,
-        )
-        handed = self._clock()
-        if not self._send(msg):
-            return None
-        self.counters.tx_landing_targets += 1
-        return handed
-
-    def send_frame_marker(self, time_boot_ms: int, frame_id: int) -> None:
-        """NAMED_VALUE_INT ``VL_FRAME`` = frame id, stamped with the frame's time: a SITL
-        frame processed without a LANDING_TARGET (the lockstep answer; an autopilot only logs
-        it)."""
-        if self.conn is None:
-            return
-        self._send(
-            self.conn.mav.named_value_int_encode(
-                int(time_boot_ms) & 0xFFFFFFFF, b"VL_FRAME", int(frame_id) & 0x7FFFFFFF
-            )
-        )
-
-    def _send_command(self, command: int, params: tuple[float, ...], confirmation: int = 0) -> None:
-        if self.conn is None or self.target_system is None:
-            return
-        p = list(params) + [0.0] * (7 - len(params))
-        self._send(
-            self.conn.mav.command_long_encode(
-                self.target_system, self.target_component, command, confirmation, *p
-            )
-        )
-        self.counters.tx_commands += 1
-
-    def command(self, command: int, *params: float) -> None:
-        """Send COMMAND_LONG, re-sent every 0.5 s (up to 4 times) until its COMMAND_ACK."""
-        now = self._clock()
-        self._acks.pop(command, None)
-        self._pending[command] = _PendingCommand(command, tuple(params), now, 0)
-        self._send_command(command, tuple(params))
-
-    def ack(self, command: int) -> int | None:
-        """The MAV_RESULT of the latest ACK for ``command`` since it was sent (None: none)."""
-        return self._acks.get(command)
-
-    def request_mode(self, mode: tuple[int, int], armed: bool) -> None:
-        """DO_SET_MODE to a profile mode (``profile.offboard``/``land``/``hold``)."""
-        self.command(mavlink.MAV_CMD_DO_SET_MODE, *self.profile.set_mode_params(mode, armed))
-
-    def arm(self, arm: bool) -> None:
-        self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0 if arm else 0.0)
-
-    def set_message_interval(self, msg_id: int, rate_hz: float) -> None:
-        """SET_MESSAGE_INTERVAL (fire and forget; the autopilot's ACK is not awaited)."""
-        self._send_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), 1e6 / rate_hz))
-
-    def request_param(self, name: str) -> None:
-        if self.conn is None or self.target_system is None:
-            return
-        self._send(
-            self.conn.mav.param_request_read_encode(
-                self.target_system, self.target_component, name.encode(), -1
-            )
-        )
-
-    def param(self, name: str) -> float | None:
-        """The latest PARAM_VALUE received for ``name``."""
-        return self._params.get(name)
-
-    def param_int(self, name: str) -> int | None:
-        """An INT32 parameter sent byte-wise in the float field (PX4) or as a float value."""
-        value = self._params.get(name)
-        if value is None:
-            return None
-        if value == int(value) and abs(value) < 2**24:
-            return int(value)
-        import struct
-
-        return struct.unpack("<i", struct.pack("<f", value))[0]
