@@ -211,7 +211,7 @@ def relabel(
     workers: int = 1,
     on_done: Callable[[RelabelReport], None] | None = None,
 ) -> list[RelabelReport]:
-    """Relabel many logs in ``workers`` processes (the local backend; ``training.backend``
+    """Relabel many logs in ``workers`` processes (the local backend; ``training.exec.backend``
     has the Ray one); a failed one is reported (``error``) and the rest continue. Reports in
     the order of ``logs``."""
     jobs = [(str(p), str(out_dir)) for p in logs]

@@ -10,7 +10,7 @@ import pytest
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.scene import Scene
 from sitl_sim.sitl_config import SitlConfig
-from training.fly import free_udp_port
+from training.exec.fly import free_udp_port
 
 
 @pytest.fixture(scope="session")

@@ -35,7 +35,7 @@ from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld, episode_world
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.rollout import episode_pilot, fly_episode, make_policy
+from training.exec.rollout import episode_pilot, fly_episode, make_policy
 
 EARTH, MARS = PLANETS["earth"], PLANETS["mars"]
 HEAVY = CONFIG_DIR / "scenario_heavy.toml"

@@ -28,7 +28,7 @@ from sitl_sim.params import param_table, param_value_msg, parse_param_overrides,
 from sitl_sim.scenario import InitialState
 from sitl_sim.simulator import Simulator
 from sitl_sim.sitl_config import SitlConfig
-from training.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
+from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -15,16 +15,17 @@ from pathlib import Path
 
 import pytest
 
-from training.backend import BackendError, LocalBackend, check_ray_address
-from training.ray_backend import ray_available
-from training.rollout import RolloutSpec
+from training.exec.backend import BackendError, LocalBackend
+from training.exec.choose import check_ray_address
+from training.exec.ray_backend import ray_available
+from training.exec.rollout import RolloutSpec
 
 pytestmark = pytest.mark.skipif(not ray_available(), reason="needs visland[ray]")
 
 
 @pytest.fixture(scope="module")
 def ray_backend():
-    from training.ray_backend import RayBackend
+    from training.exec.ray_backend import RayBackend
 
     backend = RayBackend("local", num_cpus=2, say=lambda _msg: None)
     try:
@@ -182,7 +183,7 @@ def test_bad_ray_address_is_a_clear_cli_error():
 
 
 def test_shared_dir_without_ray_is_refused():
-    from training.backend import open_backend
+    from training.exec.choose import open_backend
 
     with pytest.raises(ValueError, match="--shared-dir is for --ray"):
         open_backend(None, 1, "/tmp")
@@ -191,7 +192,8 @@ def test_shared_dir_without_ray_is_refused():
 def test_ray_flies_sitl_companion_pairs_as_the_local_backend(tmp_path, ray_backend, low_scenario):
     """``fly --instances`` on Ray: each run is one SITL + companion pair on its node's own ports;
     the SITL logs come back under the driver's folder and the records are the local ones."""
-    from training.fly import FlyConfig, fly_many
+    from training.exec.fly import FlyConfig
+    from training.exec.fly_many import fly_many
 
     cfg = FlyConfig(policy="expert", seed=48, scenario=low_scenario, progress=False)
     local = fly_many(replace(cfg, out=str(tmp_path / "l")), [0, 1, 2], instances=2, chunk=2)

@@ -9,16 +9,16 @@ from pathlib import Path
 
 import pytest
 
-from training.backend import LocalBackend
+from training.exec.backend import LocalBackend
+from training.exec.ray_backend import ray_available
 from training.pipeline import run_pipeline
 from training.profiles import PROFILES
-from training.ray_backend import ray_available
 
 pytestmark = pytest.mark.skipif(not ray_available(), reason="needs visland[ray]")
 
 
 def test_pipeline_stages_on_ray_through_a_shared_dir_match_the_local_backend(tmp_path):
-    from training.ray_backend import RayBackend
+    from training.exec.ray_backend import RayBackend
 
     profile = replace(
         PROFILES["quick"], collect_episodes=4, dagger_rollouts=3, rollouts="inprocess"

@@ -43,7 +43,7 @@ from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
 from companion.states import FailsafeReason, FlightResult
 from companion.telemetry import TelemetryStore, odometry_from_msg
-from training.fly import free_udp_port
+from training.exec.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -658,7 +658,7 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
 
 def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
     from training.evaluate import EvalConfig, evaluate
-    from training.fly import FlyConfig, fly
+    from training.exec.fly import FlyConfig, fly
 
     kw = dict(policy="expert", episodes=3, seed=5, scenario=low_scenario)
     over_udp = fly(
@@ -730,7 +730,7 @@ def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_
     file: camera rendered, images in the log, the replay reproduces every command."""
     from companion.policy_net import save_checkpoint, untrained_policy
     from companion.runtime import load_policy_file
-    from training.fly import FlyConfig, fly
+    from training.exec.fly import FlyConfig, fly
 
     net = untrained_policy(seed=3)
     ckpt = save_checkpoint(tmp_path / "net.pt", net.config, net.control, net.perception, {})

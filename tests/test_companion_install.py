@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from training.fly import FlyConfig, fly
+from training.exec.fly import FlyConfig, fly
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "models" / "visland_vision.pt"

@@ -15,7 +15,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.link import MavlinkLink
-from training.fly import free_udp_port
+from training.exec.fly import free_udp_port
 
 
 class _Node:

@@ -14,8 +14,9 @@ from companion.contract.topics import TOPIC_COMPANION_COMMAND, TOPIC_RESULT
 from companion.flightlog import read_log
 from expert.relabel import relabel
 from training.dataset import load_episodes
-from training.fly import FlyConfig, FlyError, _chunks, fly, fly_many
-from training.rollout import completed_episode
+from training.exec.fly import FlyConfig, FlyError, fly
+from training.exec.fly_many import _chunks, fly_many
+from training.exec.rollout import completed_episode
 
 
 def test_sitl_log_is_a_training_record_that_relabel_labels(low_scenario, tmp_path):

@@ -23,7 +23,7 @@ from fuzzing import camera_fuzz, mavlink_fuzz
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.flightlog import read_log
-from training.fly import FlyConfig, fly, free_udp_port
+from training.exec.fly import FlyConfig, fly, free_udp_port
 
 pytestmark = pytest.mark.slow
 

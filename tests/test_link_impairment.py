@@ -333,7 +333,7 @@ def test_link_drops_a_stale_heartbeat_by_sequence_number():
     import socket
 
     from companion.link import MavlinkLink, mavlink
-    from training.fly import free_udp_port
+    from training.exec.fly import free_udp_port
 
     port = free_udp_port()
     link = MavlinkLink(f"udpin:127.0.0.1:{port}", heartbeat_period_s=1e9)
@@ -370,7 +370,7 @@ def _fly(low_scenario: str, tmp_path, episodes: int, *link_flags: str) -> dict:
     of the SITL; the report, with the companion's own report as ``companion``."""
     import json
 
-    from training.fly import FlyConfig, fly
+    from training.exec.fly import FlyConfig, fly
 
     report = fly(
         FlyConfig(
@@ -457,7 +457,7 @@ def test_twenty_real_time_landings_through_a_lossy_link(tmp_path, policy):
     --episodes 20 --realtime --link-loss 0.1 --link-jitter-ms 50 --json``."""
     import json
 
-    from training.fly import FlyConfig, fly
+    from training.exec.fly import FlyConfig, fly
 
     report = fly(
         FlyConfig(

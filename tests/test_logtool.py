@@ -27,8 +27,8 @@ from tools.cli import main
 from tools.log_plots import default_plot_path, plot_flight, plot_log
 from tools.logtool import log_info
 from tools.sitl_client import SitlClient
-from training.fly import FlyConfig, fly, free_udp_port
-from training.rollout import fly_episode, make_policy
+from training.exec.fly import FlyConfig, fly, free_udp_port
+from training.exec.rollout import fly_episode, make_policy
 
 
 @pytest.fixture(scope="module")

@@ -331,7 +331,7 @@ def test_the_tilt_bound_closes_over_the_last_decimetres(vehicle, sim_cfg, mpc_cf
 def test_the_severe_wind_touchdown_that_used_to_lean_too_far():
     """Episode 35 of the standard suite's wind_severe condition (seed 1 000 000) touched down
     at 20.1 deg before the touchdown tilt bound; now it lands within the criterion."""
-    from training.rollout import fly_episode
+    from training.exec.rollout import fly_episode
     from training.suite import load_suite
 
     suite = load_suite(CONFIG_DIR / "suites" / "standard.toml")

@@ -31,7 +31,7 @@ from sitl_sim.precland import (
     measurement_from_landing_target,
 )
 from sitl_sim.sitl_config import SitlConfig
-from training.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
+from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
 from training.provenance import REPO
 
 G = 9.80665

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from training.exec.ray_backend import ray_available
 from training.provenance import REPO
-from training.ray_backend import ray_available
 
 pytestmark = [
     pytest.mark.slow,

@@ -15,15 +15,15 @@ import pytest
 from companion.policy_net import load_networks, save_checkpoint, untrained_policy
 from sitl_sim.config import load_sim
 from sitl_sim.env import LandingEnv
+from training.exec.rollout import fly_episode, make_policy
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
 from training.profiles import PROFILES
 from training.report import ReportConfig, load_metrics, write_report
 from training.report_markdown import TARGETS
 from training.report_metrics import ROWS
-from training.rollout import fly_episode, make_policy
 from training.run_folder import Run
+from training.stage_records import BcRecord, DaggerRecord, ValidationScore, VisionRecord
 from training.stages import eval as eval_stage
-from training.stages.records import BcRecord, DaggerRecord, ValidationScore, VisionRecord
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "models" / "visland_vision.pt"

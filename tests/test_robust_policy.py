@@ -330,7 +330,7 @@ def test_a_reading_without_its_own_attitude_sample_is_trusted_less():
 def mars_logs(tmp_path_factory) -> list[Path]:
     """Two expert flights with camera in the Mars training world (latency, lost frames,
     another airframe), flown in process."""
-    from training.rollout import RolloutSpec, log_name, run_episodes
+    from training.exec.rollout import RolloutSpec, log_name, run_episodes
 
     out = tmp_path_factory.mktemp("mars_flights")
     spec = RolloutSpec(

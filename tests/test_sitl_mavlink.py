@@ -54,7 +54,7 @@ from tools.sitl_client import (
     ClientTimeout,
     SitlClient,
 )
-from training.fly import free_udp_port
+from training.exec.fly import free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
 ACCEPTED = int(MavResult.ACCEPTED)

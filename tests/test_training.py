@@ -104,7 +104,7 @@ def test_buffered_episode_rejects_misaligned_or_nan():
 @pytest.fixture(scope="module")
 def expert_logs(tmp_path_factory) -> list[Path]:
     """Two real expert flights with camera, flown in process (about 3 s)."""
-    from training.rollout import RolloutSpec, log_name, run_episodes
+    from training.exec.rollout import RolloutSpec, log_name, run_episodes
 
     out = tmp_path_factory.mktemp("flights")
     run_episodes(RolloutSpec(policy="expert", seed=5, log_dir=str(out)), [0, 1], workers=1)
@@ -517,7 +517,7 @@ def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
     all), so each one that landed every flight becomes a vision candidate."""
     from training.profiles import PROFILES
     from training.run_folder import Run
-    from training.stages.records import DaggerRecord, ValidationScore
+    from training.stage_records import DaggerRecord, ValidationScore
     from training.stages.vision import privileged_controllers
 
     def finish_dagger(scores: list[ValidationScore]) -> None:

@@ -18,17 +18,17 @@ from tqdm import tqdm
 
 from sitl_sim.metrics import summarize
 from sitl_sim.scenario import Scenario
-from training.rollout import (
+from training.exec.rollout import (
     EpisodeOutcome,
     RolloutSpec,
     completed_episode,
     log_name,
 )
+from training.exec.transport import Transport
 from training.seeds import EVAL_SEED
-from training.transport import Transport
 
 if TYPE_CHECKING:
-    from training.backend import Backend
+    from training.exec.backend import Backend
 
 __all__ = ["CollectConfig", "EvalConfig", "collect", "evaluate", "format_table"]
 
@@ -54,7 +54,7 @@ class EvalConfig:
 
 
 def _backend(backend: Backend | None, workers: int) -> Backend:
-    from training.backend import LocalBackend
+    from training.exec.backend import LocalBackend
 
     return backend if backend is not None else LocalBackend(workers)
 

@@ -17,7 +17,7 @@ its learner flight logs (``flights/<round>/``) and their offline expert labels
 Scalars go to TensorBoard (``tb/``) and ``scalars.jsonl``.
 
 The run folder is ``training.run_folder``, the budgets ``training.profiles``, each stage a
-module of ``training.stages`` returning its typed record (``training.stages.records``).
+module of ``training.stages`` returning its typed record (``training.stage_records``).
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from training.backend import Backend
+from training.exec.backend import Backend
 from training.profiles import PROFILES, PipelineError, Profile
 from training.run_folder import Run
+from training.stage_records import STAGES, StageRecord
 from training.stages import bc, collect, dagger, perception, vision
 from training.stages import eval as eval_stage
-from training.stages.records import STAGES, StageRecord
 
 __all__ = ["STAGES", "PipelineError", "Profile", "run_pipeline"]
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 
 from companion.policy_net.config import ESTIMATOR_FIELDS
+from training.exec.transport import Transport
 from training.record import Record
 from training.seeds import EVAL_SEED
-from training.transport import Transport
 
 __all__ = [
     "ESTIMATOR_KEYS",
@@ -21,7 +21,7 @@ __all__ = [
 ]
 
 ROLLOUT_TRANSPORTS = (Transport.MAVLINK.value, Transport.INPROCESS.value)
-"""The values of the profile key ``rollouts`` (:class:`training.transport.Transport`)."""
+"""The values of the profile key ``rollouts`` (:class:`training.exec.transport.Transport`)."""
 
 
 ADDED = {"added": True}

@@ -11,9 +11,9 @@ deterministic). Each figure carries the command and the commits that made it in 
 each caption in the markdown says the same.
 
 The landing scatter needs ``per_episode[*].touchdown_ne_m`` (recorded by
-``training.rollout.fly_episode`` since it was added); for a run evaluated before that, the report
-says the scatter is unavailable and which command regenerates the eval stage — it never guesses
-positions.
+``training.exec.rollout.fly_episode`` since it was added); for a run evaluated before that, the
+report says the scatter is unavailable and which command regenerates the eval stage — it never
+guesses positions.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from training.report_markdown import (
     trajectory_caption,
 )
 from training.report_metrics import Provenance, ReportError, code_commit, load_metrics
-from training.stages.records import Metrics
+from training.stage_records import Metrics
 
 __all__ = [
     "ReportConfig",

@@ -15,7 +15,7 @@ import numpy as np
 
 from training.paper import PAPER_TABLE3
 from training.report_metrics import ROWS, Provenance, ReportError
-from training.stages.records import Metrics
+from training.stage_records import Metrics
 
 __all__ = [
     "FIGURE_PATTERNS",
@@ -79,8 +79,8 @@ class _Recording:
         return self._policy.initial_state()
 
     def for_vehicle(self, vehicle: Any) -> _Recording:
-        """Record the pilot that flies ``vehicle`` (``training.rollout.episode_pilot``)."""
-        from training.rollout import episode_pilot
+        """Record the pilot that flies ``vehicle`` (``training.exec.rollout.episode_pilot``)."""
+        from training.exec.rollout import episode_pilot
 
         pilot = episode_pilot(self._policy, vehicle)
         return self if pilot is self._policy else _Recording(pilot, self._trace)
@@ -128,7 +128,7 @@ def _policy_source(metrics: Metrics, run: Path, row: str) -> str:
 def fly_traces(metrics: Metrics, run: Path, episode: int, scenario: str | None) -> dict[str, Trace]:
     from companion.policy_net import load_policy
     from sitl_sim.env import LandingEnv
-    from training.rollout import fly_episode, make_policy
+    from training.exec.rollout import fly_episode, make_policy
 
     seed = metrics.eval_seed
     traces = {}

@@ -9,11 +9,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from training.exec.transport import Transport
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3, PAPER_VISION_TERMINAL_SPEED_M_S
 from training.report_figures import Trace
 from training.report_metrics import ROWS, Provenance, short
-from training.stages.records import Metrics, Rows
-from training.transport import Transport
+from training.stage_records import Metrics, Rows
 
 __all__ = [
     "TARGETS",

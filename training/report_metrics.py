@@ -1,5 +1,5 @@
 """What a report reads from a run — ``metrics.json`` through the eval stage's own typed record
-(``training.stages.records.Metrics``) — and the provenance lines naming the commits behind it."""
+(``training.stage_records.Metrics``) — and the provenance lines naming the commits behind it."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 from training.provenance import git_commit
 from training.record import RecordError
-from training.stages.records import Metrics
+from training.stage_records import Metrics
 
 __all__ = ["CODE_DIRS", "ROWS", "Provenance", "ReportError", "code_commit", "load_metrics", "short"]
 

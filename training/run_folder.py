@@ -2,7 +2,7 @@
 metadata checkpoints carry.
 
     profile.json         the profile and scenario the run was started with (checked on resume)
-    stages/<stage>.json  finished stages (typed records, ``training.stages.records``)
+    stages/<stage>.json  finished stages (typed records, ``training.stage_records``)
     checkpoints/ flights/ labels/ cache/
     tb/ scalars.jsonl    training scalars (TensorBoard and one JSON line each)
 """
@@ -20,11 +20,11 @@ from tqdm import tqdm
 
 from companion.flightlog import jsonable
 from sitl_sim.config import load_sim, load_vehicle, planet
-from training.backend import Backend, LocalBackend
+from training.exec.backend import Backend, LocalBackend
 from training.profiles import ESTIMATOR_KEYS, LABEL_KEYS, PipelineError, Profile
 from training.provenance import git_commit
 from training.record import RecordError
-from training.stages.records import STAGES, StageRecord, record_type
+from training.stage_records import STAGES, StageRecord, record_type
 from training.worlds import load_worlds, single_world
 
 __all__ = ["Run"]

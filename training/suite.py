@@ -41,7 +41,7 @@ from training.provenance import REPO
 from training.seeds import EVAL_SEED
 
 if TYPE_CHECKING:
-    from training.backend import Backend
+    from training.exec.backend import Backend
 
 __all__ = [
     "Condition",

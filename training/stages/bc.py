@@ -7,8 +7,8 @@ import torch
 
 from companion.policy_net import ControlLSTM, save_checkpoint
 from training.run_folder import Run
+from training.stage_records import BcRecord
 from training.stages.fitting import fit_controller, privileged_buffer
-from training.stages.records import BcRecord
 
 __all__ = ["run"]
 

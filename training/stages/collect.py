@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import time
 
+from training.exec.transport import Transport
 from training.run_folder import Run
+from training.stage_records import CollectRecord
 from training.stages.flights import fly
-from training.stages.records import CollectRecord
-from training.transport import Transport
 
 __all__ = ["run"]
 

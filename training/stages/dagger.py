@@ -11,9 +11,9 @@ from pathlib import Path
 
 from companion.policy_net import load_networks, save_checkpoint
 from training.run_folder import Run
+from training.stage_records import BcRecord, DaggerRecord, DaggerRoundRecord
 from training.stages.fitting import fit_controller, privileged_buffer
 from training.stages.flights import episodes, fly, relabel
-from training.stages.records import BcRecord, DaggerRecord, DaggerRoundRecord
 from training.stages.selection import select
 from training.train import privileged_episode
 

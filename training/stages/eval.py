@@ -14,7 +14,7 @@ from companion.flightlog import jsonable
 from training.evaluate import EvalConfig
 from training.evaluate import evaluate as evaluate_policy
 from training.run_folder import Run
-from training.stages.records import (
+from training.stage_records import (
     STAGES,
     BcRecord,
     DaggerRecord,

@@ -8,8 +8,8 @@ from pathlib import Path
 from companion.policy_net import ControlLSTM, NetConfig
 from training.replay import ReplayBuffer
 from training.run_folder import Run
+from training.stage_records import DaggerRoundRecord, FitRecord
 from training.stages.flights import episodes, expert_pairs
-from training.stages.records import DaggerRoundRecord, FitRecord
 from training.train import privileged_episode, train_controller
 
 __all__ = ["fit_controller", "privileged_buffer"]

@@ -10,11 +10,11 @@ from pathlib import Path
 from typing import Any
 
 from training.dataset import Episode, load_episodes
+from training.exec.rollout import RolloutSpec, completed_episode, log_name
+from training.exec.transport import Transport
 from training.profiles import PipelineError
-from training.rollout import RolloutSpec, completed_episode, log_name
 from training.run_folder import Run
-from training.stages.records import CollectRecord
-from training.transport import Transport
+from training.stage_records import CollectRecord
 
 __all__ = ["episodes", "expert_pairs", "fly", "relabel"]
 
@@ -34,7 +34,7 @@ def fly(
     on ``seed + w.seed_offset`` into ``flights/<folder>/<w.name>/``.
 
     ``transport`` (default: the profile's ``rollouts``): ``mavlink`` flies the policy
-    through ``visland sitl`` + ``visland companion`` processes (``training.fly.fly_many``,
+    through ``visland sitl`` + ``visland companion`` processes (``training.exec.fly_many``,
     lockstep, ``workers`` pairs) and returns the SITL's logs — the training record;
     ``inprocess`` flies the gymnasium env in ``workers`` processes."""
     transport = transport or run.profile.rollouts
@@ -44,7 +44,7 @@ def fly(
         flights.mkdir(parents=True, exist_ok=True)
         wseed = seed + world.seed_offset
         if transport == Transport.MAVLINK:
-            from training.fly import sitl_log_name
+            from training.exec.fly import sitl_log_name
 
             paths = [flights / sitl_log_name(wseed, i) for i in range(n)]
         else:
@@ -81,7 +81,8 @@ def _fly_mavlink(
 ) -> None:
     """SITL + companion pairs; a failed pair's episodes are flown once more, then a
     PipelineError names what failed (the logs that finished stay: a rerun resumes)."""
-    from training.fly import FlyConfig, FlyError, fly_many, sitl_log_name
+    from training.exec.fly import FlyConfig, FlyError, sitl_log_name
+    from training.exec.fly_many import fly_many
 
     cfg = FlyConfig(
         policy=checkpoint,

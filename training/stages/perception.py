@@ -11,8 +11,8 @@ import torch
 from companion.policy_net import ControlLSTM, PerceptionCNN, save_checkpoint
 from training.perception_data import render_pose_frames
 from training.run_folder import Run
+from training.stage_records import PerceptionRecord
 from training.stages.flights import episodes, expert_pairs
-from training.stages.records import PerceptionRecord
 from training.train import train_perception
 
 __all__ = ["run"]

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from training.run_folder import Run
-from training.stages.records import ValidationScore
+from training.stage_records import ValidationScore
 
 __all__ = ["evaluate", "select", "validate"]
 

@@ -20,14 +20,14 @@ from companion.policy_net import (
 )
 from training.replay import ReplayBuffer
 from training.run_folder import Run
-from training.stages.fitting import fit_controller
-from training.stages.flights import episodes, expert_pairs, fly, relabel
-from training.stages.records import (
+from training.stage_records import (
     DaggerRecord,
     PerceptionRecord,
     ValidationScore,
     VisionRecord,
 )
+from training.stages.fitting import fit_controller
+from training.stages.flights import episodes, expert_pairs, fly, relabel
 from training.stages.selection import select, validate
 from training.train import vision_episode
 

@@ -4,7 +4,7 @@
 Each ``stages/<stage>.json`` starts with ``stage`` and ``git_commit`` (the commit that ran it,
 ``<sha>+dirty`` for uncommitted code); the rest is the stage's own. ``metrics.json`` (the eval
 stage) holds the Table 3 rows (``training.evaluate.evaluate`` reports, per-episode rows of
-``training.rollout.EpisodeOutcome.row``), the inference timing and a copy of the records of the
+``training.exec.rollout.EpisodeOutcome.row``), the inference timing and a copy of the records of the
 stages before it.
 """
 
@@ -216,7 +216,7 @@ class EpisodeRow(Record):
 
 @dataclass(frozen=True)
 class BackendInfo(Record):
-    """Where a report's episodes flew (``training.backend.Backend.describe``)."""
+    """Where a report's episodes flew (``training.exec.backend.Backend.describe``)."""
 
     name: str
     slots: int
