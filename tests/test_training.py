@@ -475,7 +475,7 @@ def test_an_estimator_ablation_starts_from_another_runs_trained_stages(tmp_path)
     from dataclasses import replace
 
     from training.profiles import PROFILES, PipelineError
-    from training.report import _started_from
+    from training.report.results import _started_from
     from training.run_folder import Run
 
     quick = PROFILES["quick"]

@@ -14,7 +14,7 @@ from typing import Any
 from companion.files import sha256_file
 from companion.policy_net import load_policy
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
-from training.report import rollouts_text
+from training.report.results import rollouts_text
 
 __all__ = ["ship"]
 
@@ -54,7 +54,7 @@ def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
     the profile's suite (empty otherwise)."""
     if not metrics.get("suite"):
         return ""
-    from training.suite_report import suite_comparison, suite_standing
+    from training.report.suite import suite_comparison, suite_standing
 
     report = json.loads(Path(metrics["suite"]).read_text())
     baseline = None

@@ -11,8 +11,8 @@ from typing import Any
 
 from training.exec.transport import Transport
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3, PAPER_VISION_TERMINAL_SPEED_M_S
-from training.report_figures import Trace
-from training.report_metrics import ROWS, Provenance, short
+from training.report.figures import Trace
+from training.report.metrics import ROWS, Provenance, short
 from training.stage_records import Metrics, Rows
 
 __all__ = [

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from training.paper import PAPER_TABLE3
-from training.report_metrics import ROWS, Provenance, ReportError
+from training.report.metrics import ROWS, Provenance, ReportError
 from training.stage_records import Metrics
 
 __all__ = [

@@ -3,7 +3,7 @@
 Every number in the report is read from the run (``<run>/metrics.json``, written by the
 pipeline's eval stage; ``<run>/scalars.jsonl`` for the loss curves) or computed from it here; the
 only numbers typed by hand are the paper's own (``training.paper``, cited by section) and the
-project's targets (``training.report_markdown.TARGETS``). The
+project's targets (``training.report.markdown.TARGETS``). The
 trajectory figures (the kind of the paper's Figures 3-11) come from flying one evaluation episode
 in process with each of the run's four policies — the same seed and episode index the eval stage
 flew, so each flight is checked against its ``per_episode`` row (lockstep flights are
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from training.profiles import LABEL_KEYS
-from training.report_figures import (
+from training.report.figures import (
     FIGURE_PATTERNS,
     SCATTER_VIEW_M,
     default_episodes,
@@ -38,7 +38,7 @@ from training.report_figures import (
     scenario_of,
     touchdowns,
 )
-from training.report_markdown import (
+from training.report.markdown import (
     fmt,
     header,
     pct,
@@ -49,7 +49,7 @@ from training.report_markdown import (
     table3,
     trajectory_caption,
 )
-from training.report_metrics import Provenance, ReportError, code_commit, load_metrics
+from training.report.metrics import Provenance, ReportError, code_commit, load_metrics
 from training.stage_records import Metrics
 
 __all__ = [
@@ -240,7 +240,7 @@ def suite_section(metrics: Metrics) -> str:
     profile's suite; empty otherwise."""
     if not metrics.suite:
         return ""
-    from training.suite_report import suite_comparison, suite_standing
+    from training.report.suite import suite_comparison, suite_standing
 
     report = json.loads(Path(metrics.suite).read_text())
     baseline = (
