@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from training.backend import Backend, LocalBackend
+from training.exec.backend import Backend, LocalBackend
 from training.profiles import Profile
-from training.rollout import RolloutSpec
+from training.exec.rollout import RolloutSpec
 
 __all__ = ["RolloutBenchConfig", "bench_rollouts", "format_rollout_bench", "project_profile"]
 
@@ -80,7 +80,7 @@ def _time_kinds(backend: Backend, cfg: RolloutBenchConfig, root: Path) -> dict[s
 def bench_rollouts(cfg: RolloutBenchConfig) -> dict[str, Any]:
     """Local vs Ray over the same work, in one run; plus the projection of ``cfg.profile``."""
     from training.provenance import REPO
-    from training.ray_backend import RayBackend
+    from training.exec.ray_backend import RayBackend
 
     workers = cfg.workers or os.cpu_count() or 1
     root = Path(tempfile.mkdtemp(prefix="visland_bench_rollouts_"))

@@ -32,7 +32,7 @@ from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.fly import free_udp_port
+from training.exec.fly import free_udp_port
 from training.provenance import REPO
 
 __all__ = ["SitlBenchConfig", "bench_sitl"]

@@ -20,7 +20,7 @@ def _profile(args: argparse.Namespace):
 
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
-    from training.backend import backend_from_args
+    from training.exec.choose import backend_from_args
     from training.pipeline import STAGES, run_pipeline
 
     stages = tuple(args.stages.split(",")) if args.stages else STAGES
@@ -56,7 +56,7 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from training.backend import backend_from_args
+    from training.exec.choose import backend_from_args
     from training.pipeline import run_pipeline
 
     prof = _profile(args)
@@ -84,7 +84,7 @@ def _cmd_ship(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from training.report import ReportConfig, write_report
+    from training.report.results import ReportConfig, write_report
 
     res = write_report(
         ReportConfig(
@@ -103,9 +103,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def register_training(sub: argparse._SubParsersAction) -> None:
-    from training.backend import add_backend_arguments
+    from training.exec.choose import add_backend_arguments
     from training.profiles import PROFILES, ROLLOUT_TRANSPORTS
-    from training.stages.records import STAGES
+    from training.stage_records import STAGES
 
     rollouts_help = (
         "how DAgger learner rollouts fly (default: the profile's, mavlink = SITL + companion "

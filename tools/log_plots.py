@@ -29,7 +29,7 @@ from tools.logtool import (
     plot_sources,
     verdict,
 )
-from training.report_figures import draw_pad
+from training.report.figures import draw_pad
 
 __all__ = [
     "FlightsPlotReport",
