@@ -7,9 +7,11 @@ ArduCopter ``GCS_Mavlink.cpp`` (``handle_message_set_attitude_target``, ``base_m
 ``mode_guided.cpp`` (angle control and its timeout), ``mode.cpp`` (``set_mode``), ``events.cpp``
 (GCS failsafe), ``mode_land.cpp`` and ``land_detector.cpp``.
 
-* **Modes**: the SITL's internal modes are shown as ArduCopter's ``custom_mode`` numbers: HOLD
-  (the frozen start, an ideal hold) = ALT_HOLD 2, OFFBOARD = GUIDED_NOGPS 20, LAND = LAND 9, and
-  PRECLAND = LAND 9 too when ``PLND_ENABLED = 1`` and ``PLND_TYPE = 1`` (LAND uses the target).
+* **Modes**: the SITL's internal modes are shown as ArduCopter's ``custom_mode`` numbers, the
+  ``ardupilot`` profile's of the table the companion reads too
+  (:mod:`companion.contract.autopilots`, ``ARDUPILOT``): HOLD (the frozen start, an ideal hold)
+  = ALT_HOLD 2, OFFBOARD = GUIDED_NOGPS 20, LAND = LAND 9, and PRECLAND = LAND 9 too when
+  ``PLND_ENABLED = 1`` and ``PLND_TYPE = 1`` (LAND uses the target).
   DO_SET_MODE (param1 CUSTOM_MODE_ENABLED, param2 = mode number) and SET_MODE (acknowledged
   with a COMMAND_ACK for command 11, as ArduPilot does). Modes that need a position estimate
   (GUIDED, LOITER, RTL, AUTO, ...) fail: MAV_RESULT_FAILED + "Mode change to LOITER failed:
@@ -51,7 +53,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.contract import Command, GroundTruth
-from sitl_sim.ardupilot_params import NEEDS_POSITION, CopterMode
+from companion.contract.autopilots import ARDUPILOT, CopterMode
+from sitl_sim.ardupilot_params import NEEDS_POSITION
 from sitl_sim.autopilot import (
     Autopilot,
     AutopilotEvent,
@@ -85,14 +88,13 @@ GRAVITY_M_S2 = 9.80665
 """ArduPilot's GRAVITY_MSS (a compile-time constant: it does not know the planet)."""
 LAND_DETECTOR_S = 1.0
 """ArduCopter LAND_DETECTOR_TRIGGER_SEC: on the ground this long = landed."""
-_MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 _MAV_STATE_STANDBY, _MAV_STATE_ACTIVE, _MAV_STATE_CRITICAL = 3, 4, 5
 _FLAG_CUSTOM, _FLAG_GUIDED, _FLAG_STABILIZE, _FLAG_MANUAL, _FLAG_ARMED = 1, 8, 16, 64, 128
 _CUSTOM_OF = {
-    FlightMode.HOLD: CopterMode.ALT_HOLD,
-    FlightMode.OFFBOARD: CopterMode.GUIDED_NOGPS,
-    FlightMode.LAND: CopterMode.LAND,
-    FlightMode.PRECLAND: CopterMode.LAND,
+    FlightMode.HOLD: ARDUPILOT.hold,
+    FlightMode.OFFBOARD: ARDUPILOT.offboard,
+    FlightMode.LAND: ARDUPILOT.land,
+    FlightMode.PRECLAND: ARDUPILOT.precland,
 }
 _MAV_FRAME_BODY_FRD = 12
 
@@ -141,8 +143,8 @@ class ArduCopter(Autopilot):
     """The ``ardupilot`` profile (module docstring). ``params.ardu`` holds ArduCopter's own
     parameters; ``params.mpc_thr_hover`` is MOT_THST_HOVER."""
 
-    profile = "ardupilot"
-    hover_param = "MOT_THST_HOVER"
+    profile = ARDUPILOT.name
+    hover_param = ARDUPILOT.hover_param
     precland_needs_range = False  # ArduCopter's LAND works without a rangefinder
     runs_free_when_unanswered = True
     acks_set_mode = True
@@ -164,7 +166,7 @@ class ArduCopter(Autopilot):
 
     @property
     def mode_label(self) -> str:
-        return _CUSTOM_OF[self.mode].name
+        return _CUSTOM_OF[self.mode].label
 
     def heartbeat(self) -> tuple[int, int, int, int]:
         """ArduCopter's ``base_mode``: STABILIZE | MANUAL_INPUT | CUSTOM_MODE (81), + GUIDED
@@ -178,7 +180,7 @@ class ArduCopter(Autopilot):
             state = _MAV_STATE_CRITICAL
         else:
             state = _MAV_STATE_ACTIVE if self.armed else _MAV_STATE_STANDBY
-        return _MAV_AUTOPILOT_ARDUPILOTMEGA, flags, int(_CUSTOM_OF[self.mode]), state
+        return ARDUPILOT.mav_autopilot, flags, _CUSTOM_OF[self.mode].custom_mode, state
 
     # ------------------------------------------------------------------ modes
 
@@ -186,15 +188,14 @@ class ArduCopter(Autopilot):
         return self.mode_for_custom(int(param2))
 
     def mode_for_custom(self, custom: int) -> FlightMode | ModeRefused:  # type: ignore[override]
-        try:
-            number = CopterMode(custom)
-        except ValueError:
+        number = CopterMode.from_custom(custom)
+        if number is None:
             return ModeRefused(f"No such mode {custom}")
-        if number is CopterMode.GUIDED_NOGPS:
+        if number is ARDUPILOT.offboard:
             return FlightMode.OFFBOARD
-        if number is CopterMode.ALT_HOLD:
+        if number is ARDUPILOT.hold:
             return FlightMode.HOLD
-        if number is CopterMode.LAND:
+        if number is ARDUPILOT.land:
             return self.land_mode()
         why = "requires position" if number in NEEDS_POSITION else "needs a pilot (not modelled)"
         return ModeRefused(f"Mode change to {number.name} failed: {why}")

@@ -4,7 +4,8 @@ No I/O and no wall clock here: every method takes the SITL's sim time (``now_s``
 machine is a pure function of the messages it was given and can be unit-tested without sockets.
 What it models (PX4 behaviour, ``shared/reference/mavlink_notes.md`` sections 6 and 11):
 
-* **Modes** — PX4 custom modes, ``custom_mode = (main << 16) | (sub << 24)``:
+* **Modes** — PX4 custom modes, ``custom_mode = (main << 16) | (sub << 24)``, numbered as in
+  the table the companion reads too (:mod:`companion.contract.autopilots`, profile ``PX4``):
   HOLD (AUTO.LOITER, the episode's start: the vehicle is *frozen* at its state, an ideal position
   hold), OFFBOARD (the companion flies SET_ATTITUDE_TARGET setpoints) and LAND (AUTO.LAND: the
   SITL's own land controller, on ground truth, landing where the mode was engaged, as PX4's —
@@ -33,6 +34,13 @@ from typing import Protocol
 import numpy as np
 
 from companion.contract import Command
+from companion.contract.autopilots import (
+    FORCE_DISARM_MAGIC,
+    PX4,
+    PX4_AUTO_SUB_MODES,
+    Px4MainMode,
+    Px4Mode,
+)
 from sitl_sim.ardupilot_params import ArduParams
 from sitl_sim.precland import LteParams, PldParams
 
@@ -54,12 +62,9 @@ __all__ = [
     "setpoint_from_target",
 ]
 
-_MAV_AUTOPILOT_PX4 = 12
 _MAV_STATE_STANDBY = 3
 _MAV_STATE_ACTIVE = 4
 
-FORCE_DISARM_MAGIC = 21196.0
-"""MAV_CMD_COMPONENT_ARM_DISARM param2 that forces a disarm in the air (PX4, ArduPilot)."""
 COM_OBL_RC_ACT_LAND = 4
 """COM_OBL_RC_ACT value 'Land' (PX4 commander_params.yaml)."""
 
@@ -80,32 +85,30 @@ class MavResult(enum.IntEnum):
 
 
 class FlightMode(enum.Enum):
-    """The PX4 modes this autopilot implements, valued by (main_mode, sub_mode)."""
+    """The modes this autopilot implements, valued by their PX4 (main_mode, sub_mode): the
+    ``px4`` profile's modes of the shared table."""
 
-    HOLD = (4, 3)  # AUTO.LOITER, shown as "Hold"
-    OFFBOARD = (6, 0)
-    LAND = (4, 6)  # AUTO.LAND
-    PRECLAND = (4, 9)  # AUTO.PRECLAND (sitl_sim.precland, on the autopilot's own estimate)
+    HOLD = PX4.hold.value  # AUTO.LOITER, shown as "Hold"
+    OFFBOARD = PX4.offboard.value
+    LAND = PX4.land.value  # AUTO.LAND
+    PRECLAND = PX4.precland.value  # AUTO.PRECLAND (sitl_sim.precland, on its own estimate)
+
+    @property
+    def px4(self) -> Px4Mode:
+        """The PX4 mode of the table."""
+        return Px4Mode(self.value)
 
     @property
     def label(self) -> str:
-        return {
-            "HOLD": "AUTO.LOITER",
-            "OFFBOARD": "OFFBOARD",
-            "LAND": "AUTO.LAND",
-            "PRECLAND": "AUTO.PRECLAND",
-        }[self.name]
+        return self.px4.label
 
 
-# PX4 main modes that exist but need what this vehicle lacks (GPS, RC sticks): refused.
-_PX4_UNAVAILABLE_MAIN = {1, 2, 3, 5, 7, 8, 9, 10, 11}  # MANUAL..ALTITUDE_CRUISE
-_PX4_AUTO_PRECLAND = 9
+_FLIGHT_MODE_OF = {mode.px4: mode for mode in FlightMode}
 
 
 def custom_mode(mode: FlightMode) -> int:
     """PX4 ``custom_mode``: ``(main << 16) | (sub << 24)`` (e.g. OFFBOARD = 393216)."""
-    main, sub = mode.value
-    return (main << 16) | (sub << 24)
+    return mode.px4.custom_mode
 
 
 def base_mode(mode: FlightMode, armed: bool) -> int:
@@ -120,24 +123,20 @@ def base_mode(mode: FlightMode, armed: bool) -> int:
 def mode_from_custom(main: int, sub: int) -> FlightMode | bool | None:
     """The FlightMode a (main, sub) request names.
 
-    Returns the mode; ``False`` for a real PX4 mode this vehicle cannot fly (refuse with
-    TEMPORARILY_REJECTED); ``None`` for numbers that name no PX4 mode (DENIED).
+    Returns the mode; ``False`` for a real PX4 mode this vehicle cannot fly (it needs GPS or
+    RC sticks: refuse with TEMPORARILY_REJECTED); ``None`` for numbers that name no PX4 mode
+    (DENIED).
     """
-    if main == 6:
-        return FlightMode.OFFBOARD
-    if main == 4:
-        if sub == 3:
-            return FlightMode.HOLD
-        if sub == 6:
-            return FlightMode.LAND
-        if sub == _PX4_AUTO_PRECLAND:
-            return FlightMode.PRECLAND
-        if 1 <= sub <= 18:
-            return False
+    mode = _FLIGHT_MODE_OF.get(Px4Mode.from_main_sub(main, sub))
+    if mode is not None:
+        return mode
+    if main == Px4MainMode.AUTO:
+        return False if sub in PX4_AUTO_SUB_MODES else None
+    try:
+        Px4MainMode(main)
+    except ValueError:
         return None
-    if main in _PX4_UNAVAILABLE_MAIN:
-        return False
-    return None
+    return False
 
 
 class TypeMask(enum.IntFlag):
@@ -353,8 +352,8 @@ class Autopilot:
         armed: start armed (a vehicle hovering at its initial state is flying, hence armed).
     """
 
-    profile = "px4"
-    hover_param = "MPC_THR_HOVER"
+    profile = PX4.name
+    hover_param = PX4.hover_param
     """The parameter that carries ``params.mpc_thr_hover`` on the wire."""
     precland_needs_range = True
     """AUTO.PRECLAND is refused without a distance to the ground (PX4 mode_requirements)."""
@@ -401,7 +400,7 @@ class Autopilot:
     def heartbeat(self) -> tuple[int, int, int, int]:
         """HEARTBEAT ``(autopilot, base_mode, custom_mode, system_status)`` (type QUADROTOR)."""
         return (
-            _MAV_AUTOPILOT_PX4,
+            PX4.mav_autopilot,
             base_mode(self.mode, self.armed),
             custom_mode(self.mode),
             _MAV_STATE_ACTIVE if self.armed else _MAV_STATE_STANDBY,
