@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from sitl_sim.config import Planet, VehicleConfig, number_pair
+from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.errors import ConfigError
+from sitl_sim.table import check_section, read_section, section_dict, section_keys, span
 
 __all__ = [
     "AIRFRAME_KEYS",
@@ -53,15 +54,6 @@ __all__ = [
     "draw_airframe",
 ]
 
-AIRFRAME_KEYS = (
-    "mass_scale",
-    "inertia_scale",
-    "thrust_scale",
-    "motor_time_constant_scale",
-    "drag_scale",
-)
-"""The ``[vehicle]`` keys, in the order their factors are drawn."""
-
 MAX_SCALE = 10.0
 """Largest factor a range may reach: beyond it the vehicle file no longer describes the craft
 (a typo such as 13 for 1.3 is caught, a deliberately extreme airframe still fits)."""
@@ -71,18 +63,14 @@ AIRFRAME_STREAM = 0x5648434C
 these draws are independent of the wind's, the sensors' and the sampler's."""
 
 
-def _check_range(key: str, value: tuple[float, float], where: str) -> None:
-    lo, hi = value
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi <= MAX_SCALE):
-        raise ConfigError(
-            f"{where}: [vehicle] {key} = [{lo}, {hi}]; expected factors [lo, hi] with "
-            f"0 < lo <= hi <= {MAX_SCALE}"
-        )
+def _factor(doc: str) -> Any:
+    return span(None, unit="1", lo=0.0, lo_open=True, hi=MAX_SCALE, noun="factors", doc=doc)
 
 
 @dataclass(frozen=True)
 class AirframeConfig:
-    """The ``[vehicle]`` section: a factor range ``(lo, hi)`` per key, None where absent.
+    """The ``[vehicle]`` section: a factor range ``(lo, hi)`` per key, None where absent (the
+    factor 1.0 exactly, not drawn).
 
     Attributes:
         mass_scale: on ``mass_kg``.
@@ -93,25 +81,34 @@ class AirframeConfig:
         source: the file it came from (for error messages).
     """
 
-    mass_scale: tuple[float, float] | None = None
-    inertia_scale: tuple[float, float] | None = None
-    thrust_scale: tuple[float, float] | None = None
-    motor_time_constant_scale: tuple[float, float] | None = None
-    drag_scale: tuple[float, float] | None = None
+    SECTION: ClassVar[str] = "vehicle"
+
+    mass_scale: tuple[float, float] | None = _factor("factor on mass_kg (absent: 1)")
+    inertia_scale: tuple[float, float] | None = _factor(
+        "factor on all three of inertia_diag_kg_m2, drawn apart from mass_scale (absent: 1)"
+    )
+    thrust_scale: tuple[float, float] | None = _factor("factor on T_max, every planet (absent: 1)")
+    motor_time_constant_scale: tuple[float, float] | None = _factor(
+        "factor on motor_time_constant_s (absent: 1)"
+    )
+    drag_scale: tuple[float, float] | None = _factor(
+        "factor on all three of drag_coefficient_area_m2 (absent: 1)"
+    )
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
-        for key in AIRFRAME_KEYS:
-            value = getattr(self, key)
-            if value is not None:
-                _check_range(key, value, self.source)
+        check_section(self)
 
     def range(self, key: str) -> tuple[float, float] | None:
         return getattr(self, key)
 
     def to_dict(self) -> dict[str, list[float]]:
         """The ranges given (absent keys left out)."""
-        return {k: list(v) for k in AIRFRAME_KEYS if (v := getattr(self, k)) is not None}
+        return section_dict(self, drop_none=True)
+
+
+AIRFRAME_KEYS = section_keys(AirframeConfig)
+"""The ``[vehicle]`` keys, in the order their factors are drawn."""
 
 
 @dataclass(frozen=True)
@@ -159,29 +156,9 @@ class AirframeScales:
             raise ValueError(f"{where}: {exc}") from None
 
 
-def _range(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
-    value = table[key]
-    pair = number_pair(value)
-    if pair is None:
-        raise ConfigError(
-            f"{where}: [vehicle] {key} = {value!r}; expected [lo, hi] (two numbers, factors on "
-            "the vehicle file)"
-        )
-    return pair
-
-
 def airframe_config_from_table(table: Any, where: str) -> AirframeConfig:
     """Check and type a scenario's ``[vehicle]`` table; ``where`` names the file."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [vehicle] must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(AIRFRAME_KEYS))
-    if unknown:
-        raise ConfigError(
-            f"{where}: [vehicle] unknown key(s) {unknown}; expected some of {list(AIRFRAME_KEYS)}"
-            " (factor ranges on configs/vehicle.toml)"
-        )
-    ranges = {key: _range(table, key, where) for key in AIRFRAME_KEYS if key in table}
-    return AirframeConfig(**ranges, source=where)
+    return read_section(AirframeConfig, table, where)
 
 
 def draw_airframe(config: AirframeConfig, seed: int, episode_index: int) -> AirframeScales:

@@ -46,11 +46,20 @@ import heapq
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
 from sitl_sim.errors import ConfigError
+from sitl_sim.table import (
+    check_section,
+    number,
+    probability,
+    read_section,
+    section_dict,
+    section_keys,
+    span,
+)
 
 __all__ = [
     "LINK_KEYS",
@@ -67,8 +76,6 @@ LINK_STREAM = 0x4C494E4B
 """Third entropy word of the link impairment's generator (ASCII "LINK"); distinct from every
 other section's stream (:mod:`sitl_sim.world`)."""
 
-LINK_KEYS = ("loss_prob", "delay_ms", "jitter_ms", "duplicate_prob", "reorder_prob", "outage_s")
-
 STREAMS = ("mavlink_tx", "mavlink_rx", "camera_tx")
 """The impaired streams, as the SITL sees them: MAVLink it sends (to the companion), MAVLink it
 receives (from the companion), camera frames it sends."""
@@ -77,9 +84,11 @@ MAX_DELAY_MS = 10_000.0
 """Upper bound of ``delay_ms + jitter_ms``: beyond COM_OF_LOSS_T (1 s) many times over, a
 delayed link is a dead one; ten seconds is far past anything worth simulating."""
 
-_PROBABILITIES = ("loss_prob", "duplicate_prob", "reorder_prob")
-_DELAYS = ("delay_ms", "jitter_ms")
 _DRAWS_PER_DATAGRAM = 5
+
+
+def _delay(doc: str) -> Any:
+    return number(0.0, unit="ms", lo=0.0, noun="a finite delay", doc=doc)
 
 
 @dataclass(frozen=True)
@@ -98,24 +107,30 @@ class LinkConfig:
         source: where it came from (for error messages).
     """
 
-    loss_prob: float = 0.0
-    delay_ms: float = 0.0
-    jitter_ms: float = 0.0
-    duplicate_prob: float = 0.0
-    reorder_prob: float = 0.0
-    outage_s: tuple[float, float] | None = None
+    SECTION: ClassVar[str] = "link"
+
+    loss_prob: float = probability("each datagram is lost")
+    delay_ms: float = _delay(f"fixed one-way delay (delay_ms + jitter_ms <= {MAX_DELAY_MS:g})")
+    jitter_ms: float = _delay("extra delay drawn from U(0, jitter_ms) per datagram, in order")
+    duplicate_prob: float = probability("a delivered datagram arrives twice")
+    reorder_prob: float = probability(
+        "a datagram jumps the queue (tc-netem reorder); needs delay_ms or jitter_ms > 0"
+    )
+    outage_s: tuple[float, float] | None = span(
+        None,
+        unit="s",
+        lo=0.0,
+        noun="",
+        ends=("start", "end"),
+        strict=True,
+        finite_hi=False,
+        doc="flight seconds with the link dead both ways (end = inf: for good; absent: none)",
+    )
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
+        check_section(self)
         where = f"{self.source}: [link]"
-        for key in _PROBABILITIES:
-            p = getattr(self, key)
-            if not (math.isfinite(p) and 0.0 <= p <= 1.0):
-                raise ConfigError(f"{where} {key} = {p}; expected a probability in [0, 1]")
-        for key in _DELAYS:
-            d = getattr(self, key)
-            if not (math.isfinite(d) and d >= 0.0):
-                raise ConfigError(f"{where} {key} = {d}; expected a finite delay >= 0 ms")
         if self.delay_ms + self.jitter_ms > MAX_DELAY_MS:
             raise ConfigError(
                 f"{where} delay_ms + jitter_ms = {self.delay_ms + self.jitter_ms:g}; expected "
@@ -126,13 +141,6 @@ class LinkConfig:
                 f"{where} reorder_prob = {self.reorder_prob} needs delay_ms or jitter_ms > 0: a "
                 "reordered datagram overtakes the delayed ones (tc-netem's reorder)"
             )
-        if self.outage_s is not None:
-            start, end = self.outage_s
-            if not (math.isfinite(start) and 0.0 <= start < end):
-                raise ConfigError(
-                    f"{where} outage_s = {list(self.outage_s)}; expected [start, end] flight "
-                    "seconds with 0 <= start < end"
-                )
 
     @property
     def active(self) -> bool:
@@ -156,42 +164,15 @@ class LinkConfig:
         return replace(self, **given)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "loss_prob": self.loss_prob,
-            "delay_ms": self.delay_ms,
-            "jitter_ms": self.jitter_ms,
-            "duplicate_prob": self.duplicate_prob,
-            "reorder_prob": self.reorder_prob,
-            "outage_s": None if self.outage_s is None else list(self.outage_s),
-        }
+        return section_dict(self)
 
 
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
+LINK_KEYS = section_keys(LinkConfig)
 
 
 def link_config_from_table(table: Any, where: str) -> LinkConfig:
     """Check and type a scenario file's ``[link]`` table (``where`` names the file)."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [link] must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(LINK_KEYS))
-    if unknown:
-        raise ConfigError(f"{where}: [link] unknown key(s) {unknown}; expected {list(LINK_KEYS)}")
-    values: dict[str, Any] = {}
-    for key, value in table.items():
-        if key == "outage_s":
-            if not (isinstance(value, list) and len(value) == 2 and all(map(_number, value))):
-                raise ConfigError(
-                    f"{where}: [link] outage_s = {value!r}; expected [start, end] (two numbers, "
-                    "flight seconds)"
-                )
-            values[key] = (float(value[0]), float(value[1]))
-        elif not _number(value):
-            kind = "a probability in [0, 1]" if key in _PROBABILITIES else "a delay in ms (>= 0)"
-            raise ConfigError(f"{where}: [link] {key} = {value!r}; expected {kind}")
-        else:
-            values[key] = float(value)
-    return LinkConfig(**values, source=where)
+    return read_section(LinkConfig, table, where)
 
 
 @dataclass

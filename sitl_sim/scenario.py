@@ -17,60 +17,87 @@ parallel workers and resumed runs agree.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.stats import qmc
 
-from sitl_sim.airframe import AirframeConfig, airframe_config_from_table
-from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, number_pair, planet
+from sitl_sim.airframe import AirframeConfig
+from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
-from sitl_sim.link_impairment import LinkConfig, link_config_from_table
-from sitl_sim.sensor_faults import SensorFaultsConfig, sensor_faults_config_from_table
-from sitl_sim.visual import VisualConfig, visual_config_from_table
-from sitl_sim.wind import WindConfig, wind_config_from_table
+from sitl_sim.link_impairment import LinkConfig
+from sitl_sim.sensor_faults import SensorFaultsConfig
+from sitl_sim.table import (
+    check_section,
+    choice,
+    keys_markdown,
+    read_section,
+    read_values,
+    span,
+)
+from sitl_sim.visual import VisualConfig
+from sitl_sim.wind import WindConfig
 
 __all__ = [
     "SECTIONS",
     "InitialState",
     "InitialStateSampler",
     "Scenario",
+    "WorldSection",
     "load_scenario",
     "scenario_from_dict",
+    "scenario_keys_markdown",
 ]
 
-_RANGE_KEYS = (
-    "roll_pitch_deg",
-    "yaw_deg",
-    "north_east_m",
-    "altitude_m",
-    "vel_north_east_m_s",
-    "vel_down_m_s",
-    "rate_rad_s",
-)
 _SAMPLERS = ("sobol+uniform", "uniform")
+
+
+def _range(unit: str, doc: str, **bounds: Any) -> Any:
+    return span(unit=unit, doc=doc, **bounds)
+
+
+@dataclass(frozen=True)
+class WorldSection:
+    """The ``[world]`` section: the planet flown (gravity, air density: :data:`PLANETS`)."""
+
+    SECTION: ClassVar[str] = "world"
+
+    planet: str = choice("earth", PLANETS, doc="gravity and air density of the world flown")
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        check_section(self)
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """Ranges ``(lo, hi)`` of the initial state, the sampler, the planet, and the optional
-    sections: the wind (None: still air), the airframe factors of ``[vehicle]`` (None: the
-    vehicle file as is), the look of ``[visual]`` (None: the nominal ground and camera) and the
-    sensor faults (None: the sensors of the sim config, no faults) and the link impairment
-    (None: a perfect link; only the real-time MAVLink SITL has a link to impair)."""
+    """Ranges ``(lo, hi)`` of the initial state (the ``[initial_state]`` keys), the sampler,
+    the planet, and the optional sections: the wind (None: still air), the airframe factors of
+    ``[vehicle]`` (None: the vehicle file as is), the look of ``[visual]`` (None: the nominal
+    ground and camera) and the sensor faults (None: the sensors of the sim config, no faults)
+    and the link impairment (None: a perfect link; only the real-time MAVLink SITL has a link
+    to impair)."""
 
-    roll_pitch_deg: tuple[float, float]
-    yaw_deg: tuple[float, float]
-    north_east_m: tuple[float, float]
-    altitude_m: tuple[float, float]
-    vel_north_east_m_s: tuple[float, float]
-    vel_down_m_s: tuple[float, float]
-    rate_rad_s: tuple[float, float]
-    sampler: str
-    world: Planet
+    SECTION: ClassVar[str] = "initial_state"
+
+    roll_pitch_deg: tuple[float, float] = _range("deg", "roll and pitch, each drawn uniformly")
+    yaw_deg: tuple[float, float] = _range("deg", "yaw, drawn uniformly")
+    north_east_m: tuple[float, float] = _range("m", "north and east of the pad (Sobol)")
+    altitude_m: tuple[float, float] = _range(
+        "m", "altitude above the pad (Sobol); starts in the air", lo=0.0, lo_open=True
+    )
+    vel_north_east_m_s: tuple[float, float] = _range("m/s", "north and east velocity (Sobol)")
+    vel_down_m_s: tuple[float, float] = _range("m/s", "downward velocity (Sobol)")
+    rate_rad_s: tuple[float, float] = _range("rad/s", "each body rate, drawn uniformly")
+    sampler: str = choice(
+        "sobol+uniform",
+        _SAMPLERS,
+        doc="Sobol for position and velocity, uniform for the rest; or uniform for all",
+    )
+    world: Planet = PLANETS["earth"]
     source: str = "<memory>"
     wind: WindConfig | None = None
     visual: VisualConfig | None = None
@@ -79,29 +106,18 @@ class Scenario:
     link: LinkConfig | None = None
 
     def __post_init__(self) -> None:
-        for key in _RANGE_KEYS:
-            lo, hi = getattr(self, key)
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-                raise ConfigError(
-                    f"{self.source}: [initial_state] {key} = [{lo}, {hi}]; expected finite [lo, hi]"
-                    " with lo <= hi"
-                )
-        if self.altitude_m[0] <= 0.0:
+        if math.isfinite(self.altitude_m[0]) and self.altitude_m[0] <= 0.0:
             raise ConfigError(
                 f"{self.source}: [initial_state] altitude_m starts at {self.altitude_m[0]}; "
                 "expected > 0 (the vehicle starts in the air)"
             )
-        if self.sampler not in _SAMPLERS:
-            raise ConfigError(
-                f"{self.source}: [initial_state] sampler = {self.sampler!r}; expected one of "
-                f"{list(_SAMPLERS)}"
-            )
+        check_section(self)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["world"] = self.world.name
         # an absent section is left out: a nominal scenario's record (in every log) is unchanged
-        for key in ("wind", "vehicle", "visual", "sensors", "link"):
+        for key in _OPTIONAL:
             section = getattr(self, key)
             if section is None:
                 del d[key]
@@ -110,13 +126,40 @@ class Scenario:
         return d
 
 
-SECTIONS = ("initial_state", "world", "wind", "vehicle", "visual", "sensors", "link")
+_OPTIONAL: dict[str, type] = {
+    "wind": WindConfig,
+    "vehicle": AirframeConfig,
+    "visual": VisualConfig,
+    "sensors": SensorFaultsConfig,
+    "link": LinkConfig,
+}
+"""The optional sections, each read by :func:`sitl_sim.table.read_section` (absent: None)."""
+
+SECTIONS = ("initial_state", "world", *_OPTIONAL)
 """The tables a scenario file may hold; any other is refused (a misspelt section would
 otherwise fly the nominal world without a word)."""
 
 
+def scenario_keys_markdown() -> str:
+    """``docs/scenario_keys.md``: every scenario section's keys, units, defaults and ranges,
+    generated from their declarations (``python -m sitl_sim.table --markdown``)."""
+    intro = (
+        "# Scenario keys\n\n"
+        "Generated from the section declarations by `python -m sitl_sim.table --markdown > "
+        "docs/scenario_keys.md`; do not edit (a test compares it with the declarations).\n\n"
+        "A key left out takes its default; `required` keys have none. A section left out is "
+        "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, no "
+        "sensor faults, a perfect link). Unknown keys, wrong types and values out of range "
+        "are `ConfigError`s naming the file, `[section] key`, what was expected and what was "
+        "found. A `span` is `[lo, hi]`, drawn per episode (uniform).\n\n"
+    )
+    classes = {"initial_state": Scenario, "world": WorldSection, **_OPTIONAL}
+    return keys_markdown(((name, classes[name]) for name in SECTIONS), intro)
+
+
 def load_scenario(path: str | Path | None = None) -> Scenario:
-    """Read a scenario TOML (default ``configs/scenario.toml``) with the keys of DESIGN.md."""
+    """Read a scenario TOML (default ``configs/scenario.toml``) with the keys of
+    ``docs/scenario_keys.md``."""
     path = Path(path) if path is not None else CONFIG_DIR / "scenario.toml"
     return scenario_from_dict(load_toml(path), str(path))
 
@@ -133,49 +176,15 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
             f"{where}: unknown section(s) {['[' + s + ']' for s in unknown_sections]}; "
             f"expected {['[' + s + ']' for s in SECTIONS]} (typo?)"
         )
-    init = data.get("initial_state")
-    if not isinstance(init, dict):
+    if not isinstance(data.get("initial_state"), dict):
         raise ConfigError(f"{where}: missing table [initial_state]")
-    unknown = sorted(set(init) - {*_RANGE_KEYS, "sampler"})
-    if unknown:
-        raise ConfigError(f"{where}: [initial_state] unknown key(s) {unknown}")
-    ranges: dict[str, tuple[float, float]] = {}
-    for key in _RANGE_KEYS:
-        if key not in init:
-            raise ConfigError(f"{where}: [initial_state] missing key {key!r}")
-        value = init[key]
-        pair = number_pair(value)
-        if pair is None:
-            raise ConfigError(
-                f"{where}: [initial_state] {key} = {value!r}; expected [lo, hi] (two numbers)"
-            )
-        ranges[key] = pair
-    sampler = init.get("sampler", "sobol+uniform")
-    world_tbl = data.get("world", {})
-    if not isinstance(world_tbl, dict):
-        raise ConfigError(f"{where}: [world] must be a table")
-    unknown = sorted(set(world_tbl) - {"planet"})
-    if unknown:
-        raise ConfigError(f"{where}: [world] unknown key(s) {unknown}; expected ['planet']")
-    name = world_tbl.get("planet", "earth")
-    if name not in PLANETS:
-        raise ConfigError(f"{where}: [world] planet = {name!r}; expected one of {sorted(PLANETS)}")
-    wind = wind_config_from_table(data["wind"], where) if "wind" in data else None
-    airframe = airframe_config_from_table(data["vehicle"], where) if "vehicle" in data else None
-    visual = visual_config_from_table(data["visual"], where) if "visual" in data else None
-    sensors = sensor_faults_config_from_table(data["sensors"], where) if "sensors" in data else None
-    link = link_config_from_table(data["link"], where) if "link" in data else None
-    return Scenario(
-        **ranges,
-        sampler=str(sampler),
-        world=planet(name),
-        source=where,
-        wind=wind,
-        vehicle=airframe,
-        visual=visual,
-        sensors=sensors,
-        link=link,
-    )
+    initial = read_values(Scenario, data["initial_state"], where)
+    world = read_section(WorldSection, data.get("world", {}), where)
+    optional = {
+        name: read_section(cls, data[name], where) if name in data else None
+        for name, cls in _OPTIONAL.items()
+    }
+    return Scenario(**initial, world=planet(world.planet), source=where, **optional)
 
 
 @dataclass(frozen=True)

@@ -41,11 +41,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from sitl_sim.errors import ConfigError
+from sitl_sim.table import (
+    check_section,
+    probability,
+    read_section,
+    section_dict,
+    section_keys,
+    span,
+)
 
 __all__ = [
     "MAX_CAMERA_LATENCY_MS",
@@ -64,17 +72,9 @@ MAX_CAMERA_LATENCY_MS = 1000.0
 """Upper bound of ``camera_latency_ms``: a frame older than the companion's ``max_age_ms``
 (300 ms) already fails it safe; a second is far beyond any camera pipeline worth simulating."""
 
-SENSOR_KEYS = (
-    "camera_latency_ms",
-    "frame_drop_prob",
-    "radar_dropout_prob",
-    "radar_outlier_prob",
-    "radar_outlier_m",
-    "accel_bias_m_s2",
-    "gyro_bias_rad_s",
-)
 
-_PROBABILITIES = ("frame_drop_prob", "radar_dropout_prob", "radar_outlier_prob")
+def _magnitude(unit: str, doc: str, hi: float | None = None) -> Any:
+    return span(None, unit=unit, lo=0.0, hi=hi, doc=doc)
 
 
 @dataclass(frozen=True)
@@ -94,35 +94,30 @@ class SensorFaultsConfig:
         source: where it came from (for error messages).
     """
 
-    camera_latency_ms: tuple[float, float] | None = None
-    frame_drop_prob: float = 0.0
-    radar_dropout_prob: float = 0.0
-    radar_outlier_prob: float = 0.0
-    radar_outlier_m: tuple[float, float] | None = None
-    accel_bias_m_s2: tuple[float, float] | None = None
-    gyro_bias_rad_s: tuple[float, float] | None = None
+    SECTION: ClassVar[str] = "sensors"
+
+    camera_latency_ms: tuple[float, float] | None = _magnitude(
+        "ms", "camera pipeline delay, drawn per episode (absent: none)", MAX_CAMERA_LATENCY_MS
+    )
+    frame_drop_prob: float = probability("each camera frame is lost (the first never)")
+    radar_dropout_prob: float = probability("a radar reading is invalid (no return)")
+    radar_outlier_prob: float = probability(
+        "a spurious radar return (clutter, multipath); needs radar_outlier_m"
+    )
+    radar_outlier_m: tuple[float, float] | None = _magnitude(
+        "m", "range of the spurious returns (with radar_outlier_prob > 0 only)"
+    )
+    accel_bias_m_s2: tuple[float, float] | None = _magnitude(
+        "m/s^2", "accelerometer turn-on bias magnitude per axis, random sign (absent: none)"
+    )
+    gyro_bias_rad_s: tuple[float, float] | None = _magnitude(
+        "rad/s", "gyro turn-on bias magnitude per axis, random sign (absent: none)"
+    )
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
+        check_section(self)
         where = f"{self.source}: [sensors]"
-        for key in _PROBABILITIES:
-            p = getattr(self, key)
-            if not (math.isfinite(p) and 0.0 <= p <= 1.0):
-                raise ConfigError(f"{where} {key} = {p}; expected a probability in [0, 1]")
-        for key in ("camera_latency_ms", "radar_outlier_m", "accel_bias_m_s2", "gyro_bias_rad_s"):
-            rg = getattr(self, key)
-            if rg is None:
-                continue
-            lo, hi = rg
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
-                raise ConfigError(
-                    f"{where} {key} = [{lo}, {hi}]; expected finite [lo, hi] with 0 <= lo <= hi"
-                )
-        if self.camera_latency_ms is not None and self.camera_latency_ms[1] > MAX_CAMERA_LATENCY_MS:
-            raise ConfigError(
-                f"{where} camera_latency_ms = {list(self.camera_latency_ms)}; expected at most "
-                f"{MAX_CAMERA_LATENCY_MS:g} ms"
-            )
         if self.radar_outlier_prob > 0.0 and self.radar_outlier_m is None:
             raise ConfigError(
                 f"{where} radar_outlier_prob = {self.radar_outlier_prob} needs radar_outlier_m "
@@ -135,48 +130,15 @@ class SensorFaultsConfig:
             )
 
     def to_dict(self) -> dict[str, Any]:
-        def rg(value: tuple[float, float] | None) -> list[float] | None:
-            return None if value is None else list(value)
-
-        return {
-            "camera_latency_ms": rg(self.camera_latency_ms),
-            "frame_drop_prob": self.frame_drop_prob,
-            "radar_dropout_prob": self.radar_dropout_prob,
-            "radar_outlier_prob": self.radar_outlier_prob,
-            "radar_outlier_m": rg(self.radar_outlier_m),
-            "accel_bias_m_s2": rg(self.accel_bias_m_s2),
-            "gyro_bias_rad_s": rg(self.gyro_bias_rad_s),
-        }
+        return section_dict(self)
 
 
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
+SENSOR_KEYS = section_keys(SensorFaultsConfig)
 
 
 def sensor_faults_config_from_table(table: Any, where: str) -> SensorFaultsConfig:
     """Check and type a scenario file's ``[sensors]`` table (``where`` names the file)."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [sensors] must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(SENSOR_KEYS))
-    if unknown:
-        raise ConfigError(
-            f"{where}: [sensors] unknown key(s) {unknown}; expected {list(SENSOR_KEYS)}"
-        )
-    values: dict[str, Any] = {}
-    for key, value in table.items():
-        if key in _PROBABILITIES:
-            if not _number(value):
-                raise ConfigError(
-                    f"{where}: [sensors] {key} = {value!r}; expected a probability in [0, 1]"
-                )
-            values[key] = float(value)
-        else:
-            if not (isinstance(value, list) and len(value) == 2 and all(map(_number, value))):
-                raise ConfigError(
-                    f"{where}: [sensors] {key} = {value!r}; expected [lo, hi] (two numbers)"
-                )
-            values[key] = (float(value[0]), float(value[1]))
-    return SensorFaultsConfig(**values, source=where)
+    return read_section(SensorFaultsConfig, table, where)
 
 
 class SensorFaults:

@@ -1,9 +1,11 @@
 """The ``[visual]`` scenario section: ground, sun, pad and camera effects drawn per episode.
 
-Keys (all optional but ``terrain``; ranges ``[lo, hi]`` are drawn uniformly per episode):
+Keys (all optional, a key left out keeps its nominal value; ranges ``[lo, hi]`` are drawn
+uniformly per episode; the generated table: ``docs/scenario_keys.md``):
 
 ``terrain``               list of ground families to pick from (:data:`sitl_sim.terrain.FAMILIES`,
-                          or ``"nominal"``: the original ground, which ignores the seed and sun)
+                          or ``"nominal"``: the original ground, which ignores the seed and sun;
+                          default ``["nominal"]``)
 ``texture_seed``          ``[lo, hi]`` integers, inclusive (default ``[0, 999]``): disjoint ranges
                           give grounds never seen in training
 ``sun_elevation_deg``     degrees above the horizon, in [1, 90] (default ``[90, 90]``: overhead)
@@ -27,15 +29,23 @@ key, so neither touches the sensor noise, the initial state or the wind.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import asdict, dataclass, field
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
 
-from sitl_sim.config import CameraConfig, number_pair
-from sitl_sim.errors import ConfigError
+from sitl_sim.config import CameraConfig
 from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.table import (
+    check_section,
+    choice_list,
+    integer_span,
+    number,
+    read_section,
+    section_dict,
+    span,
+)
 from sitl_sim.terrain import FAMILIES, Sun, terrain_map
 
 __all__ = [
@@ -51,43 +61,64 @@ NOMINAL_TERRAIN = "nominal"
 _HAZE_REFERENCE_M = 100.0
 _AIRLIGHT = 190.0  # grey level of the haze itself in full light (a bright dusty sky)
 
-_RANGES: dict[str, tuple[float, float, tuple[float, float]]] = {
-    # key: (lowest, highest, default)
-    "sun_elevation_deg": (1.0, 90.0, (90.0, 90.0)),
-    "sun_azimuth_deg": (-360.0, 720.0, (0.0, 360.0)),
-    "brightness": (0.05, 5.0, (1.0, 1.0)),
-    "contrast": (0.05, 5.0, (1.0, 1.0)),
-    "pad_scale": (0.1, 10.0, (1.0, 1.0)),
-    "haze": (0.0, 0.95, (0.0, 0.0)),
-    "motion_blur_ms": (0.0, 200.0, (0.0, 0.0)),
-    "lens_k1": (-0.5, 0.5, (0.0, 0.0)),
-}
-_SCALARS: dict[str, tuple[float, float]] = {
-    "pad_colour_jitter": (0.0, 0.9),
-    "exposure_noise": (0.0, 1.0),
-}
-KEYS = ("terrain", "texture_seed", *_RANGES, *_SCALARS)
+
+def _range(default: tuple[float, float], unit: str, lo: float, hi: float, doc: str) -> Any:
+    return span(default, unit=unit, lo=lo, hi=hi, doc=doc)
 
 
 @dataclass(frozen=True)
 class VisualConfig:
-    """The checked ``[visual]`` section: what each episode's look is drawn from."""
+    """The checked ``[visual]`` section: what each episode's look is drawn from (a key left
+    out keeps its nominal value; units, defaults and ranges: the declarations below)."""
 
-    terrain: tuple[str, ...]
-    texture_seed: tuple[int, int] = (0, 999)
-    sun_elevation_deg: tuple[float, float] = (90.0, 90.0)
-    sun_azimuth_deg: tuple[float, float] = (0.0, 360.0)
-    brightness: tuple[float, float] = (1.0, 1.0)
-    contrast: tuple[float, float] = (1.0, 1.0)
-    pad_scale: tuple[float, float] = (1.0, 1.0)
-    pad_colour_jitter: float = 0.0
-    haze: tuple[float, float] = (0.0, 0.0)
-    exposure_noise: float = 0.0
-    motion_blur_ms: tuple[float, float] = (0.0, 0.0)
-    lens_k1: tuple[float, float] = (0.0, 0.0)
+    SECTION: ClassVar[str] = "visual"
+
+    terrain: tuple[str, ...] = choice_list(
+        (NOMINAL_TERRAIN,),
+        (NOMINAL_TERRAIN, *FAMILIES),
+        doc="ground families to pick from per episode (nominal: the original ground, which "
+        "ignores the seed and the sun)",
+    )
+    texture_seed: tuple[int, int] = integer_span(
+        (0, 999),
+        unit="1",
+        lo=0,
+        hi=2**31 - 1,
+        doc="terrain seed, inclusive; disjoint ranges give grounds never seen in training",
+    )
+    sun_elevation_deg: tuple[float, float] = _range(
+        (90.0, 90.0), "deg", 1.0, 90.0, "sun above the horizon (90: overhead)"
+    )
+    sun_azimuth_deg: tuple[float, float] = _range(
+        (0.0, 360.0), "deg", -360.0, 720.0, "where the sun stands, from north clockwise"
+    )
+    brightness: tuple[float, float] = _range((1.0, 1.0), "1", 0.05, 5.0, "gain on the image")
+    contrast: tuple[float, float] = _range(
+        (1.0, 1.0), "1", 0.05, 5.0, "gain on the deviation from mid-grey (128)"
+    )
+    pad_scale: tuple[float, float] = _range((1.0, 1.0), "1", 0.1, 10.0, "factor on the pad size")
+    pad_colour_jitter: float = number(
+        0.0, unit="1", lo=0.0, hi=0.9, doc="each pad colour channel x U(1 - j, 1 + j)"
+    )
+    haze: tuple[float, float] = _range(
+        (0.0, 0.0), "1", 0.0, 0.95, "airlight share at 100 m slant range (dust, haze)"
+    )
+    exposure_noise: float = number(
+        0.0, unit="1", lo=0.0, hi=1.0, doc="std of the per-frame log exposure gain (flicker)"
+    )
+    motion_blur_ms: tuple[float, float] = _range(
+        (0.0, 0.0), "ms", 0.0, 200.0, "exposure time over which the body rates smear the image"
+    )
+    lens_k1: tuple[float, float] = _range(
+        (0.0, 0.0), "1", -0.5, 0.5, "radial distortion x_d = x (1 + k1 r^2) (negative: barrel)"
+    )
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        check_section(self)
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        return section_dict(self)
 
     def draw(self, seed: int, index: int) -> VisualSample:
         """Episode ``index`` of ``seed``: a pure function of the three."""
@@ -246,61 +277,6 @@ class CameraEffects:
         return cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
 
 
-def _pair(value: Any, key: str, where: str, lo: float, hi: float) -> tuple[float, float]:
-    pair = number_pair(value)
-    if pair is None:
-        raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected [lo, hi] (two numbers)")
-    a, b = pair
-    if not (math.isfinite(a) and math.isfinite(b) and lo <= a <= b <= hi):
-        raise ConfigError(f"{where}: [visual] {key} = {value!r}; expected {lo} <= lo <= hi <= {hi}")
-    return a, b
-
-
 def visual_config_from_table(table: Any, where: str) -> VisualConfig:
     """Check and type a ``[visual]`` table; ``where`` (the file) starts every error."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [visual] must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(KEYS))
-    if unknown:
-        raise ConfigError(f"{where}: [visual] unknown key(s) {unknown}; expected {list(KEYS)}")
-    if "terrain" not in table:
-        raise ConfigError(
-            f"{where}: [visual] missing key 'terrain'; expected a list of "
-            f"{[NOMINAL_TERRAIN, *FAMILIES]}"
-        )
-    terrain = table["terrain"]
-    names = (NOMINAL_TERRAIN, *FAMILIES)
-    if (
-        not isinstance(terrain, list)
-        or not terrain
-        or not all(isinstance(t, str) and t in names for t in terrain)
-    ):
-        raise ConfigError(
-            f"{where}: [visual] terrain = {terrain!r}; expected a non-empty list of {list(names)}"
-        )
-    kwargs: dict[str, Any] = {"terrain": tuple(terrain)}
-    if "texture_seed" in table:
-        ts = table["texture_seed"]
-        if (
-            not isinstance(ts, list)
-            or len(ts) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) for v in ts)
-            or not 0 <= ts[0] <= ts[1] < 2**31
-        ):
-            raise ConfigError(
-                f"{where}: [visual] texture_seed = {ts!r}; expected [lo, hi] integers, "
-                "0 <= lo <= hi < 2**31"
-            )
-        kwargs["texture_seed"] = (ts[0], ts[1])
-    for key, (lo, hi, _default) in _RANGES.items():
-        if key in table:
-            kwargs[key] = _pair(table[key], key, where, lo, hi)
-    for key, (lo, hi) in _SCALARS.items():
-        if key in table:
-            v = table[key]
-            if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
-                raise ConfigError(
-                    f"{where}: [visual] {key} = {v!r}; expected a number in [{lo}, {hi}]"
-                )
-            kwargs[key] = float(v)
-    return VisualConfig(**kwargs)
+    return read_section(VisualConfig, table, where)

@@ -47,12 +47,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from sitl_sim.config import number_pair
-from sitl_sim.errors import ConfigError, SimStateError
+from sitl_sim.errors import SimStateError
+from sitl_sim.table import check_section, choice, read_section, section_dict, span
 
 __all__ = [
     "GUST_DURATION_S",
@@ -60,7 +60,6 @@ __all__ = [
     "GUST_INTERVAL_S",
     "MIN_ADVECTION_SPEED_M_S",
     "TURBULENCE_W20_M_S",
-    "WIND_KEYS",
     "WIND_STREAM",
     "DrydenParams",
     "WindConfig",
@@ -84,7 +83,6 @@ WIND_STREAM = 0x57494E44
 """Third entropy word of the wind's generator (ASCII "WIND"); no other stream uses three words
 with this value, so the wind's draws are independent of the sensors' and the sampler's."""
 
-WIND_KEYS = ("speed_m_s", "direction_deg", "turbulence", "gust_m_s")
 
 _FT = 0.3048
 _H_MIN_FT = 10.0  # JSBSim FGWinds.cpp clips the altitude of the low-altitude model at 10 ft
@@ -93,7 +91,8 @@ _H_MAX_FT = 1000.0  # MIL-F-8785C low-altitude model: h < 1000 ft
 
 @dataclass(frozen=True)
 class WindConfig:
-    """The ``[wind]`` section: ranges ``(lo, hi)`` sampled per episode, turbulence and gusts.
+    """The ``[wind]`` section: ranges ``(lo, hi)`` sampled per episode, turbulence and gusts
+    (each key's unit, default and range: its declaration, :mod:`sitl_sim.table`).
 
     Attributes:
         speed_m_s: mean horizontal wind speed range, m/s (``0 <= lo <= hi``).
@@ -103,72 +102,32 @@ class WindConfig:
         source: the file it came from (for error messages).
     """
 
-    speed_m_s: tuple[float, float]
-    direction_deg: tuple[float, float]
-    turbulence: str = "none"
-    gust_m_s: tuple[float, float] | None = None
+    SECTION: ClassVar[str] = "wind"
+
+    speed_m_s: tuple[float, float] = span(
+        unit="m/s", lo=0.0, doc="mean horizontal wind speed, drawn per episode"
+    )
+    direction_deg: tuple[float, float] = span(
+        unit="deg", doc="where the mean wind blows FROM (0 = north, 90 = east), drawn per episode"
+    )
+    turbulence: str = choice(
+        "none", TURBULENCE_W20_M_S, doc="Dryden turbulence level (MIL-F-8785C, low altitude)"
+    )
+    gust_m_s: tuple[float, float] | None = span(
+        None, unit="m/s", lo=0.0, doc="1-cosine gust amplitude, drawn per gust (absent: no gusts)"
+    )
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
-        ranges = [("speed_m_s", self.speed_m_s, True), ("direction_deg", self.direction_deg, False)]
-        if self.gust_m_s is not None:
-            ranges.append(("gust_m_s", self.gust_m_s, True))
-        for key, (lo, hi), speed in ranges:
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-                raise ConfigError(
-                    f"{self.source}: [wind] {key} = [{lo}, {hi}]; expected finite [lo, hi]"
-                    " with lo <= hi"
-                )
-            if speed and lo < 0.0:
-                raise ConfigError(
-                    f"{self.source}: [wind] {key} = [{lo}, {hi}]; expected speeds >= 0 m/s"
-                )
-        if self.turbulence not in TURBULENCE_W20_M_S:
-            raise ConfigError(
-                f"{self.source}: [wind] turbulence = {self.turbulence!r}; expected one of "
-                f"{list(TURBULENCE_W20_M_S)}"
-            )
+        check_section(self)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "speed_m_s": list(self.speed_m_s),
-            "direction_deg": list(self.direction_deg),
-            "turbulence": self.turbulence,
-            "gust_m_s": None if self.gust_m_s is None else list(self.gust_m_s),
-        }
-
-
-def _range(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
-    value = table[key]
-    pair = number_pair(value)
-    if pair is None:
-        raise ConfigError(f"{where}: [wind] {key} = {value!r}; expected [lo, hi] (two numbers)")
-    return pair
+        return section_dict(self)
 
 
 def wind_config_from_table(table: Any, where: str) -> WindConfig:
     """Check and type a scenario file's ``[wind]`` table (``where`` names the file)."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [wind] must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(WIND_KEYS))
-    if unknown:
-        raise ConfigError(f"{where}: [wind] unknown key(s) {unknown}; expected {list(WIND_KEYS)}")
-    for key in ("speed_m_s", "direction_deg"):
-        if key not in table:
-            raise ConfigError(f"{where}: [wind] missing key {key!r}; expected [lo, hi]")
-    turbulence = table.get("turbulence", "none")
-    if not isinstance(turbulence, str):
-        raise ConfigError(
-            f"{where}: [wind] turbulence = {turbulence!r}; expected one of "
-            f"{list(TURBULENCE_W20_M_S)}"
-        )
-    return WindConfig(
-        speed_m_s=_range(table, "speed_m_s", where),
-        direction_deg=_range(table, "direction_deg", where),
-        turbulence=turbulence,
-        gust_m_s=_range(table, "gust_m_s", where) if "gust_m_s" in table else None,
-        source=where,
-    )
+    return read_section(WindConfig, table, where)
 
 
 # --------------------------------------------------------------------------- Dryden parameters

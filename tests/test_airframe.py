@@ -127,7 +127,7 @@ def test_a_scenario_without_vehicle_flies_the_vehicle_file_itself(vehicle, sim_c
         (
             "mass_scal = [1.0, 1.2]",
             r"s\.toml: \[vehicle\] unknown key\(s\) \['mass_scal'\]; "
-            r"expected some of \['mass_scale', 'inertia_scale'",
+            r"expected \['mass_scale', 'inertia_scale'",
         ),
         (
             "mass_scale = [1.3, 1.2]",

@@ -216,7 +216,7 @@ def test_each_effect_does_what_it_says():
     "visual,fragment",
     [
         ({"terrain": ["lava"]}, "[visual] terrain"),
-        ({}, "missing key 'terrain'"),
+        ({"terrain": []}, "[visual] terrain = []; expected a non-empty list of"),
         ({"terrain": ["sand"], "sun_elevation": [1, 2]}, "unknown key(s) ['sun_elevation']"),
         ({"terrain": ["sand"], "haze": [0.5, 0.2]}, "[visual] haze"),
         ({"terrain": ["sand"], "sun_elevation_deg": [0.0, 20.0]}, "[visual] sun_elevation_deg"),
@@ -228,6 +228,18 @@ def test_bad_visual_section_names_file_and_key(visual, fragment):
     with pytest.raises(ConfigError) as err:
         _visual_scenario(visual)
     assert "test.toml" in str(err.value) and fragment in str(err.value)
+
+
+def test_a_partial_visual_section_keeps_the_nominal_value_of_every_key_left_out():
+    """A [visual] with only the sun used to be refused for want of ``terrain``: every key left
+    out now keeps its nominal value, as the docs table says."""
+    sc = _visual_scenario({"sun_elevation_deg": [20.0, 30.0]})
+    assert sc.visual == replace(VisualConfig(), sun_elevation_deg=(20.0, 30.0))
+    assert sc.visual.terrain == ("nominal",) and sc.visual.texture_seed == (0, 999)
+    assert sc.visual.brightness == (1.0, 1.0) and sc.visual.haze == (0.0, 0.0)
+    drawn = episode_world(sc, 3, 1).visual
+    assert drawn.terrain == "nominal" and 20.0 <= drawn.sun_elevation_deg <= 30.0
+    assert _visual_scenario({}).visual == VisualConfig()  # an empty [visual]: all nominal
 
 
 def test_visual_scenario_files_load():

@@ -97,8 +97,8 @@ def _sensors(tmp_path: Path, extra: str, base: Path = CONFIG_DIR / "scenario.tom
         (
             "camera_latency_ms = [50.0, 150.0]",
             "camera_latency_ms = [50.0, 1500.0]",
-            r"scenario\.toml: \[sensors\] camera_latency_ms = \[50\.0, 1500\.0\]; expected at "
-            r"most 1000 ms",
+            r"scenario\.toml: \[sensors\] camera_latency_ms = \[50\.0, 1500\.0\]; expected finite "
+            r"\[lo, hi\] with 0 <= lo <= hi <= 1000 \(ms\)",
         ),
         (
             "accel_bias_m_s2 = [0.02, 0.1]",

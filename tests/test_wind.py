@@ -62,7 +62,7 @@ def _scenario_file(tmp_path: Path, wind: str) -> Path:
             "speed_m_s = [3.0, 8.0]",
             "speed_m_s = [8.0, 3.0]",
             r"scenario\.toml: \[wind\] speed_m_s = \[8\.0, 3\.0\]; expected finite \[lo, hi\] with"
-            r" lo <= hi",
+            r" 0 <= lo <= hi \(m/s\)",
         ),
         (
             "direction_deg = [0.0, 360.0]",
@@ -83,12 +83,14 @@ def _scenario_file(tmp_path: Path, wind: str) -> Path:
         (
             "speed_m_s = [3.0, 8.0]",
             "speed_m_s = [-1.0, 8.0]",
-            r"scenario\.toml: \[wind\] speed_m_s = \[-1\.0, 8\.0\]; expected speeds >= 0 m/s",
+            r"scenario\.toml: \[wind\] speed_m_s = \[-1\.0, 8\.0\]; expected finite \[lo, hi\] "
+            r"with 0 <= lo <= hi \(m/s\)",
         ),
         (
             "gust_m_s = [1.0, 3.0]",
             "gust_m_s = [-0.5, 3.0]",
-            r"scenario\.toml: \[wind\] gust_m_s = \[-0\.5, 3\.0\]; expected speeds >= 0 m/s",
+            r"scenario\.toml: \[wind\] gust_m_s = \[-0\.5, 3\.0\]; expected finite \[lo, hi\] "
+            r"with 0 <= lo <= hi \(m/s\)",
         ),
         (
             "speed_m_s = [3.0, 8.0]",

@@ -1,0 +1,400 @@
+"""One typed reader for the TOML tables of a scenario (and a suite): a section is a frozen
+dataclass whose fields declare, once, each key's type, unit, default, range and meaning (as
+PX4's ``module.yaml``); the reader, the checks and ``docs/scenario_keys.md`` all come from them.
+
+Declare a section::
+
+    @dataclass(frozen=True)
+    class WindConfig:
+        SECTION: ClassVar[str] = "wind"
+        speed_m_s: tuple[float, float] = span(unit="m/s", lo=0.0, doc="mean wind speed")
+        turbulence: str = choice("none", TURBULENCE_LEVELS, doc="Dryden level")
+        source: str = field(default="<memory>", compare=False)
+
+        def __post_init__(self) -> None:
+            check_section(self)          # ranges: a config built in code is checked too
+
+and read it with ``read_section(WindConfig, table, where)``. Rules, the same for every section:
+
+* a key left out takes the field's default (its documented nominal value); a field declared
+  without one (:data:`REQUIRED`) must be given;
+* an unknown key, a value of the wrong type and a value out of range are each a
+  :class:`~sitl_sim.errors.ConfigError` ``"<where>: [section] key = <got>; expected <what>"``.
+
+Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode), :func:`integer_span`,
+:func:`number`, :func:`probability`, :func:`integer`, :func:`choice` (a string among choices)
+and :func:`choice_list` (a non-empty list of them). ``python -m sitl_sim.table --markdown``
+prints the table of every scenario section's keys (``docs/scenario_keys.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from collections.abc import Iterable
+from typing import Any
+
+from sitl_sim.errors import ConfigError
+
+__all__ = [
+    "REQUIRED",
+    "Key",
+    "check_section",
+    "choice",
+    "choice_list",
+    "integer",
+    "integer_span",
+    "keys_markdown",
+    "number",
+    "probability",
+    "read_section",
+    "read_values",
+    "section_dict",
+    "section_keys",
+    "span",
+]
+
+REQUIRED: Any = dataclasses.MISSING
+"""The default of a key that has no nominal value and must be given."""
+
+_META = "visland.key"
+_NUMBER, _INTEGER, _SPAN, _INT_SPAN, _CHOICE, _CHOICES = (
+    "number",
+    "integer",
+    "span",
+    "integer span",
+    "choice",
+    "choice list",
+)
+
+
+def _g(x: float) -> str:
+    """A bound as written in errors and docs: ``10``, ``0.05``, ``2147483647``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class Key:
+    """How one key of a section is typed and checked (a field's metadata).
+
+    Attributes:
+        kind: ``number``, ``integer``, ``span``, ``integer span``, ``choice`` or
+            ``choice list``.
+        unit: the unit (``"1"``: dimensionless).
+        doc: what the key means (one line, for the docs table).
+        lo, hi: inclusive bounds (None: unbounded); ``lo_open`` makes ``lo`` exclusive.
+        noun: how the expected value is named in an error (``"a probability"``, ``"factors"``).
+        ends: the names of a span's two ends (``("lo", "hi")``, ``("start", "end")``).
+        strict: a span needs ``lo < hi`` (not ``<=``).
+        finite_hi: a span's upper end must be finite (False: ``inf`` allowed, "for good").
+        choices: the allowed strings of a choice.
+    """
+
+    kind: str
+    unit: str
+    doc: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    noun: str = ""
+    ends: tuple[str, str] = ("lo", "hi")
+    strict: bool = False
+    finite_hi: bool = True
+    choices: tuple[str, ...] = ()
+
+    # ------------------------------------------------------------------ reading
+
+    def convert(self, value: Any) -> Any:
+        """``value`` (as TOML parsed it) typed, or None when it has the wrong type."""
+        if self.kind == _NUMBER:
+            return float(value) if _is_number(value) else None
+        if self.kind == _INTEGER:
+            return value if _is_int(value) else None
+        if self.kind in (_SPAN, _INT_SPAN):
+            ok = _is_int if self.kind == _INT_SPAN else _is_number
+            if not (isinstance(value, list) and len(value) == 2 and all(map(ok, value))):
+                return None
+            cast = int if self.kind == _INT_SPAN else float
+            return cast(value[0]), cast(value[1])
+        if self.kind == _CHOICE:
+            return value if isinstance(value, str) and value in self.choices else None
+        good = isinstance(value, list) and value and all(v in self.choices for v in value)
+        return tuple(value) if good and all(isinstance(v, str) for v in value) else None
+
+    def type_phrase(self) -> str:
+        """What a value of this key looks like (the "expected" of a wrong type)."""
+        a, b = self.ends
+        if self.kind == _SPAN:
+            return f"[{a}, {b}] (two numbers)"
+        if self.kind == _INT_SPAN:
+            return f"[{a}, {b}] (two integers)"
+        return self.expected()
+
+    # ------------------------------------------------------------------ checking
+
+    def _above_lo(self, x: float) -> bool:
+        return self.lo is None or (x > self.lo if self.lo_open else x >= self.lo)
+
+    def in_range(self, value: Any) -> bool:
+        if self.kind == _CHOICE:
+            return value in self.choices
+        if self.kind == _CHOICES:
+            return bool(value) and all(v in self.choices for v in value)
+        if self.kind in (_NUMBER, _INTEGER):
+            return (
+                math.isfinite(value)
+                and self._above_lo(value)
+                and (self.hi is None or value <= self.hi)
+            )
+        a, b = value
+        ordered = a < b if self.strict else a <= b
+        return (
+            math.isfinite(a)
+            and (math.isfinite(b) or (not self.finite_hi and b == math.inf))
+            and ordered
+            and self._above_lo(a)
+            and (self.hi is None or b <= self.hi)
+        )
+
+    def bounds(self) -> str:
+        """The range as written in errors and the docs: ``0 <= lo <= hi <= 10``,
+        ``in [0, 1]``, ``>= 0``, ``one of [...]``."""
+        if self.kind == _CHOICE:
+            return f"one of {list(self.choices)}"
+        if self.kind == _CHOICES:
+            return f"a non-empty list of {list(self.choices)}"
+        lo_op = "<" if self.lo_open else "<="
+        if self.kind in (_NUMBER, _INTEGER):
+            if self.lo is not None and self.hi is not None and not self.lo_open:
+                return f"in [{_g(self.lo)}, {_g(self.hi)}]"
+            parts = (
+                [f"{'>' if self.lo_open else '>='} {_g(self.lo)}"] if self.lo is not None else []
+            )
+            parts += [f"<= {_g(self.hi)}"] if self.hi is not None else []
+            return " and ".join(parts) or "finite"
+        a, b = self.ends
+        chain = f"{a} {'<' if self.strict else '<='} {b}"
+        if self.lo is not None:
+            chain = f"{_g(self.lo)} {lo_op} {chain}"
+        if self.hi is not None:
+            chain = f"{chain} <= {_g(self.hi)}"
+        return chain
+
+    def expected(self) -> str:
+        """The "expected" of a value out of range."""
+        unit = f" ({self.unit})" if self.unit not in ("", "1") else ""
+        if self.kind in (_CHOICE, _CHOICES):
+            return self.bounds()
+        if self.kind in (_NUMBER, _INTEGER):
+            bounds = self.bounds()
+            return f"{self.noun}{'' if bounds == 'finite' else ' ' + bounds}{unit}"
+        a, b = self.ends
+        noun = f"{self.noun} " if self.noun else ""
+        return f"{noun}[{a}, {b}] with {self.bounds()}{unit}"
+
+
+def _field(key: Key, default: Any) -> Any:
+    return dataclasses.field(default=default, metadata={_META: key})
+
+
+def span(
+    default: tuple[float, float] | None = REQUIRED,
+    *,
+    unit: str,
+    doc: str,
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    noun: str = "finite",
+    ends: tuple[str, str] = ("lo", "hi"),
+    strict: bool = False,
+    finite_hi: bool = True,
+) -> Any:
+    """A ``[lo, hi]`` key of numbers (None default: absent = off)."""
+    key = Key(_SPAN, unit, doc, lo, hi, lo_open, noun, ends, strict, finite_hi)
+    return _field(key, default)
+
+
+def integer_span(default: tuple[int, int], *, unit: str, doc: str, lo: int, hi: int) -> Any:
+    """A ``[lo, hi]`` key of integers, inclusive."""
+    return _field(Key(_INT_SPAN, unit, doc, lo, hi, noun="integers"), default)
+
+
+def number(
+    default: float = REQUIRED,
+    *,
+    unit: str,
+    doc: str,
+    lo: float | None = None,
+    hi: float | None = None,
+    noun: str = "a number",
+) -> Any:
+    """A number key (an integer in the file is taken as a float)."""
+    return _field(Key(_NUMBER, unit, doc, lo, hi, noun=noun), default)
+
+
+def probability(doc: str) -> Any:
+    """A probability in [0, 1], 0 (off) when left out."""
+    return number(0.0, unit="1", doc=doc, lo=0.0, hi=1.0, noun="a probability")
+
+
+def integer(default: int = REQUIRED, *, unit: str, doc: str, lo: int, hi: int | None = None) -> Any:
+    """An integer key."""
+    return _field(Key(_INTEGER, unit, doc, lo, hi, noun="an integer"), default)
+
+
+def choice(default: str, choices: Iterable[str], *, doc: str) -> Any:
+    """A string key among ``choices``."""
+    return _field(Key(_CHOICE, "", doc, choices=tuple(choices)), default)
+
+
+def choice_list(default: tuple[str, ...], choices: Iterable[str], *, doc: str) -> Any:
+    """A non-empty list of strings among ``choices`` (a tuple once read)."""
+    return _field(Key(_CHOICES, "", doc, choices=tuple(choices)), default)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _keys(cls: type) -> dict[str, tuple[dataclasses.Field, Key]]:
+    return {f.name: (f, f.metadata[_META]) for f in dataclasses.fields(cls) if _META in f.metadata}
+
+
+def section_keys(cls: type) -> tuple[str, ...]:
+    """The keys of section class ``cls``, in declaration order."""
+    return tuple(_keys(cls))
+
+
+def read_values(cls: type, table: Any, where: str, section: str | None = None) -> dict[str, Any]:
+    """The typed values of the keys ``table`` gives (defaults are the dataclass's own).
+
+    Raises:
+        ConfigError: ``table`` is not a table, or has an unknown key, or lacks a
+            :data:`REQUIRED` one, or a value has the wrong type (naming ``where``, the section
+            and the key). Ranges are checked by :func:`check_section` when ``cls`` is built.
+    """
+    section = section or cls.SECTION  # type: ignore[attr-defined]
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: [{section}] must be a table, got {table!r}")
+    keys = _keys(cls)
+    unknown = sorted(set(table) - set(keys))
+    if unknown:
+        raise ConfigError(
+            f"{where}: [{section}] unknown key(s) {unknown}; expected {list(keys)} (typo?)"
+        )
+    values: dict[str, Any] = {}
+    for name, (f, key) in keys.items():
+        if name not in table:
+            if f.default is REQUIRED:
+                raise ConfigError(
+                    f"{where}: [{section}] missing key {name!r}; expected {key.type_phrase()}"
+                )
+            continue
+        value = key.convert(table[name])
+        if value is None:
+            raise ConfigError(
+                f"{where}: [{section}] {name} = {table[name]!r}; expected {key.type_phrase()}"
+            )
+        values[name] = value
+    return values
+
+
+def read_section(cls: type, table: Any, where: str) -> Any:
+    """``cls`` (a section class: ``SECTION`` and a ``source`` field) read from ``table``."""
+    return cls(**read_values(cls, table, where), source=where)
+
+
+def check_section(obj: Any, section: str | None = None) -> None:
+    """Check every declared key of ``obj`` (a section dataclass) against its range.
+
+    Raises:
+        ConfigError: ``"<obj.source>: [section] key = <got>; expected <range>"``.
+    """
+    section = section or type(obj).SECTION
+    for name, (_f, key) in _keys(type(obj)).items():
+        value = getattr(obj, name)
+        if value is None or key.in_range(value):
+            continue
+        pair = isinstance(value, tuple) and key.kind in (_SPAN, _INT_SPAN)
+        got = f"[{value[0]}, {value[1]}]" if pair else repr(value)
+        raise ConfigError(f"{obj.source}: [{section}] {name} = {got}; expected {key.expected()}")
+
+
+def section_dict(obj: Any, *, drop_none: bool = False) -> dict[str, Any]:
+    """The declared keys of ``obj`` as a TOML-like dict (tuples as lists); ``drop_none``
+    leaves out the keys that are off."""
+    out: dict[str, Any] = {}
+    for name in _keys(type(obj)):
+        value = getattr(obj, name)
+        if value is None and drop_none:
+            continue
+        out[name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+# --------------------------------------------------------------------------- the docs table
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "[" + ", ".join(map(_toml, value)) + "]"
+    return _g(value) if _is_number(value) else json.dumps(value)
+
+
+def _default_text(f: dataclasses.Field) -> str:
+    if f.default is REQUIRED:
+        return "required"
+    if f.default is None:
+        return "absent (off)"
+    return f"`{_toml(f.default)}`"
+
+
+def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
+    """A markdown table of every ``(section, class)``'s keys: type, unit, default, range and
+    meaning (the generated ``docs/scenario_keys.md``)."""
+    lines = [
+        "| section | key | type | unit | default | range | meaning |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for section, cls in sections:
+        for name, (f, key) in _keys(cls).items():
+            cells = (
+                f"`[{section}]`",
+                f"`{name}`",
+                key.kind,
+                key.unit or "—",
+                _default_text(f),
+                key.bounds().replace("|", "\\|"),
+                key.doc.replace("|", "\\|"),
+            )
+            lines.append("| " + " | ".join(cells) + " |")
+    return intro + "\n".join(lines) + "\n"
+
+
+def _main(argv: list[str] | None = None) -> int:
+    from sitl_sim.scenario import scenario_keys_markdown
+
+    parser = argparse.ArgumentParser(
+        prog="python -m sitl_sim.table", description="Print the table of scenario keys."
+    )
+    parser.add_argument(
+        "--markdown", action="store_true", required=True, help="markdown (docs/scenario_keys.md)"
+    )
+    parser.parse_args(argv)
+    sys.stdout.write(scenario_keys_markdown())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())
