@@ -18,9 +18,9 @@ from sitl_sim.env import LandingEnv
 from training.exec.rollout import fly_episode, make_policy
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
 from training.profiles import PROFILES
-from training.report.markdown import TARGETS
 from training.report.metrics import ROWS
 from training.report.results import ReportConfig, load_metrics, write_report
+from training.report.targets import TARGETS
 from training.run_folder import Run
 from training.stage_records import BcRecord, DaggerRecord, ValidationScore, VisionRecord
 from training.stages import eval as eval_stage

@@ -460,7 +460,8 @@ def _cond(success: float, mean: float | None, mx: float | None, touch: float, n:
 
 
 def test_suite_targets_and_which_model_read_the_reports():
-    from training.report.suite import SUITE_TARGETS, suite_comparison, suite_standing
+    from training.report.suite import suite_comparison, suite_standing
+    from training.report.targets import SUITE_TARGETS
     from training.ship import _which_model
 
     names = [

@@ -13,40 +13,12 @@ from typing import Any
 
 from companion.files import sha256_file
 from companion.policy_net import load_policy
-from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
-from training.report.results import rollouts_text
+from training.paper import PAPER_RUNTIME_S
+from training.report.markdown import rollouts_text, table3
+from training.report.metrics import load_metrics
+from training.report.targets import fmt
 
 __all__ = ["ship"]
-
-ROW_LABELS = {
-    "expert": "MPC expert (privileged)",
-    "bc": "LSTM, behaviour cloning (privileged)",
-    "dagger": "LSTM, DAgger (privileged)",
-    "vision": "CNN + LSTM (vision) — shipped",
-}
-
-
-def _fmt(v: Any, digits: int = 3) -> str:
-    return "n/a" if v is None else f"{v:.{digits}f}"
-
-
-def table3(metrics: dict[str, Any]) -> str:
-    """Markdown table of the run's rows beside the paper's Table 3."""
-    lines = [
-        "| policy | mean error (m) | paper mean (m) | min | max | std | touchdown speed mean (m/s)"
-        " | success |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for key, row in metrics["rows"].items():
-        e, v = row["landing_error_m"], row["touchdown_speed_m_s"]
-        paper = PAPER_TABLE3.get(key, {}).get("mean")
-        lines.append(
-            f"| {ROW_LABELS.get(key, key)} | {_fmt(e['mean'])} | "
-            f"{_fmt(paper, 2) if paper is not None else '—'} | {_fmt(e['min'])} | "
-            f"{_fmt(e['max'])} | {_fmt(e['std'])} | {_fmt(v['mean'])} | "
-            f"{100 * row['success_rate']:.1f} % ({row.get('timeouts', 0)} timeouts) |"
-        )
-    return "\n".join(lines)
 
 
 def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
@@ -240,8 +212,8 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   × {prof["batch_segments"]} per batch (paper 4.2).
 - perception: {perception.get("train_images", "?")} training / {perception.get("val_images", "?")}
   validation frames (episode split 90/10); validation bearing error median
-  {_fmt(perception.get("val_bearing_error_px_median"), 2)} px, p95
-  {_fmt(perception.get("val_bearing_error_px_p95"), 2)} px.
+  {fmt(perception.get("val_bearing_error_px_median"), 2)} px, p95
+  {fmt(perception.get("val_bearing_error_px_p95"), 2)} px.
 - pipeline wall time recorded in `pipeline_time.json` (2 CPU cores): {total_s / 60:.1f} min
   over {len(session_times)} completed session(s); an interrupted session is not recorded, and
   every stage run again counts (a finished run that takes new estimator settings flies vision
@@ -250,18 +222,18 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
 {suite_section}## Results in the paper's world ({metrics["episodes"]} evaluation episodes,
 seed {metrics["eval_seed"]}, disjoint from training)
 
-{table3(metrics)}
+{table3(load_metrics(run))}
 
-Success = landing error ≤ 1 m, vertical touchdown speed ≤ 1 m/s, tilt ≤ 20°. Paper Table 3
-reports means only.
+Success = landing error ≤ 1 m, vertical touchdown speed ≤ 1 m/s, tilt ≤ 20°. The paper's
+rows are its Table 3 (§5.4): landing error only.
 
 ## Runtime (one thread, batch 1, same run)
 
-- this policy: median {_fmt(pol_t.get("shipped", {}).get("median_ms"))} ms per step, p99
-  {_fmt(pol_t.get("shipped", {}).get("p99_ms"))} ms;
+- this policy: median {fmt(pol_t.get("shipped", {}).get("median_ms"))} ms per step, p99
+  {fmt(pol_t.get("shipped", {}).get("p99_ms"))} ms;
 - a paper-style CNN-MLP + LSTM-MLP (our reconstruction, the paper gives no sizes): median
-  {_fmt(pol_t.get("paper_style", {}).get("median_ms"))} ms;
-- our MPC expert: median {_fmt(mpc_t.get("median_ms"))} ms per solve
+  {fmt(pol_t.get("paper_style", {}).get("median_ms"))} ms;
+- our MPC expert: median {fmt(mpc_t.get("median_ms"))} ms per solve
   (`visland bench mpc`); paper: MPC {paper_mpc_ms:.0f} ms, policy {paper_pol_ms:.1f} ms.
 
 ## Limits

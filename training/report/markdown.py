@@ -4,8 +4,6 @@ the paper's, the runtime comparison, the header with seeds and commits, figure c
 from __future__ import annotations
 
 import datetime as _dt
-import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,14 +11,12 @@ from training.exec.transport import Transport
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3, PAPER_VISION_TERMINAL_SPEED_M_S
 from training.report.figures import Trace
 from training.report.metrics import ROWS, Provenance, short
-from training.stage_records import Metrics, Rows
+from training.report.targets import TARGETS, fmt, pct
+from training.report.targets import standing as targets_standing
+from training.stage_records import Metrics
 
 __all__ = [
-    "TARGETS",
-    "Target",
-    "fmt",
     "header",
-    "pct",
     "regenerate_eval",
     "rollouts_text",
     "runtime",
@@ -28,55 +24,6 @@ __all__ = [
     "table3",
     "trajectory_caption",
 ]
-
-
-@dataclass(frozen=True)
-class Target:
-    """One acceptance target: ``rows[row][metric][stat] <op> limit`` (``stat`` None: a scalar)."""
-
-    row: str
-    metric: str
-    stat: str | None
-    op: str
-    limit: float
-    unit: str
-
-    def describe(self) -> str:
-        what = f"{self.metric}.{self.stat}" if self.stat else self.metric
-        limit = f"{100 * self.limit:g} %" if self.unit == "%" else f"{self.limit:g} {self.unit}"
-        return f"{ROWS[self.row]}: {what} {'≤' if self.op == '<=' else '≥'} {limit}"
-
-    def value(self, rows: Rows) -> float | None:
-        v = getattr(rows[self.row], self.metric)
-        return getattr(v, self.stat) if self.stat else v
-
-    def met(self, rows: Rows) -> bool:
-        v = self.value(rows)
-        if v is None or not math.isfinite(v):
-            return False
-        return v <= self.limit if self.op == "<=" else v >= self.limit
-
-
-TARGETS: tuple[Target, ...] = (
-    Target("dagger", "landing_error_m", "mean", "<=", 0.30, "m"),
-    Target("vision", "landing_error_m", "mean", "<=", 0.50, "m"),
-    Target("vision", "landing_error_m", "max", "<=", 1.2, "m"),
-    Target("vision", "touchdown_speed_m_s", "mean", "<=", 1.0, "m/s"),
-    Target("vision", "success_rate", None, ">=", 0.95, "%"),
-)
-"""The project's targets for the Table 3 rows (the issue's acceptance figures)."""
-
-
-def fmt(v: Any, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "n/a"
-    if v != 0 and abs(v) < 10 ** (-digits):
-        return f"{v:.1e}"
-    return f"{v:.{digits}f}"
-
-
-def pct(v: Any) -> str:
-    return "n/a" if v is None else f"{100 * v:.1f} %"
 
 
 # ------------------------------------------------------------------------------ markdown
@@ -205,18 +152,13 @@ def runtime(metrics: Metrics, path: Path) -> str:
 
 
 def standing(metrics: Metrics) -> tuple[str, tuple[bool, ...]]:
-    rows = metrics.rows
-    met = tuple(t.met(rows) for t in TARGETS)
-    lines = ["| target | value | met |", "|---|---:|:---:|"]
-    for t, ok in zip(TARGETS, met, strict=True):
-        v = t.value(rows)
-        shown = pct(v) if t.unit == "%" else f"{fmt(v)} {t.unit}"
-        lines.append(f"| {t.describe()} | {shown} | {'yes' if ok else '**no**'} |")
-    missed = [t.describe() for t, ok in zip(TARGETS, met, strict=True) if not ok]
+    """The paper-world targets (:data:`~training.report.targets.TARGETS`): a summary line and
+    the table; the met flags in target order."""
+    table, met, missed = targets_standing(TARGETS, metrics.rows, label=ROWS.__getitem__)
     summary = f"**{sum(met)} of {len(TARGETS)} paper-world targets met.** " + (
         "Not met: " + "; ".join(missed) + "." if missed else "All targets are met."
     )
-    return summary + "\n\n" + "\n".join(lines), met
+    return summary + "\n\n" + table, tuple(met)
 
 
 def trajectory_caption(traces: dict[str, Trace], seed: int, episode: int) -> str:

@@ -39,9 +39,7 @@ from training.report.figures import (
     touchdowns,
 )
 from training.report.markdown import (
-    fmt,
     header,
-    pct,
     regenerate_eval,
     rollouts_text,
     runtime,
@@ -50,6 +48,7 @@ from training.report.markdown import (
     trajectory_caption,
 )
 from training.report.metrics import Provenance, ReportError, code_commit, load_metrics
+from training.report.targets import fmt, pct
 from training.stage_records import Metrics
 
 __all__ = [
