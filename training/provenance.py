@@ -12,7 +12,8 @@ REPO = Path(__file__).resolve().parent.parent
 """The checkout (or installed tree) holding this code: relative config, model and suite paths
 resolve against it, and child processes start in it."""
 SHIPPED_MODEL = REPO / "models" / "visland_vision.pt"
-"""The default model (``visland demo``, ``visland fly --policy``): the checkout's shipped one."""
+"""The shipped vision policy (README, ``models/MODEL_CARD.md``): the default model of ``visland
+demo``, ``fly --companion-mode landing-target`` and the benchmarks; the one name for it."""
 
 
 def _git(repo: Path, *args: str) -> str:

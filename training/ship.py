@@ -14,6 +14,7 @@ from typing import Any
 from companion.files import sha256_file
 from companion.policy_net import load_policy
 from training.paper import PAPER_RUNTIME_S
+from training.provenance import SHIPPED_MODEL
 from training.report.markdown import rollouts_text, table3
 from training.report.metrics import load_metrics
 from training.report.targets import fmt
@@ -110,7 +111,7 @@ def _limits(robust: bool) -> str:
     )
 
 
-def ship(run: str | Path, out: str | Path = "models", name: str = "visland_vision.pt") -> Path:
+def ship(run: str | Path, out: str | Path = "models", name: str = SHIPPED_MODEL.name) -> Path:
     """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>``, export its ONNX graphs beside
     it (the board runtime; a previous model's export there would otherwise be refused as stale)
     and write ``MODEL_CARD.md``."""

@@ -33,7 +33,7 @@ from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize
 from training.exec.transport import Transport
-from training.provenance import REPO
+from training.provenance import REPO, SHIPPED_MODEL
 from training.seeds import EVAL_SEED
 
 __all__ = [
@@ -109,8 +109,9 @@ def setup_params(autopilot: str, companion_mode: str) -> tuple[str, ...]:
 
 
 COMPANION_MODES = ("offboard", "landing-target")
-DEFAULT_VISION_POLICY = "models/visland_vision.pt"
-"""The shipped vision policy (README, models/MODEL_CARD.md)."""
+DEFAULT_VISION_POLICY = str(SHIPPED_MODEL)
+"""The shipped vision policy (:data:`training.provenance.SHIPPED_MODEL`) as a
+:attr:`FlyConfig.policy`: what ``--companion-mode landing-target`` flies by default."""
 
 _handed_out: set[int] = set()
 _ports_lock = threading.Lock()

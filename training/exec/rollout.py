@@ -7,7 +7,6 @@ The in-process path writes the same flight-log topics as the MAVLink SITL
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -307,7 +306,3 @@ def completed_episode(path: Path) -> bool:
         return False
     results = log.topic(TOPIC_RESULT)
     return not log.truncated and bool(results) and not results[-1].get("aborted", False)
-
-
-def default_workers() -> int:
-    return max(1, min(os.cpu_count() or 1, 8))
