@@ -22,6 +22,7 @@ from sitl_sim.scenario import InitialState, InitialStateSampler, scenario_from_d
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
 from training.provenance import REPO
+from training.seeds import EVAL_SEED
 
 __all__ = ["VISUAL_ROWS", "draw_visual_conditions", "draw_wind_flight"]
 
@@ -103,7 +104,7 @@ def draw_visual_conditions(out_png: str | Path, seed: int = 3) -> Path:
     return out
 
 
-def draw_wind_flight(out_png: str | Path, seed: int = 1_000_000, episode: int = 0) -> Path:
+def draw_wind_flight(out_png: str | Path, seed: int = EVAL_SEED, episode: int = 0) -> Path:
     """The expert's flight through episode ``episode`` of the standard suite's ``wind_severe``
     condition."""
     import matplotlib
