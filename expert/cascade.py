@@ -2,7 +2,7 @@
 
 The controller itself is the SITL autopilot's AUTO.LAND controller,
 :class:`sitl_sim.land_controller.CascadeLandController` (one implementation: the SITL's LAND mode
-and this baseline fly the same law). This module adds the :class:`expert.policy.Policy`
+and this baseline fly the same law). This module adds the :class:`companion.contract.policy.Policy`
 interface. It reads ground truth, so it is a *privileged* controller — the scripted pilot of the
 demo and of the simulator benchmarks, and the reference the MPC expert must beat.
 """
@@ -18,7 +18,7 @@ __all__ = ["CascadeGains", "CascadeLander"]
 class CascadeLander(CascadeLandController):
     """Ground truth in, Command out: ``command(pos, vel, quat) -> Command``.
 
-    Also a (privileged, stateless) :class:`expert.policy.Policy`.
+    Also a (privileged, stateless) :class:`companion.contract.policy.Policy`.
     """
 
     privileged = True

@@ -1,6 +1,6 @@
 """``visland export-onnx``: a checkpoint's networks as ONNX graphs for ``runtime = "onnx"``.
 
-A thin shell over :func:`companion.onnx_runtime.export_onnx`: writes
+A thin shell over :func:`companion.onnx_export.export_onnx`: writes
 ``<stem>.perception.onnx`` and ``<stem>.control.onnx`` beside the checkpoint, checks that ONNX
 Runtime reproduces torch on random inputs, prints what it wrote and the differences. Needs the
 ``onnx`` extra (``pip install 'visland[onnx]'``).
