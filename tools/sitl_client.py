@@ -18,6 +18,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import Command
 from companion.contract.camera_packet import CameraFrame, CameraPacketError, FrameAssembler
+from companion.contract.signing import sign_outgoing
 from companion.telemetry import OdometrySample, odometry_from_msg
 
 __all__ = [
@@ -70,10 +71,7 @@ class SitlClient:
             self.cam.setblocking(False)
         self.mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         if signing_key is not None:
-            self.mav.signing.secret_key = signing_key
-            self.mav.signing.sign_outgoing = True
-            self.mav.signing.link_id = 1
-            self.mav.signing.timestamp = int((time.time() - 1_420_070_400) * 100_000)
+            sign_outgoing(self.mav, signing_key, link_id=1)
         self.last: dict[str, Any] = {}
         self.counts: Counter[str] = Counter()
         self.inbox: deque[Any] = deque(maxlen=100_000)
