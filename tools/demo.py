@@ -1,7 +1,7 @@
 """``visland demo``: the shipped vision policy lands the simulated drone, over MAVLink.
 
-The demo is the product as it would fly: ``visland fly`` (:mod:`training.fly`) starts the SITL
-and the companion as two processes talking MAVLink over UDP, the companion flies the shipped
+The demo is the product as it would fly: ``visland fly`` (:mod:`training.exec.fly`) starts the
+SITL and the companion as two processes talking MAVLink over UDP, the companion flies the shipped
 CNN+LSTM policy (``models/visland_vision.pt``: camera, radar, IMU — no ground truth) through
 ``episodes`` landings in lockstep, and the SITL's own ground truth scores each touchdown. Then
 the demo prints one row per landing (failures included, with the criterion that failed), the
@@ -32,7 +32,8 @@ from sitl_sim.metrics import (
     SUCCESS_MAX_VERTICAL_SPEED_M_S,
 )
 from tools.log_plots import plot_flights
-from training.fly import FlyConfig, fly
+from tools.logtool import fmt_value
+from training.exec.fly import FlyConfig, fly
 from training.provenance import SHIPPED_MODEL
 from training.seeds import EVAL_SEED
 
@@ -182,10 +183,6 @@ def _json_ready(value: Any) -> Any:
     return value
 
 
-def _fmt(value: float, spec: str) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else format(value, spec)
-
-
 def _write_report(report: dict[str, Any], out: TextIO) -> None:
     w = out.write
     w(
@@ -199,10 +196,10 @@ def _write_report(report: dict[str, Any], out: TextIO) -> None:
         else:
             where, alt = f"{'?':>14}", f"{'?':>8}"
         w(
-            f"{row['episode']:>3} {where:>15} {alt} {_fmt(row['time_s'], '9.1f')} "
-            f"{_fmt(row['landing_error_m'], '10.3f')} "
-            f"{_fmt(row['touchdown_vertical_speed_m_s'], '13.2f')} "
-            f"{_fmt(row['tilt_deg'], '11.1f')}  {_why_not(row)}\n"
+            f"{row['episode']:>3} {where:>15} {alt} {fmt_value(row['time_s'], '9.1f')} "
+            f"{fmt_value(row['landing_error_m'], '10.3f')} "
+            f"{fmt_value(row['touchdown_vertical_speed_m_s'], '13.2f')} "
+            f"{fmt_value(row['tilt_deg'], '11.1f')}  {_why_not(row)}\n"
         )
     n = report["episodes"]
     ok = sum(1 for r in report["per_episode"] if r["success"])
@@ -237,14 +234,14 @@ def _write_report(report: dict[str, Any], out: TextIO) -> None:
 def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
     """Fly the demo, print it to ``out`` and return its report (``fly``'s, plus log paths).
 
-    Keys added to :func:`training.fly.fly`'s report: ``initial_states`` (per episode),
+    Keys added to :func:`training.exec.fly.fly`'s report: ``initial_states`` (per episode),
     ``companion_logs`` (per episode, None where unpaired), ``companion_logs_all``, ``plot``,
     ``sitl_stderr``, ``companion_stderr``, ``policy_description``. Also written to
     ``<out>/demo.json``.
 
     Raises:
         DemoError: bad input, before anything flies.
-        training.fly.FlyError: a process failed (both processes are stopped first).
+        training.exec.fly.FlyError: a process failed (both processes are stopped first).
     """
     if cfg.episodes < 1:
         raise DemoError(f"--episodes must be >= 1, got {cfg.episodes}")

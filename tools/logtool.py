@@ -20,6 +20,7 @@ readable prefix and is reported as truncated.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -238,10 +239,13 @@ def format_info(info: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def fmt_value(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.3f}"
-    return "n/a" if value is None else str(value)
+def fmt_value(value: Any, spec: str = ".3f") -> str:
+    """``value`` for a table, caption or summary line: a number by ``spec``; ``n/a`` for None,
+    NaN and inf (not defined, e.g. no touchdown); anything else (a bool: landed) as ``str``."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return format(value, spec) if number else str(value)
 
 
 def last_result(log: FlightLog) -> dict[str, Any] | None:
