@@ -20,7 +20,6 @@ latency depends on) and ``--policy expert`` the MPC.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -31,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from companion.record import latency_stats
+from tools.cli_args import print_json
 
-__all__ = ["bench_companion", "compare_runtimes", "format_bench", "main"]
+__all__ = ["bench_companion", "compare_runtimes", "format_bench", "main", "print_bench"]
 
 DEFAULT_CHECKPOINT = "models/visland_vision.pt"
 
@@ -112,7 +112,7 @@ def bench_companion(
     if logs:
         return {"logs": [str(p) for p in logs], **latency_stats(list(logs))}
     from companion.runtime import RUNTIMES
-    from training.fly import FlyConfig, fly
+    from training.exec.fly import FlyConfig, fly
 
     if runtime not in RUNTIMES:
         raise ValueError(f"runtime = {runtime!r}; expected one of {RUNTIMES}")
@@ -184,8 +184,21 @@ def format_bench(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def print_bench(res: dict[str, Any], as_json: bool, prog: str) -> int:
+    """Print a :func:`bench_companion` result (one JSON document, or :func:`format_bench`'s
+    lines); the exit code: 1 when no policy command was sent (nothing to time), else 0."""
+    if as_json:
+        print_json(res)
+        return 0
+    if not res.get("commands"):
+        print(f"{prog}: no sent policy commands", file=sys.stderr)
+        return 1
+    print(format_bench(res))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    from training.fly import FlyError
+    from training.exec.fly import FlyError
 
     p = argparse.ArgumentParser(prog="python -m tools.bench_companion", description=__doc__)
     p.add_argument("logs", nargs="*", type=Path, help="companion MCAP logs (none: fly first)")
@@ -206,14 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     except FlyError as exc:
         print(f"{p.prog}: failed: {exc}", file=sys.stderr)
         return 1
-    if args.json:
-        print(json.dumps(res, indent=2))
-    elif not res.get("commands"):
-        print("no sent policy commands in those logs", file=sys.stderr)
-        return 1
-    else:
-        print(format_bench(res))
-    return 0
+    return print_bench(res, args.json, p.prog)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,75 @@
+"""What ``visland``'s commands share: the flags several of them take, written once, and how a
+command prints its result (one JSON document, or the human-readable table)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TextIO
+
+__all__ = [
+    "add_episode_arguments",
+    "add_parallel_arguments",
+    "config_from_args",
+    "print_json",
+    "print_result",
+    "scenario_arg",
+]
+
+
+def print_json(obj: Any) -> None:
+    """One JSON document on stdout; NaN (e.g. no touchdown) is null: "not defined"."""
+    from companion.flightlog import jsonable
+
+    print(json.dumps(jsonable(obj), indent=2))
+
+
+def print_result(
+    result: dict[str, Any], as_json: bool, table: Callable[[dict[str, Any], TextIO], None]
+) -> None:
+    """``result`` as one JSON document (``--json``), else written by ``table`` to stdout."""
+    if as_json:
+        print_json(result)
+    else:
+        table(result, sys.stdout)
+
+
+def add_episode_arguments(
+    p: argparse.ArgumentParser,
+    *,
+    episodes: int | None,
+    seed: int | None,
+    episodes_help: str | None = None,
+    seed_help: str | None = None,
+) -> None:
+    """``--episodes``, ``--seed``, ``--scenario``: which episodes of which scenario fly
+    (episodes ``0..N-1`` of the seed's initial states)."""
+    p.add_argument("--episodes", type=int, default=episodes, help=episodes_help)
+    p.add_argument("--seed", type=int, default=seed, help=seed_help)
+    p.add_argument(
+        "--scenario", type=Path, default=None, help="scenario TOML (default configs/scenario.toml)"
+    )
+
+
+def add_parallel_arguments(p: argparse.ArgumentParser, workers_help: str | None = None) -> None:
+    """``--workers N`` (local processes) and the backend's ``--ray`` / ``--shared-dir``."""
+    from training.exec.choose import add_backend_arguments
+
+    p.add_argument("--workers", type=int, default=1, help=workers_help)
+    add_backend_arguments(p)
+
+
+def scenario_arg(args: argparse.Namespace) -> str | None:
+    """``--scenario`` as the configs take it: a path string, None for the default."""
+    return str(args.scenario) if args.scenario else None
+
+
+def config_from_args(cls: type, args: argparse.Namespace, **given: Any) -> Any:
+    """The config dataclass ``cls`` from the flags named as its fields; ``given`` over them
+    (the fields whose flag differs in name or type)."""
+    names = [f.name for f in dataclasses.fields(cls) if f.name not in given]
+    return cls(**{n: getattr(args, n) for n in names if hasattr(args, n)}, **given)

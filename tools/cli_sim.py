@@ -1,0 +1,275 @@
+"""``visland sitl``, ``companion``, ``fly`` and ``demo``: the SITL and the companion, alone or
+flown together as separate processes over MAVLink/UDP. Thin shells over
+:func:`sitl_sim.mavlink_sitl.run_sitl`, :func:`companion.app.run_from_args`,
+:func:`training.exec.fly.fly` and :func:`tools.demo.run`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import NamedTuple
+
+from tools.cli_args import add_episode_arguments, config_from_args, print_json, scenario_arg
+from training.seeds import EVAL_SEED
+
+__all__ = ["cmd_fly", "register_sim"]
+
+
+class _LinkFlag(NamedTuple):
+    """One ``visland fly`` flag that impairs the link, and the SITL's flag that does it
+    (``sitl_sim.sitl_config``)."""
+
+    dest: str
+    sitl_flag: str
+    metavar: str
+    help: str
+
+
+_LINK_FLAGS = (
+    _LinkFlag("link_loss", "--link-loss-prob", "P", "loss probability"),
+    _LinkFlag("link_delay_ms", "--link-delay-ms", "D", "fixed one-way delay, ms"),
+    _LinkFlag(
+        "link_jitter_ms",
+        "--link-jitter-ms",
+        "J",
+        "extra delay uniform in [0, J] ms (each stream stays in order)",
+    ),
+    _LinkFlag("link_duplicate", "--link-duplicate-prob", "P", "duplicate probability"),
+    _LinkFlag(
+        "link_reorder",
+        "--link-reorder-prob",
+        "P",
+        "probability a datagram jumps the queue (needs a delay)",
+    ),
+    _LinkFlag(
+        "link_cut_at_s",
+        "--link-cut-at-s",
+        "T",
+        "the link dies for good T s into each flight (failsafe test)",
+    ),
+)
+"""``visland fly``'s impaired-link flags (``--link-loss`` ...), in ``--help`` order."""
+
+
+def _link_sitl_args(args: argparse.Namespace) -> tuple[str, ...]:
+    """The SITL flags for the ``--link-*`` flags given (none given: none)."""
+    out: list[str] = []
+    for flag in _LINK_FLAGS:
+        value = getattr(args, flag.dest, None)
+        if value is not None:
+            out += [flag.sitl_flag, repr(float(value))]
+    return tuple(out)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from tools.demo import DemoConfig, run
+    from training.exec.fly import FlyError
+
+    # With --json the narration goes to stderr so stdout is one JSON document.
+    narration = sys.stderr if args.json else sys.stdout
+    try:
+        report = run(config_from_args(DemoConfig, args, progress=not args.json), narration)
+    except FlyError as exc:
+        print(f"visland demo: failed: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print_json(report)
+    return 0  # failed landings are results, reported above, not errors of the demo
+
+
+def _cmd_sitl(args: argparse.Namespace) -> int:
+    import logging
+
+    from sitl_sim.mavlink_sitl import run_sitl
+    from sitl_sim.sitl_config import sitl_config_from_args
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    return run_sitl(sitl_config_from_args(args))
+
+
+def _cmd_companion(args: argparse.Namespace) -> int:
+    import logging
+
+    from companion.app import run_from_args
+    from training.companion_process import resolve_policy
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    return run_from_args(args, resolve_policy, "visland companion")
+
+
+def cmd_fly(args: argparse.Namespace) -> int:
+    """``visland fly``, and ``visland eval --transport mavlink`` (whose ``--workers`` are fly's
+    ``--instances``; the flags only fly has take their defaults)."""
+    from training.evaluate import format_table
+    from training.exec.choose import backend_from_args
+    from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, FlyError, fly
+    from training.exec.fly_many import fly_many
+
+    link_args = _link_sitl_args(args)
+    if link_args and not getattr(args, "realtime", False):
+        print(
+            f"visland {args.command}: --link-* impair a real-time link; add --realtime "
+            "(in lockstep a delayed answer would stop the clock instead of arriving late)",
+            file=sys.stderr,
+        )
+        return 2
+    mode = getattr(args, "companion_mode", "offboard")
+    policy = args.policy
+    if policy is None:  # fly's default: the expert flies; in landing-target mode, the shipped net
+        policy = DEFAULT_VISION_POLICY if mode == "landing-target" else "expert"
+    cfg = FlyConfig(
+        policy=policy,
+        companion_mode=mode,
+        episodes=args.episodes,
+        seed=args.seed,
+        scenario=scenario_arg(args),
+        realtime=getattr(args, "realtime", False),
+        out=str(args.out) if getattr(args, "out", None) else None,
+        progress=not args.json,
+        sitl_args=link_args,
+        autopilot=getattr(args, "autopilot", "px4"),
+        sitl_params=tuple(getattr(args, "sitl_param", None) or ()),
+    )
+    # eval --transport mavlink --workers N = fly --instances N
+    instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
+    if instances < 1:
+        print(f"visland {args.command}: --instances must be >= 1, got {instances}", file=sys.stderr)
+        return 2
+    try:
+        if instances == 1 and args.ray is None:
+            report = fly(cfg)
+        else:
+            with backend_from_args(args, instances) as backend:
+                report = fly_many(cfg, list(range(args.episodes)), instances, backend=backend)
+    except FlyError as exc:
+        print(f"visland {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print_json(report)
+    else:
+        format_table(report, sys.stdout)
+        lat = report["latency_ms"]
+        if lat.get("commands"):
+            print(
+                f"  frame receipt -> setpoint sent: median {lat['median_ms']:.2f} ms, "
+                f"p99 {lat['p99_ms']:.2f} ms over {lat['commands']} commands; logs in "
+                f"{report['out']}"
+            )
+    return 0
+
+
+def _register_demo(sub: argparse._SubParsersAction) -> None:
+    from training.provenance import SHIPPED_MODEL
+
+    d = sub.add_parser(
+        "demo",
+        help="the shipped vision policy flies 3 landings: SITL + companion over MAVLink, "
+        "results table, MCAP logs, PNG",
+        description="Start the SITL and the companion as two processes over MAVLink/UDP, fly "
+        "the shipped vision policy through N landings (lockstep), then print one row per "
+        "landing, the MCAP flight logs of both processes and a PNG of all flights. Exit 0 when "
+        "every episode was flown, whatever the landings scored (failures are reported); 1 when "
+        "a process failed; 2 on bad input.",
+    )
+    d.add_argument(
+        "--policy",
+        default=str(SHIPPED_MODEL),
+        help="checkpoint path, or expert | cascade (default: the shipped model, "
+        "models/visland_vision.pt of this repository)",
+    )
+    add_episode_arguments(
+        d,
+        episodes=3,
+        seed=EVAL_SEED,
+        episodes_help="landings to fly (default 3)",
+        seed_help=f"scenario seed: episodes 0..N-1 of it are flown (default {EVAL_SEED}, the "
+        "evaluation seed, disjoint from training)",
+    )
+    d.add_argument(
+        "--out",
+        type=Path,
+        default=Path("runs/demo"),
+        help="output folder: logs, flights.png, demo.json; a previous demo there is replaced "
+        "(default runs/demo)",
+    )
+    d.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    d.set_defaults(func=_cmd_demo)
+
+
+def _register_fly(sub: argparse._SubParsersAction) -> None:
+    from training.exec.choose import add_backend_arguments
+
+    fl = sub.add_parser(
+        "fly", help="SITL + companion as separate processes over UDP: N episodes, eval JSON"
+    )
+    fl.add_argument(
+        "--policy",
+        default=None,
+        help="expert | cascade | checkpoint path (default: expert; with --companion-mode "
+        "landing-target: models/visland_vision.pt)",
+    )
+    fl.add_argument(
+        "--companion-mode",
+        choices=("offboard", "landing-target"),
+        default="offboard",
+        help="offboard: the companion flies the policy; landing-target: it streams "
+        "LANDING_TARGET from the policy's camera estimator and the SITL's AUTO.PRECLAND lands",
+    )
+    fl.add_argument(
+        "--autopilot",
+        choices=("px4", "ardupilot"),
+        default="px4",
+        help="autopilot profile of the SITL and the companion; ardupilot sets GUID_OPTIONS=8 "
+        "(offboard) or PLND_ENABLED=1,PLND_TYPE=1 (landing-target) on the SITL first",
+    )
+    fl.add_argument(
+        "--sitl-param",
+        action="append",
+        metavar="NAME=VALUE",
+        help="a SITL parameter set at start, after the profile's setup (repeatable), e.g. "
+        "GUID_OPTIONS=0 to see the companion refuse",
+    )
+    add_episode_arguments(fl, episodes=20, seed=EVAL_SEED, seed_help="disjoint from training seeds")
+    fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
+    link = fl.add_argument_group(
+        "impaired link (--realtime only; over the scenario's [link]; seeded by --seed)"
+    )
+    for flag in _LINK_FLAGS:
+        link.add_argument(
+            "--" + flag.dest.replace("_", "-"),
+            type=float,
+            default=None,
+            metavar=flag.metavar,
+            help=flag.help,
+        )
+    fl.add_argument(
+        "--instances",
+        type=int,
+        default=1,
+        help="SITL + companion pairs side by side, each on its own ports (default 1)",
+    )
+    fl.add_argument("--out", type=Path, default=None, help="run folder for both processes' logs")
+    fl.add_argument("--json", action="store_true", help="print one JSON object")
+    add_backend_arguments(fl)
+    fl.set_defaults(func=cmd_fly)
+
+
+def register_sim(sub: argparse._SubParsersAction) -> None:
+    """Add ``demo``, ``sitl``, ``companion`` and ``fly`` to the ``visland`` subcommands."""
+    from companion.app import add_arguments as add_companion_arguments
+    from sitl_sim.sitl_config import add_sitl_arguments
+
+    _register_demo(sub)
+    st = sub.add_parser(
+        "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"
+    )
+    add_sitl_arguments(st)
+    st.set_defaults(func=_cmd_sitl)
+    cp = sub.add_parser(
+        "companion",
+        help="the companion process: flies a policy through a PX4/ArduPilot autopilot",
+    )
+    add_companion_arguments(cp)
+    cp.set_defaults(func=_cmd_companion)
+    _register_fly(sub)
