@@ -195,6 +195,29 @@ class FlightMachine(ABC):
     def done(self) -> bool:
         return self.state is FlightState.DONE
 
+    def _link_gate(self) -> str | None:
+        """Why the link cannot start a flight yet (None: it can)."""
+        if self.link.target_system is None:
+            return "no autopilot discovered yet"
+        if not self.link.connected:
+            return "autopilot link lost"
+        return None
+
+    def _inputs_gate(self, now: float, names: tuple[str, ...]) -> str | None:
+        """Why the inputs cannot start a flight yet (None: they can): a reading of ``names``
+        older than the safety limit, no recent camera frame, or the range below
+        ``engage_min_range_m`` (never take over on the ground)."""
+        max_age_s = self.safety.config.max_age_s
+        age, worst = self.store.max_age_s(names, now)
+        if age > max_age_s:
+            return f"waiting for fresh {worst}"
+        if self._last_frame_rx is None or now - self._last_frame_rx > max_age_s:
+            return "waiting for camera frames"
+        rng = self.store.range
+        if rng is None or not rng.valid or rng.range_m < self.cfg.engage_min_range_m:
+            return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
+        return None
+
     def _event(self, kind: str, text: str) -> None:
         self.log.event(self._clock(), kind, text, state=self.state.value)
         self.outcome.events.append(f"{kind}: {text}")

@@ -221,10 +221,9 @@ class LandingTargetController(FlightMachine):
     def _gate(self, now: float) -> str | None:
         """Why the landing cannot be handed to the autopilot yet (None: it can)."""
         link, store, profile = self.link, self.store, self.link.profile
-        if link.target_system is None:
-            return "no autopilot discovered yet"
-        if not link.connected:
-            return "autopilot link lost"
+        reason = self._link_gate()
+        if reason is not None:
+            return reason
         hb = store.heartbeat
         if hb is None:
             return "no HEARTBEAT"
@@ -239,14 +238,9 @@ class LandingTargetController(FlightMachine):
             profile.is_land(hb.custom_mode) or profile.is_offboard(hb.custom_mode)
         ):
             return f"autopilot in {profile.mode_name(hb.custom_mode)}"
-        age, worst = store.max_age_s(("attitude", "imu", "range"), now)
-        if age > self.safety.config.max_age_s:
-            return f"waiting for fresh {worst}"
-        if self._last_frame_rx is None or now - self._last_frame_rx > self.safety.config.max_age_s:
-            return "waiting for camera frames"
-        rng = store.range
-        if rng is None or not rng.valid or rng.range_m < self.cfg.engage_min_range_m:
-            return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
+        reason = self._inputs_gate(now, ("attitude", "imu", "range"))
+        if reason is not None:
+            return reason
         if profile.precland_param:
             if now - self._params_requested_s > 2.0:
                 self._params_requested_s = now

@@ -130,10 +130,9 @@ class FlightController(FlightMachine):
     def _gate(self, now: float) -> str | None:
         """Why a flight cannot start yet (None: it can)."""
         link, store, profile = self.link, self.store, self.link.profile
-        if link.target_system is None:
-            return "no autopilot discovered yet"
-        if not link.connected:
-            return "autopilot link lost"
+        reason = self._link_gate()
+        if reason is not None:
+            return reason
         if now - self._params_requested_s > 2.0:
             self._params_requested_s = now
             link.request_param(profile.hover_param)
@@ -154,14 +153,9 @@ class FlightController(FlightMachine):
         elif not hb.armed:
             return "disarmed"
         names = ("attitude", "imu", "range") + (("odometry",) if self.runtime.privileged else ())
-        age, worst = store.max_age_s(names, now)
-        if age > self.safety.config.max_age_s:
-            return f"waiting for fresh {worst}"
-        if self._last_frame_rx is None or now - self._last_frame_rx > self.safety.config.max_age_s:
-            return "waiting for camera frames"
-        rng = store.range
-        if rng is None or not rng.valid or rng.range_m < self.cfg.engage_min_range_m:
-            return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
+        reason = self._inputs_gate(now, names)
+        if reason is not None:
+            return reason
         if profile.thrust_param:
             value = link.param_int(profile.thrust_param)
             if value is None:

@@ -23,13 +23,11 @@ profile and the clock).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
 from companion.contract.autopilots import ARDUPILOT, PROFILES, PX4, AutopilotProfile
 from companion.link.connection import (
-    COMPANION_COMPID,
     LinkCounters,
     LinkError,
     LinkEvent,
@@ -61,48 +59,21 @@ class MavlinkLink:
 
     Args:
         url: pymavlink connection string (see :mod:`companion.link.connection`).
-        baud: serial baud rate.
         profile: the autopilot profile.
-        sysid: our system id; None = take the autopilot's once discovered (the convention for a
-            component on the vehicle), 1 until then.
-        compid: our component id (191, onboard computer).
-        signing_key: 32-byte MAVLink 2 signing secret (None: unsigned).
-        link_timeout_s: no autopilot HEARTBEAT for this long = link lost.
-        heartbeat_period_s: our HEARTBEAT period.
-        reopen_period_s: a broken port is reopened this often.
-        clock: monotonic clock (injectable for tests).
+        **connection_options: :class:`MavlinkConnection`'s keyword arguments (``baud``,
+            ``sysid``, ``compid``, ``signing_key``, ``link_timeout_s``, ``heartbeat_period_s``,
+            ``reopen_period_s``, ``clock``).
 
     Raises:
         LinkError: a parameter is invalid or the port cannot be opened.
     """
 
     def __init__(
-        self,
-        url: str,
-        *,
-        baud: int = 57_600,
-        profile: AutopilotProfile = PX4,
-        sysid: int | None = None,
-        compid: int = COMPANION_COMPID,
-        signing_key: bytes | None = None,
-        link_timeout_s: float = 3.0,
-        heartbeat_period_s: float = 1.0,
-        reopen_period_s: float = 1.0,
-        clock: Callable[[], float] = time.monotonic,
+        self, url: str, *, profile: AutopilotProfile = PX4, **connection_options: Any
     ) -> None:
         self.profile = profile
-        self.connection = MavlinkConnection(
-            url,
-            baud=baud,
-            sysid=sysid,
-            compid=compid,
-            signing_key=signing_key,
-            link_timeout_s=link_timeout_s,
-            heartbeat_period_s=heartbeat_period_s,
-            reopen_period_s=reopen_period_s,
-            clock=clock,
-        )
-        self.protocol = LinkProtocol(self.connection, profile, clock)
+        self.connection = MavlinkConnection(url, **connection_options)
+        self.protocol = LinkProtocol(self.connection, profile, self.connection.clock)
         # the calls the companion's state machines make, straight to the part that owns them
         self.send_setpoint = self.protocol.send_setpoint
         self.send_landing_target = self.protocol.send_landing_target

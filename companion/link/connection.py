@@ -186,7 +186,8 @@ class MavlinkConnection:
         self.link_timeout_s = link_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
         self.reopen_period_s = reopen_period_s
-        self._clock = clock
+        self.clock = clock
+        """The monotonic clock every time stamp of the link is read from."""
         self.target_system: int | None = None
         self.target_component: int = 1
         self.connected = False
@@ -300,7 +301,7 @@ class MavlinkConnection:
             self.conn = None
 
     def _port_error(self, exc: BaseException) -> None:
-        now = self._clock()
+        now = self.clock()
         self.counters.port_errors += 1
         if self._broken_since is None:
             self._broken_since = now
@@ -312,7 +313,7 @@ class MavlinkConnection:
     def _maybe_reopen(self) -> None:
         if self.conn is not None or self._broken_since is None:
             return
-        now = self._clock()
+        now = self.clock()
         if now - self._broken_since < self.reopen_period_s:
             return
         try:
@@ -342,7 +343,7 @@ class MavlinkConnection:
                 continue
             if msg is None:
                 break
-            rx = self._clock()
+            rx = self.clock()
             if msg.get_type() == "BAD_DATA":
                 self.counters.rx_bad_data += 1
                 continue
@@ -420,7 +421,7 @@ class MavlinkConnection:
         return True
 
     def _tick(self) -> None:
-        now = self._clock()
+        now = self.clock()
         if self.conn is not None and now - self._last_hb_tx_s >= self.heartbeat_period_s:
             self._last_hb_tx_s = now
             self.send(
@@ -448,7 +449,7 @@ class MavlinkConnection:
 
     @property
     def heartbeat_age_s(self) -> float:
-        return self._clock() - self._last_hb_rx_s
+        return self.clock() - self._last_hb_rx_s
 
     # ------------------------------------------------------------------ sending
 
@@ -473,13 +474,13 @@ class MavlinkConnection:
             return None
         mav = conn.mav
         buf = msg.pack(mav)  # as MAVLink.send, with the hand-off time taken before the write
-        handed = self._clock()
+        handed = self.clock()
         try:
             conn.write(buf)
         except OSError as exc:
             self._port_error(exc)
             return None
-        self.last_send_call_s = self._clock() - handed
+        self.last_send_call_s = self.clock() - handed
         mav.seq = (mav.seq + 1) % 256
         mav.total_packets_sent += 1
         mav.total_bytes_sent += len(buf)
