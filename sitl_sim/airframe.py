@@ -34,14 +34,14 @@ loop's bandwidth.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
 
 from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import check_section, read_section, section_dict, section_keys, span
+from sitl_sim.table import Section, section_dict, section_keys, span
 
 __all__ = [
     "AIRFRAME_KEYS",
@@ -68,7 +68,7 @@ def _factor(doc: str) -> Any:
 
 
 @dataclass(frozen=True)
-class AirframeConfig:
+class AirframeConfig(Section):
     """The ``[vehicle]`` section: a factor range ``(lo, hi)`` per key, None where absent (the
     factor 1.0 exactly, not drawn).
 
@@ -94,10 +94,6 @@ class AirframeConfig:
     drag_scale: tuple[float, float] | None = _factor(
         "factor on all three of drag_coefficient_area_m2 (absent: 1)"
     )
-    source: str = field(default="<memory>", compare=False)
-
-    def __post_init__(self) -> None:
-        check_section(self)
 
     def range(self, key: str) -> tuple[float, float] | None:
         return getattr(self, key)
@@ -158,7 +154,7 @@ class AirframeScales:
 
 def airframe_config_from_table(table: Any, where: str) -> AirframeConfig:
     """Check and type a scenario's ``[vehicle]`` table; ``where`` names the file."""
-    return read_section(AirframeConfig, table, where)
+    return AirframeConfig.from_table(table, where)
 
 
 def draw_airframe(config: AirframeConfig, seed: int, episode_index: int) -> AirframeScales:

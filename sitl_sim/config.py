@@ -30,7 +30,6 @@ __all__ = [
     "load_sim",
     "load_toml",
     "load_vehicle",
-    "number_pair",
     "planet",
 ]
 
@@ -51,18 +50,6 @@ PLANETS: dict[str, Planet] = {
     "earth": Planet("earth", 9.81, 1.225),
     "mars": Planet("mars", 3.71, 0.020),
 }
-
-
-def number_pair(value: Any) -> tuple[float, float] | None:
-    """``[lo, hi]`` of a config file as two floats; None unless it is a list of exactly two
-    numbers (booleans are not numbers here). Callers word the error for their table and key."""
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
-        return None
-    return float(value[0]), float(value[1])
 
 
 def planet(name: str) -> Planet:

@@ -45,21 +45,13 @@ from __future__ import annotations
 import heapq
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import (
-    check_section,
-    number,
-    probability,
-    read_section,
-    section_dict,
-    section_keys,
-    span,
-)
+from sitl_sim.table import Section, number, probability, section_keys, span
 
 __all__ = [
     "LINK_KEYS",
@@ -92,7 +84,7 @@ def _delay(doc: str) -> Any:
 
 
 @dataclass(frozen=True)
-class LinkConfig:
+class LinkConfig(Section):
     """The ``[link]`` section (0 / None: that impairment is off).
 
     Attributes:
@@ -126,10 +118,9 @@ class LinkConfig:
         finite_hi=False,
         doc="flight seconds with the link dead both ways (end = inf: for good; absent: none)",
     )
-    source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
-        check_section(self)
+        super().__post_init__()
         where = f"{self.source}: [link]"
         if self.delay_ms + self.jitter_ms > MAX_DELAY_MS:
             raise ConfigError(
@@ -163,16 +154,13 @@ class LinkConfig:
             raise ConfigError(f"[link] unknown key(s) {unknown}; expected {list(LINK_KEYS)}")
         return replace(self, **given)
 
-    def to_dict(self) -> dict[str, Any]:
-        return section_dict(self)
-
 
 LINK_KEYS = section_keys(LinkConfig)
 
 
 def link_config_from_table(table: Any, where: str) -> LinkConfig:
     """Check and type a scenario file's ``[link]`` table (``where`` names the file)."""
-    return read_section(LinkConfig, table, where)
+    return LinkConfig.from_table(table, where)
 
 
 @dataclass

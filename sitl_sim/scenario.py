@@ -16,8 +16,10 @@ parallel workers and resumed runs agree.
 
 from __future__ import annotations
 
+import argparse
 import math
-from dataclasses import asdict, dataclass, field
+import sys
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -30,14 +32,7 @@ from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
 from sitl_sim.link_impairment import LinkConfig
 from sitl_sim.sensor_faults import SensorFaultsConfig
-from sitl_sim.table import (
-    check_section,
-    choice,
-    keys_markdown,
-    read_section,
-    read_values,
-    span,
-)
+from sitl_sim.table import Section, check_section, choice, keys_markdown, read_values, span
 from sitl_sim.visual import VisualConfig
 from sitl_sim.wind import WindConfig
 
@@ -60,16 +55,12 @@ def _range(unit: str, doc: str, **bounds: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class WorldSection:
+class WorldSection(Section):
     """The ``[world]`` section: the planet flown (gravity, air density: :data:`PLANETS`)."""
 
     SECTION: ClassVar[str] = "world"
 
     planet: str = choice("earth", PLANETS, doc="gravity and air density of the world flown")
-    source: str = field(default="<memory>", compare=False)
-
-    def __post_init__(self) -> None:
-        check_section(self)
 
 
 @dataclass(frozen=True)
@@ -126,14 +117,14 @@ class Scenario:
         return d
 
 
-_OPTIONAL: dict[str, type] = {
+_OPTIONAL: dict[str, type[Section]] = {
     "wind": WindConfig,
     "vehicle": AirframeConfig,
     "visual": VisualConfig,
     "sensors": SensorFaultsConfig,
     "link": LinkConfig,
 }
-"""The optional sections, each read by :func:`sitl_sim.table.read_section` (absent: None)."""
+"""The optional sections, each a :class:`sitl_sim.table.Section` (absent: None)."""
 
 SECTIONS = ("initial_state", "world", *_OPTIONAL)
 """The tables a scenario file may hold; any other is refused (a misspelt section would
@@ -142,10 +133,10 @@ otherwise fly the nominal world without a word)."""
 
 def scenario_keys_markdown() -> str:
     """``docs/scenario_keys.md``: every scenario section's keys, units, defaults and ranges,
-    generated from their declarations (``python -m sitl_sim.table --markdown``)."""
+    generated from their declarations (``python -m sitl_sim.scenario --markdown``)."""
     intro = (
         "# Scenario keys\n\n"
-        "Generated from the section declarations by `python -m sitl_sim.table --markdown > "
+        "Generated from the section declarations by `python -m sitl_sim.scenario --markdown > "
         "docs/scenario_keys.md`; do not edit (a test compares it with the declarations).\n\n"
         "A key left out takes its default; `required` keys have none. A section left out is "
         "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, no "
@@ -179,9 +170,9 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     if not isinstance(data.get("initial_state"), dict):
         raise ConfigError(f"{where}: missing table [initial_state]")
     initial = read_values(Scenario, data["initial_state"], where)
-    world = read_section(WorldSection, data.get("world", {}), where)
+    world = WorldSection.from_table(data.get("world", {}), where)
     optional = {
-        name: read_section(cls, data[name], where) if name in data else None
+        name: cls.from_table(data[name], where) if name in data else None
         for name, cls in _OPTIONAL.items()
     }
     return Scenario(**initial, world=planet(world.planet), source=where, **optional)
@@ -253,3 +244,18 @@ class InitialStateSampler:
             euler_rad=(roll, pitch, yaw),
             rate_frd_rad_s=rates,  # type: ignore[arg-type]
         )
+
+
+def _main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m sitl_sim.scenario",
+        description="Print the table of every scenario section's keys (docs/scenario_keys.md).",
+    )
+    parser.add_argument("--markdown", action="store_true", required=True, help="as markdown")
+    parser.parse_args(argv)
+    sys.stdout.write(scenario_keys_markdown())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())

@@ -40,20 +40,13 @@ in-process env and the MAVLink SITL's 50 Hz streams).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import (
-    check_section,
-    probability,
-    read_section,
-    section_dict,
-    section_keys,
-    span,
-)
+from sitl_sim.table import Section, probability, section_keys, span
 
 __all__ = [
     "MAX_CAMERA_LATENCY_MS",
@@ -78,7 +71,7 @@ def _magnitude(unit: str, doc: str, hi: float | None = None) -> Any:
 
 
 @dataclass(frozen=True)
-class SensorFaultsConfig:
+class SensorFaultsConfig(Section):
     """The ``[sensors]`` section (None / 0: that fault is off).
 
     Attributes:
@@ -113,10 +106,9 @@ class SensorFaultsConfig:
     gyro_bias_rad_s: tuple[float, float] | None = _magnitude(
         "rad/s", "gyro turn-on bias magnitude per axis, random sign (absent: none)"
     )
-    source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
-        check_section(self)
+        super().__post_init__()
         where = f"{self.source}: [sensors]"
         if self.radar_outlier_prob > 0.0 and self.radar_outlier_m is None:
             raise ConfigError(
@@ -129,16 +121,13 @@ class SensorFaultsConfig:
                 "(or neither)"
             )
 
-    def to_dict(self) -> dict[str, Any]:
-        return section_dict(self)
-
 
 SENSOR_KEYS = section_keys(SensorFaultsConfig)
 
 
 def sensor_faults_config_from_table(table: Any, where: str) -> SensorFaultsConfig:
     """Check and type a scenario file's ``[sensors]`` table (``where`` names the file)."""
-    return read_section(SensorFaultsConfig, table, where)
+    return SensorFaultsConfig.from_table(table, where)
 
 
 class SensorFaults:

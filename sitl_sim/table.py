@@ -5,16 +5,13 @@ PX4's ``module.yaml``); the reader, the checks and ``docs/scenario_keys.md`` all
 Declare a section::
 
     @dataclass(frozen=True)
-    class WindConfig:
+    class WindConfig(Section):
         SECTION: ClassVar[str] = "wind"
         speed_m_s: tuple[float, float] = span(unit="m/s", lo=0.0, doc="mean wind speed")
         turbulence: str = choice("none", TURBULENCE_LEVELS, doc="Dryden level")
-        source: str = field(default="<memory>", compare=False)
 
-        def __post_init__(self) -> None:
-            check_section(self)          # ranges: a config built in code is checked too
-
-and read it with ``read_section(WindConfig, table, where)``. Rules, the same for every section:
+and read it with ``WindConfig.from_table(table, where)``; built in code, it is checked the
+same way (:class:`Section`'s ``__post_init__``). Rules, the same for every section:
 
 * a key left out takes the field's default (its documented nominal value); a field declared
   without one (:data:`REQUIRED`) must be given;
@@ -23,25 +20,24 @@ and read it with ``read_section(WindConfig, table, where)``. Rules, the same for
 
 Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode), :func:`integer_span`,
 :func:`number`, :func:`probability`, :func:`integer`, :func:`choice` (a string among choices)
-and :func:`choice_list` (a non-empty list of them). ``python -m sitl_sim.table --markdown``
-prints the table of every scenario section's keys (``docs/scenario_keys.md``).
+and :func:`choice_list` (a non-empty list of them). :func:`keys_markdown` makes the table of
+keys; ``python -m sitl_sim.scenario --markdown`` prints the scenario's (``docs/scenario_keys.md``).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
-import sys
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, ClassVar
 
 from sitl_sim.errors import ConfigError
 
 __all__ = [
     "REQUIRED",
     "Key",
+    "Section",
     "check_section",
     "choice",
     "choice_list",
@@ -267,6 +263,29 @@ def choice_list(default: tuple[str, ...], choices: Iterable[str], *, doc: str) -
 # --------------------------------------------------------------------------- reading
 
 
+@dataclasses.dataclass(frozen=True)
+class Section:
+    """Base of a section dataclass: ``SECTION`` names its table, ``source`` where it was read
+    (for errors; keyword-only, not compared). Built in code or read by :meth:`from_table`, it
+    is checked against its declarations; a subclass with cross-key checks calls
+    ``super().__post_init__()`` first."""
+
+    SECTION: ClassVar[str] = ""
+    source: str = dataclasses.field(default="<memory>", compare=False, kw_only=True)
+
+    def __post_init__(self) -> None:
+        check_section(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The keys as a TOML-like dict (what logs record of the section)."""
+        return section_dict(self)
+
+    @classmethod
+    def from_table(cls, table: Any, where: str) -> Any:
+        """This section read from ``table`` (a TOML table of file ``where``)."""
+        return read_section(cls, table, where)
+
+
 def _keys(cls: type) -> dict[str, tuple[dataclasses.Field, Key]]:
     return {f.name: (f, f.metadata[_META]) for f in dataclasses.fields(cls) if _META in f.metadata}
 
@@ -380,21 +399,3 @@ def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
             )
             lines.append("| " + " | ".join(cells) + " |")
     return intro + "\n".join(lines) + "\n"
-
-
-def _main(argv: list[str] | None = None) -> int:
-    from sitl_sim.scenario import scenario_keys_markdown
-
-    parser = argparse.ArgumentParser(
-        prog="python -m sitl_sim.table", description="Print the table of scenario keys."
-    )
-    parser.add_argument(
-        "--markdown", action="store_true", required=True, help="markdown (docs/scenario_keys.md)"
-    )
-    parser.parse_args(argv)
-    sys.stdout.write(scenario_keys_markdown())
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())

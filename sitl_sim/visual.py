@@ -29,7 +29,7 @@ key, so neither touches the sensor noise, the initial state or the wind.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, ClassVar
 
 import cv2
@@ -37,15 +37,7 @@ import numpy as np
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
-from sitl_sim.table import (
-    check_section,
-    choice_list,
-    integer_span,
-    number,
-    read_section,
-    section_dict,
-    span,
-)
+from sitl_sim.table import Section, choice_list, integer_span, number, span
 from sitl_sim.terrain import FAMILIES, Sun, terrain_map
 
 __all__ = [
@@ -67,7 +59,7 @@ def _range(default: tuple[float, float], unit: str, lo: float, hi: float, doc: s
 
 
 @dataclass(frozen=True)
-class VisualConfig:
+class VisualConfig(Section):
     """The checked ``[visual]`` section: what each episode's look is drawn from (a key left
     out keeps its nominal value; units, defaults and ranges: the declarations below)."""
 
@@ -112,13 +104,6 @@ class VisualConfig:
     lens_k1: tuple[float, float] = _range(
         (0.0, 0.0), "1", -0.5, 0.5, "radial distortion x_d = x (1 + k1 r^2) (negative: barrel)"
     )
-    source: str = field(default="<memory>", compare=False)
-
-    def __post_init__(self) -> None:
-        check_section(self)
-
-    def to_dict(self) -> dict[str, Any]:
-        return section_dict(self)
 
     def draw(self, seed: int, index: int) -> VisualSample:
         """Episode ``index`` of ``seed``: a pure function of the three."""
@@ -279,4 +264,4 @@ class CameraEffects:
 
 def visual_config_from_table(table: Any, where: str) -> VisualConfig:
     """Check and type a ``[visual]`` table; ``where`` (the file) starts every error."""
-    return read_section(VisualConfig, table, where)
+    return VisualConfig.from_table(table, where)

@@ -46,13 +46,13 @@ the other.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from sitl_sim.errors import SimStateError
-from sitl_sim.table import check_section, choice, read_section, section_dict, span
+from sitl_sim.table import Section, choice, span
 
 __all__ = [
     "GUST_DURATION_S",
@@ -90,7 +90,7 @@ _H_MAX_FT = 1000.0  # MIL-F-8785C low-altitude model: h < 1000 ft
 
 
 @dataclass(frozen=True)
-class WindConfig:
+class WindConfig(Section):
     """The ``[wind]`` section: ranges ``(lo, hi)`` sampled per episode, turbulence and gusts
     (each key's unit, default and range: its declaration, :mod:`sitl_sim.table`).
 
@@ -116,18 +116,11 @@ class WindConfig:
     gust_m_s: tuple[float, float] | None = span(
         None, unit="m/s", lo=0.0, doc="1-cosine gust amplitude, drawn per gust (absent: no gusts)"
     )
-    source: str = field(default="<memory>", compare=False)
-
-    def __post_init__(self) -> None:
-        check_section(self)
-
-    def to_dict(self) -> dict[str, Any]:
-        return section_dict(self)
 
 
 def wind_config_from_table(table: Any, where: str) -> WindConfig:
     """Check and type a scenario file's ``[wind]`` table (``where`` names the file)."""
-    return read_section(WindConfig, table, where)
+    return WindConfig.from_table(table, where)
 
 
 # --------------------------------------------------------------------------- Dryden parameters

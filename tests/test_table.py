@@ -128,7 +128,7 @@ def test_a_section_built_in_code_is_checked_like_one_read_from_a_file():
 def test_the_docs_table_is_what_the_declarations_generate():
     """docs/scenario_keys.md is generated; regenerate it with the command it names."""
     assert DOC.read_text() == scenario_keys_markdown(), (
-        "docs/scenario_keys.md is stale: python -m sitl_sim.table --markdown > "
+        "docs/scenario_keys.md is stale: python -m sitl_sim.scenario --markdown > "
         "docs/scenario_keys.md"
     )
     for section in SECTIONS:
@@ -137,7 +137,7 @@ def test_the_docs_table_is_what_the_declarations_generate():
 
 def test_the_docs_table_command_prints_it():
     proc = subprocess.run(
-        [sys.executable, "-m", "sitl_sim.table", "--markdown"],
+        [sys.executable, "-m", "sitl_sim.scenario", "--markdown"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -31,11 +31,12 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, ClassVar, TextIO
 
 from sitl_sim.config import load_toml
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import Scenario, load_scenario, scenario_from_dict
+from sitl_sim.table import Section, integer
 from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.seeds import EVAL_SEED
@@ -46,6 +47,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Condition",
     "SuiteConfig",
+    "SuiteSection",
     "format_suite_table",
     "load_suite",
     "plot_suite",
@@ -56,7 +58,6 @@ __all__ = [
 DEFAULT_EPISODES = 50
 
 _TOP_LEVEL = ("suite", "conditions")
-_SUITE_KEYS = ("episodes", "seed")
 _CONDITION_KEYS = ("scenario", "episodes")
 
 
@@ -82,10 +83,16 @@ class SuiteConfig:
     conditions: tuple[Condition, ...]
 
 
-def _int(value: Any, where: str, key: str, minimum: int) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise ConfigError(f"{where}: [suite] {key} = {value!r}; expected an integer >= {minimum}")
-    return value
+@dataclass(frozen=True)
+class SuiteSection(Section):
+    """A suite file's optional ``[suite]`` table (read by :mod:`sitl_sim.table`)."""
+
+    SECTION: ClassVar[str] = "suite"
+
+    episodes: int = integer(
+        DEFAULT_EPISODES, unit="episodes", lo=1, doc="per condition (--episodes overrides)"
+    )
+    seed: int = integer(EVAL_SEED, unit="1", lo=0, doc="evaluation seed (--seed overrides)")
 
 
 def _unknown(where: str, table: str, got: Mapping[str, Any], expected: tuple[str, ...]) -> None:
@@ -148,19 +155,14 @@ def load_suite(path: str | Path) -> SuiteConfig:
     where = str(path)
     data = load_toml(path)
     _unknown(where, "top level", data, _TOP_LEVEL)
-    head = data.get("suite", {})
-    if not isinstance(head, dict):
-        raise ConfigError(f"{where}: [suite] must be a table, got {head!r}")
-    _unknown(where, "[suite]", head, _SUITE_KEYS)
-    episodes = _int(head.get("episodes", DEFAULT_EPISODES), where, "episodes", 1)
-    seed = _int(head.get("seed", EVAL_SEED), where, "seed", 0)
+    head = SuiteSection.from_table(data.get("suite", {}), where)
     conditions = data.get("conditions")
     if not isinstance(conditions, dict) or not conditions:
         raise ConfigError(f"{where}: no [conditions.NAME] tables; expected at least one condition")
     return SuiteConfig(
         path=where,
-        episodes=episodes,
-        seed=seed,
+        episodes=head.episodes,
+        seed=head.seed,
         conditions=tuple(_condition(where, n, t) for n, t in conditions.items()),
     )
 
