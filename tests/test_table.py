@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar
 
 import pytest
@@ -12,7 +12,7 @@ import pytest
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import SECTIONS, scenario_keys_markdown
 from sitl_sim.table import (
-    check_section,
+    Section,
     choice,
     integer,
     number,
@@ -28,7 +28,7 @@ DOC = REPO / "docs" / "scenario_keys.md"
 
 
 @dataclass(frozen=True)
-class _Demo:
+class _Demo(Section):
     SECTION: ClassVar[str] = "demo"
 
     speed_m_s: tuple[float, float] = span(unit="m/s", lo=0.0, doc="a speed")
@@ -38,19 +38,8 @@ class _Demo:
     count: int = integer(3, unit="1", lo=1, doc="a count")
     level: str = choice("none", ("none", "some"), doc="a level")
     window_s: tuple[float, float] | None = span(
-        None,
-        unit="s",
-        lo=0.0,
-        noun="",
-        ends=("start", "end"),
-        strict=True,
-        finite_hi=False,
-        doc="a window",
+        None, unit="s", doc="a window", ends=("on", "off"), strict=True, finite_hi=False, noun=""
     )
-    source: str = field(default="<memory>", compare=False)
-
-    def __post_init__(self) -> None:
-        check_section(self)
 
 
 def _read(table: dict) -> _Demo:
@@ -58,7 +47,9 @@ def _read(table: dict) -> _Demo:
 
 
 def test_left_out_keys_take_their_defaults_and_values_are_typed():
-    demo = _read({"speed_m_s": [1, 2], "count": 5, "window_s": [2, float("inf")]})
+    demo = _Demo.from_table(
+        {"speed_m_s": [1, 2], "count": 5, "window_s": [2, float("inf")]}, "d.toml"
+    )
     assert demo == _Demo(speed_m_s=(1.0, 2.0), count=5, window_s=(2.0, float("inf")))
     assert demo.source == "d.toml" and demo.gain == (1.0, 1.0) and demo.level == "none"
     assert isinstance(demo.speed_m_s[0], float) and isinstance(demo.delay_ms, float)
@@ -107,7 +98,7 @@ def test_left_out_keys_take_their_defaults_and_values_are_typed():
         ),
         (
             {"speed_m_s": [1, 2], "window_s": [3, 3]},
-            "d.toml: [demo] window_s = [3.0, 3.0]; expected [start, end] with 0 <= start < end (s)",
+            "d.toml: [demo] window_s = [3.0, 3.0]; expected [on, off] with on < off (s)",
         ),
         ([1, 2], "d.toml: [demo] must be a table, got [1, 2]"),
     ],
