@@ -1,7 +1,7 @@
 """The SITL's parameter table for the MAVLink parameter protocol (PARAM_VALUE rows, which are
 writable, their encoding), per autopilot profile: ``px4`` (PX4 names, INT32 byte-wise in the
 float) and ``ardupilot`` (ArduCopter names, every value a plain float whatever its type, as
-ArduPilot's ``PARAM_ENCODE_C_CAST``); the PARAM_* handlers in :mod:`sitl_sim.mavlink_handlers`
+ArduPilot's ``PARAM_ENCODE_C_CAST``); the PARAM_* handlers in :mod:`sitl_sim.mavlink.handlers`
 serve it, ``visland sitl --param`` sets it at start (:func:`parse_param_overrides`)."""
 
 from __future__ import annotations

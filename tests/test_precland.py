@@ -268,12 +268,13 @@ def test_malformed_landing_targets_are_counted_and_never_steer_the_vehicle(tmp_p
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
     with MavlinkSitl(cfg) as sitl:
-        sitl._start_episode(0)
+        sitl.episodes.start(0)
         sitl.autopilot.request_mode(FlightMode.PRECLAND, sitl.clock.time_s)
         for _ in range(60):  # past the take-over: the precision land starts
-            sitl._tick_once()
-        assert sitl.precland is not None
-        before = (sitl.lte.initialised, sitl.nav.vel_ned_m_s.copy())
+            sitl.tick_once()
+        precland = sitl.precland
+        assert precland.land is not None
+        before = (precland.lte.initialised, precland.nav.vel_ned_m_s.copy())
 
         def send(*fields):
             sock.sendto(mav.landing_target_encode(*fields).pack(mav), ("127.0.0.1", ports[0]))
@@ -284,14 +285,14 @@ def test_malformed_landing_targets_are_counted_and_never_steer_the_vehicle(tmp_p
         send(0, 0, 8, 0.1, 0.1, 5.0, 0, 0, 1.0, 0, 9.0, q, 3, 1)  # frame 8 with a position
         send(0, 0, 12, 0.1, 0.1, 5.0, 0, 0, 1.0, 0, 9.0, q, 3, 7)  # position_valid 7
         time.sleep(0.2)
-        sitl._poll()
-        assert sitl.landing_targets == {"received": 4, "rejected": 4}
-        assert (sitl.lte.initialised, sitl.lte.accepted) == (before[0], 0)
-        np.testing.assert_array_equal(sitl.nav.vel_ned_m_s, before[1])
+        sitl.poll()
+        assert precland.landing_targets == {"received": 4, "rejected": 4}
+        assert (precland.lte.initialised, precland.lte.accepted) == (before[0], 0)
+        np.testing.assert_array_equal(precland.nav.vel_ned_m_s, before[1])
         for _ in range(25):
-            sitl._tick_once()  # flies on
-        assert sitl.precland.state is PreclandState.START
-        sitl._finish_episode(aborted=True)  # closes the flight log
+            sitl.tick_once()  # flies on
+        assert precland.land.state is PreclandState.START
+        sitl.episodes.finish(aborted=True)  # closes the flight log
     sock.close()
     (log,) = tmp_path.glob("*.mcap")
     events = read_log(log).topic("/events")

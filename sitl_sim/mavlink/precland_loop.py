@@ -2,10 +2,9 @@
 estimator and the precision land (:mod:`sitl_sim.nav_estimator`, :mod:`sitl_sim.precland`)
 wired to the loop, LANDING_TARGET and the flight log.
 
-:class:`PreclandLoop` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`. It reads the
-SITL's ``config``, ``sim``, ``autopilot``, ``params``, ``clock``, ``land_controller`` and the
-tick's sensor sample (``_sample_now``), and answers through ``_statustext``, ``_event`` and
-``_log``.
+:class:`PreclandLoop` is one part of :class:`~sitl_sim.mavlink.sitl.MavlinkSitl`: it reads the
+flight state (autopilot, parameters, land controller), the tick's sensor sample and the clock,
+answers through the publisher (STATUSTEXT) and writes its own flight-log records.
 
 What the precision land reads: the IMU's specific force and the attitude estimate at 50 Hz
 (the ticks HIGHRES_IMU and ATTITUDE stream on at their default rates, so the readings are the
@@ -44,10 +43,12 @@ from sitl_sim.precland import (
 )
 
 if TYPE_CHECKING:
-    from sitl_sim.autopilot import Autopilot, AutopilotParams, LandController
+    from sitl_sim.mavlink.flight_log import FlightLog
+    from sitl_sim.mavlink.publisher import Publisher
+    from sitl_sim.mavlink.state import FlightState
     from sitl_sim.mavlink_endpoint import Inbound
     from sitl_sim.simulator import Simulator
-    from sitl_sim.sitl_clock import FrameWait, SimClock
+    from sitl_sim.sitl_clock import SimClock
     from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["FRAME_MARKER_NAME", "NAV_RATE_HZ", "PreclandLoop"]
@@ -70,53 +71,81 @@ _NAV_SEED_KEY = 0x9C1A
 
 
 class PreclandLoop:
-    """AUTO.PRECLAND's estimators, state machine and LANDING_TARGET handling."""
+    """AUTO.PRECLAND's estimators, state machine and LANDING_TARGET handling.
 
-    config: SitlConfig
-    sim: Simulator
-    autopilot: Autopilot
-    params: AutopilotParams
-    clock: SimClock
-    land_controller: LandController
-    _wait: FrameWait | None
-    _flying: bool
+    Args:
+        config: the seed (the estimator's initial error) and the lockstep rules.
+        state: the flight (autopilot mode and parameters, land controller, lockstep wait).
+        publisher: the tick's sensor sample and STATUSTEXT.
+        flight_log: where the precision land's records and events go.
+        sim: the flight time its records carry.
+        clock: the SITL clock.
+        substeps: physics steps per control period (the radar is fused once per period).
+        offboard_link: the name of the link that paces lockstep.
+    """
 
-    def _init_precland(self) -> None:
+    def __init__(
+        self,
+        config: SitlConfig,
+        state: FlightState,
+        publisher: Publisher,
+        flight_log: FlightLog,
+        sim: Simulator,
+        clock: SimClock,
+        substeps: int,
+        offboard_link: str,
+    ) -> None:
+        self.config = config
+        self.state = state
+        self.publisher = publisher
+        self.flight_log = flight_log
+        self.sim = sim
+        self.clock = clock
+        self._substeps = substeps
+        self._offboard_link = offboard_link
         self.nav_config = NavConfig()
         self.nav: NavEstimator | None = None
         self.lte: LandingTargetEstimator | None = None
-        self.precland: PrecisionLand | None = None
+        self.land: PrecisionLand | None = None
+        """The precision land's state machine (None: not in AUTO.PRECLAND, or no radar fix)."""
         self.landing_targets: Counter[str] = Counter()
         """LANDING_TARGET counters this episode: received, accepted, gated, rejected, idle."""
-        self._precland_paced = False
+        self.paced = False
+        """A client answers frames in AUTO.PRECLAND (lockstep waits for it)."""
+        self._episode_index = 0
         self._unsupported_frames: set[int] = set()
-        self._nav_every = max(1, round(self.clock.rate_hz / NAV_RATE_HZ))
+        self._nav_every = max(1, round(clock.rate_hz / NAV_RATE_HZ))
 
-    def _reset_precland(self) -> None:
-        """A new episode or flight: no estimate, no precision land, not paced."""
-        self.nav = self.lte = self.precland = None
-        self._precland_paced = False
-
-    def _reset_precland_counters(self) -> None:
+    def start_episode(self, index: int) -> None:
+        """A new episode: no estimate, not paced, counters at zero."""
+        self.reset()
+        self._episode_index = index
         self.landing_targets = Counter()
         self._unsupported_frames = set()
 
+    def reset(self, keep_paced: bool = False) -> None:
+        """A new episode or flight: no estimate, no precision land (``keep_paced``: a client
+        pacing the frozen HOLD paces the flight)."""
+        self.nav = self.lte = self.land = None
+        if not keep_paced:
+            self.paced = False
+
     # ------------------------------------------------------------------ the loop
 
-    def _precland_tick(self) -> None:
+    def tick(self) -> None:
         """After the tick's streams: start/stop with the mode, run the estimators at 50 Hz."""
-        active = self._flying and self.autopilot.mode is FlightMode.PRECLAND
+        active = self.state.flying and self.state.autopilot.mode is FlightMode.PRECLAND
         if not active:
-            if self.precland is not None:
-                self._reset_precland_estimators()
+            if self.land is not None:
+                self.nav = self.lte = self.land = None
             return
-        if self.precland is None and not self._start_precland():
+        if self.land is None and not self._start():
             return
         if self.clock.phase % self._nav_every:
             return
         nav, lte = self.nav, self.lte
         assert nav is not None and lte is not None
-        sample = self._sample_now()
+        sample = self.publisher.sample()
         dt = self._nav_every / self.clock.rate_hz
         att = sample.attitude.attitude_rad
         nav.predict(dt, att, sample.imu.accel_frd_m_s2)
@@ -124,18 +153,14 @@ class PreclandLoop:
         if self.clock.phase % self._substeps == 0:
             nav.fuse_range(sample.range_m, att)
 
-    def _reset_precland_estimators(self) -> None:
-        self.nav = self.lte = self.precland = None
-
-    def _start_precland(self) -> bool:
+    def _start(self) -> bool:
         """Initialise the estimate and the precision land; False while the radar has no fix."""
-        sample = self._sample_now()
+        sample = self.publisher.sample()
         att = sample.attitude.attitude_rad
         rng_m = sample.range_m
         if not math.isfinite(rng_m):
             return False
-        ep = self._episode
-        key = [self.config.seed, ep.index if ep is not None else 0, _NAV_SEED_KEY]
+        key = [self.config.seed, self._episode_index, _NAV_SEED_KEY]
         gen = np.random.default_rng(np.random.SeedSequence(key))
         sigma = self.nav_config.initial_vel_sigma_m_s
         # the one ground-truth input: the velocity at activation, with the estimator's error
@@ -143,27 +168,28 @@ class PreclandLoop:
         height = rng_m * math.cos(float(att[0])) * math.cos(float(att[1]))
         self.nav = NavEstimator(self.nav_config, height, vel0)
         self.nav.attitude_rad = np.asarray(att, dtype=float).copy()
-        self.lte = LandingTargetEstimator(self.params.ltest)
-        self.precland = PrecisionLand(self.params.pld, self.nav, self.lte, self.clock.time_s)
-        self._announce_precland()
+        params = self.state.autopilot.params
+        self.lte = LandingTargetEstimator(params.ltest)
+        self.land = PrecisionLand(params.pld, self.nav, self.lte, self.clock.time_s)
+        self._announce()
         return True
 
-    def _announce_precland(self) -> None:
-        if self.precland is None:
+    def _announce(self) -> None:
+        if self.land is None:
             return
-        for ev in self.precland.pop_events():
+        for ev in self.land.pop_events():
             log.info("precland: %s", ev.text)
-            self._statustext(ev.severity, ev.text)
-            self._event("precland", f"{ev.state.value}: {ev.text}")
+            self.publisher.statustext(ev.severity, ev.text)
+            self.flight_log.event("precland", f"{ev.state.value}: {ev.text}")
 
-    def _precland_command(self) -> Command:
+    def command(self) -> Command:
         """The precision land's command for this control period (10 Hz), on the estimate."""
-        pl, nav = self.precland, self.nav
+        pl, nav = self.land, self.nav
         if pl is None or nav is None:
             # not initialised yet (no radar fix): level, hover thrust, until it is
-            return Command(self.params.mpc_thr_hover, np.zeros(3))
+            return Command(self.state.autopilot.params.mpc_thr_hover, np.zeros(3))
         sp = pl.update(self.clock.time_s)
-        self._announce_precland()
+        self._announce()
         err = nav.pos_ned_m[:2] - sp.north_east_m
         norm = float(np.linalg.norm(err))
         if norm > _MAX_XY_ERROR_M:
@@ -174,16 +200,16 @@ class PreclandLoop:
             v_down = min(_MAX_HOLD_DESCENT_M_S, max(-_MAX_CLIMB_M_S, v_down))
         quat = quat_from_euler(*(float(a) for a in nav.attitude_rad))
         pos = np.array([err[0], err[1], -nav.altitude_m])
-        cmd = self.land_controller.command(pos, nav.vel_ned_m_s, quat, v_down_m_s=v_down)
-        self._log_precland(sp.altitude_m)
+        cmd = self.state.land_controller.command(pos, nav.vel_ned_m_s, quat, v_down_m_s=v_down)
+        self._log(sp.altitude_m)
         return cmd
 
-    def _log_precland(self, hold_altitude_m: float | None) -> None:
-        pl, nav, lte = self.precland, self.nav, self.lte
+    def _log(self, hold_altitude_m: float | None) -> None:
+        pl, nav, lte = self.land, self.nav, self.lte
         assert pl is not None and nav is not None and lte is not None
         now = self.clock.time_s
         seen = math.isfinite(lte.last_update_s)
-        self._log(
+        self.flight_log.write(
             TOPIC_PRECLAND,
             SCHEMA_PRECLAND,
             {
@@ -204,14 +230,14 @@ class PreclandLoop:
 
     # ------------------------------------------------------------------ messages
 
-    def _on_landing_target(self, msg: Any, inbound: Inbound) -> None:
-        """LANDING_TARGET: read as PX4 does, fused when AUTO.PRECLAND runs, counted always."""
+    def on_landing_target(self, msg: Any, inbound: Inbound) -> None:
+        """LANDING_TARGET: read as PX4 does, fused when AUTO.PRECLAND runs, counted always; a
+        malformed one is counted and ignored."""
         counts = self.landing_targets
         counts["received"] += 1
+        ap = self.state.autopilot
         try:
-            self.autopilot.check_landing_target(
-                int(msg.frame), int(msg.position_valid), float(msg.distance)
-            )
+            ap.check_landing_target(int(msg.frame), int(msg.position_valid), float(msg.distance))
             meas = measurement_from_landing_target(
                 int(msg.frame),
                 float(msg.angle_x),
@@ -225,11 +251,11 @@ class PreclandLoop:
             )
         except LandingTargetRejected as exc:
             counts["rejected"] += 1
-            self._event("landing_target_rejected", str(exc))
+            self.flight_log.event("landing_target_rejected", str(exc))
             frame = exc.unsupported_frame
             if frame is not None and frame not in self._unsupported_frames:
                 self._unsupported_frames.add(frame)  # PX4 says it each time; once is enough
-                self._statustext(2, str(exc))
+                self.publisher.statustext(2, str(exc))
             return
         self._answer_frame(msg.time_usec // 1000, inbound)
         nav, lte = self.nav, self.lte
@@ -240,35 +266,37 @@ class PreclandLoop:
             counts["gated"] += 1
             return
         counts["accepted"] += 1
-        if self.params.ltest.mode == 1:
+        if ap.params.ltest.mode == 1:
             # LTEST_MODE Stationary: a static target's relative velocity is minus ours
             nav.fuse_velocity_ne(-lte.x[:, 1], lte.cov[:, 1, 1])
 
-    def _on_frame_marker(self, msg: Any, inbound: Inbound) -> None:
+    def on_frame_marker(self, msg: Any, inbound: Inbound) -> None:
+        """``VL_FRAME``: a landing-target companion's lockstep answer to a frame."""
         name = msg.name.decode() if isinstance(msg.name, bytes) else str(msg.name)
         if name.rstrip("\x00") == FRAME_MARKER_NAME:
             self._answer_frame(int(msg.time_boot_ms), inbound)
 
     def _answer_frame(self, stamp_ms: int, inbound: Inbound) -> None:
-        if inbound.link != self.endpoint.name:
+        if inbound.link != self._offboard_link:
             return  # lockstep is paced by the offboard link alone
-        self._precland_paced = True
-        wait = self._wait
+        self.paced = True
+        wait = self.state.wait
         if wait is not None and wait.answers(stamp_ms, self.config.lockstep_require_stamp):
             wait.answered = True
 
-    def _precland_waits(self) -> bool:
+    def waits(self) -> bool:
         """In AUTO.PRECLAND, whether this frame waits for the companion's answer."""
-        return self.autopilot.mode is FlightMode.PRECLAND and self._precland_paced
+        return self.state.autopilot.mode is FlightMode.PRECLAND and self.paced
 
-    def _precland_wait_timed_out(self) -> None:
-        if self.autopilot.mode is FlightMode.PRECLAND and self._precland_paced:
-            self._precland_paced = False
-            self._event("lockstep", "no answer to a frame in AUTO.PRECLAND: running free")
+    def wait_timed_out(self) -> None:
+        """A frame went unanswered: in AUTO.PRECLAND the precision land runs free from now."""
+        if self.waits():
+            self.paced = False
+            self.flight_log.event("lockstep", "no answer to a frame in AUTO.PRECLAND: running free")
 
-    def _precland_record(self) -> dict[str, Any]:
+    def record(self) -> dict[str, Any]:
         """The episode result's precision-land part."""
-        pl = self.precland
+        pl = self.land
         return {
             "landing_target": dict(self.landing_targets),
             "precland_state": None if pl is None else pl.state.value,

@@ -1,19 +1,15 @@
 """What the SITL subscribes to: the ``handle_<message>`` handlers and the COMMAND_LONG /
 COMMAND_INT command handlers, with their dispatch tables (:data:`SUBSCRIBES`,
-:data:`COMMANDS`) listed here, PX4-style; :data:`~sitl_sim.mavlink_messages.PUBLISHES` lists
-what it sends.
-
-:class:`MessageHandlers` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`: it reads
-and changes the SITL's ``config``, ``endpoint``, ``autopilot``, ``params``, ``clock``,
-``_wait`` (the lockstep frame), ``_rx_endpoint`` (the link being read), ``_endpoints``,
-``_streams`` and ``_builders``, and answers through its ``_send``, ``_statustext``, ``_event``,
-``_announce_events`` and ``_on_ground``.
+:data:`COMMANDS`) listed here, PX4-style; :data:`~sitl_sim.mavlink.publisher.PUBLISHES` lists
+what it sends. The parameter protocol (PARAM_*) is here too: the table is the autopilot's
+``params``.
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -28,13 +24,17 @@ from sitl_sim.autopilot import (
 from sitl_sim.params import param_table, param_value_msg, with_param, writable
 
 if TYPE_CHECKING:
-    from sitl_sim.autopilot import Autopilot, AutopilotParams
-    from sitl_sim.mavlink_endpoint import Inbound, MavlinkEndpoint
+    from sitl_sim.mavlink.flight_log import FlightLog
+    from sitl_sim.mavlink.links import Links
+    from sitl_sim.mavlink.precland_loop import PreclandLoop
+    from sitl_sim.mavlink.publisher import Publisher
+    from sitl_sim.mavlink.state import FlightState
+    from sitl_sim.mavlink_endpoint import Inbound, LinkStats, MavlinkEndpoint
     from sitl_sim.simulator import Simulator
     from sitl_sim.sitl_clock import SimClock
     from sitl_sim.sitl_config import SitlConfig
 
-__all__ = ["COMMANDS", "SUBSCRIBES", "MessageHandlers"]
+__all__ = ["COMMANDS", "SUBSCRIBES", "Handlers"]
 
 SUBSCRIBES = (
     "HEARTBEAT",
@@ -55,14 +55,14 @@ SUBSCRIBES = (
 """Messages this autopilot acts on (each has a ``handle_<name>`` method); others are counted."""
 
 COMMANDS = {
-    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: "_command_arm_disarm",
-    mavlink.MAV_CMD_DO_SET_MODE: "_command_do_set_mode",
-    mavlink.MAV_CMD_NAV_LAND: "_command_nav_land",
-    mavlink.MAV_CMD_REQUEST_MESSAGE: "_command_request_message",
-    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: "_command_set_message_interval",
-    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: "_command_get_message_interval",
-    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: "_command_autopilot_capabilities",
-    mavlink.MAV_CMD_GET_HOME_POSITION: "_command_get_home_position",
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: "command_arm_disarm",
+    mavlink.MAV_CMD_DO_SET_MODE: "command_do_set_mode",
+    mavlink.MAV_CMD_NAV_LAND: "command_nav_land",
+    mavlink.MAV_CMD_REQUEST_MESSAGE: "command_request_message",
+    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: "command_set_message_interval",
+    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: "command_get_message_interval",
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: "command_autopilot_capabilities",
+    mavlink.MAV_CMD_GET_HOME_POSITION: "command_get_home_position",
 }
 """Commands (COMMAND_LONG or COMMAND_INT) this autopilot runs -> their handler method; any other
 is acknowledged MAV_RESULT_UNSUPPORTED."""
@@ -80,39 +80,75 @@ def _thrust_body(msg: Any) -> tuple[float, float, float] | None:
     return struct.unpack("<3f", payload[39:51])
 
 
-class MessageHandlers:
-    """The ``handle_<message>`` and ``_command_<command>`` methods."""
+class Handlers:
+    """The ``handle_<message>`` and ``command_<command>`` methods, and the parameter protocol.
 
-    config: SitlConfig
-    endpoint: MavlinkEndpoint
-    autopilot: Autopilot
-    params: AutopilotParams
-    sim: Simulator
-    clock: SimClock
+    Args:
+        config: the autopilot profile and the lockstep rules.
+        links: the links (their ids, codec, signing keys).
+        publisher: where answers go out, the streams SET_MESSAGE_INTERVAL changes, the
+            messages MAV_CMD_REQUEST_MESSAGE builds.
+        flight_log: where the handlers' events go.
+        state: the flight (autopilot, lockstep wait, land detector).
+        precland: LANDING_TARGET's and ``VL_FRAME``'s consumer.
+        sim: the ground truth the land detector reads.
+        clock: the SITL clock.
+    """
 
-    def _init_dispatch(self) -> None:
-        """Bind :data:`SUBSCRIBES` and :data:`COMMANDS` to this SITL's methods."""
+    def __init__(
+        self,
+        config: SitlConfig,
+        links: Links,
+        publisher: Publisher,
+        flight_log: FlightLog,
+        state: FlightState,
+        precland: PreclandLoop,
+        sim: Simulator,
+        clock: SimClock,
+    ) -> None:
+        self.config = config
+        self.links = links
+        self.publisher = publisher
+        self.flight_log = flight_log
+        self.state = state
+        self.precland = precland
+        self.sim = sim
+        self.clock = clock
+        self.ignored_messages: Counter[str] = Counter()
+        """Messages received that this autopilot does not act on, by name."""
         self._handlers: dict[str, Callable[[Any, Inbound], None]] = {
             name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES
         }
         self._commands: dict[int, CommandHandler] = {
             command: getattr(self, method) for command, method in COMMANDS.items()
         }
+        self._rx_stats: LinkStats = links.offboard.stats
+        """The counters of the link being read (rejections are counted there)."""
+
+    def dispatch(self, inbound: Inbound, endpoint: MavlinkEndpoint) -> None:
+        """Act on a message ``endpoint`` received (or count it as ignored)."""
+        name = inbound.msg.get_type()
+        handler = self._handlers.get(name)
+        if handler is None:
+            self.ignored_messages[name] += 1
+            return
+        self._rx_stats = endpoint.stats
+        handler(inbound.msg, inbound)
 
     # ------------------------------------------------------------------ helpers
 
     def _for_us(self, target_system: int, target_component: int | None = None) -> bool:
-        ep = self.endpoint
+        ep = self.links.offboard
         ok = target_system in (0, ep.sysid) and (
             target_component is None or target_component in (0, ep.compid)
         )
         if not ok:
-            self._rx_endpoint.stats.rx_wrong_target += 1
+            self._rx_stats.rx_wrong_target += 1
         return ok
 
     def _ack(self, command: int, result: MavResult, msg: Any) -> None:
-        self._send(
-            self.endpoint.mav.command_ack_encode(
+        self.publisher.send(
+            self.links.mav.command_ack_encode(
                 command,
                 int(result),
                 0,
@@ -123,19 +159,29 @@ class MessageHandlers:
         )
 
     def _param_table(self) -> list[tuple[str, float, int]]:
-        return param_table(self.params, self.endpoint.sysid, self.config.autopilot)
+        return param_table(
+            self.state.autopilot.params, self.links.offboard.sysid, self.config.autopilot
+        )
 
     def _send_param(self, index: int) -> None:
-        self._send(
-            param_value_msg(self.endpoint.mav, self._param_table(), index, self.config.autopilot)
+        self.publisher.send(
+            param_value_msg(self.links.mav, self._param_table(), index, self.config.autopilot)
         )
+
+    def announce_param(self, name: str) -> None:
+        """Send parameter ``name``'s PARAM_VALUE unasked, as PX4 announces a changed parameter
+        (a client holding the old value hears it)."""
+        names = [row[0] for row in self._param_table()]
+        self._send_param(names.index(name))
 
     # ------------------------------------------------------------------ message handlers
 
     def handle_heartbeat(self, msg: Any, inbound: Inbound) -> None:
         """A client's heartbeat (the endpoint already remembers the peer): the autopilot's GCS
         failsafe hears it (ArduCopter's FS_GCS_ENABLE; nothing for PX4 here)."""
-        self.autopilot.on_heartbeat(msg.get_srcSystem(), msg.get_srcComponent(), self.clock.time_s)
+        self.state.autopilot.on_heartbeat(
+            msg.get_srcSystem(), msg.get_srcComponent(), self.clock.time_s
+        )
 
     def handle_set_attitude_target(self, msg: Any, inbound: Inbound) -> None:
         """Setpoint, read by the autopilot's profile (PX4:
@@ -144,7 +190,7 @@ class MessageHandlers:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         try:
-            sp = self.autopilot.setpoint_from_message(
+            sp = self.state.autopilot.setpoint_from_message(
                 msg.type_mask,
                 msg.q,
                 (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate),
@@ -153,20 +199,20 @@ class MessageHandlers:
                 self.clock.time_s,
             )
         except SetpointRejected as exc:
-            self._rx_endpoint.stats.rx_rejected_setpoints += 1
-            self._event("setpoint_rejected", str(exc))
+            self._rx_stats.rx_rejected_setpoints += 1
+            self.flight_log.event("setpoint_rejected", str(exc))
             return
         if sp is None:
             return  # ArduCopter outside GUIDED_NOGPS: ignored without a word
-        self.autopilot.on_setpoint(sp)
-        if inbound.link == self.endpoint.name:
-            self._offboard_paced = True  # the client answers frames (again)
-        wait = self._wait
+        self.state.autopilot.on_setpoint(sp)
+        if inbound.link == self.links.offboard.name:
+            self.state.offboard_paced = True  # the client answers frames (again)
+        wait = self.state.wait
         # Lockstep is paced by the offboard link alone: a ground station's setpoint flies (as
         # in PX4, offboard setpoints are accepted from any link) but never answers a frame.
         if (
             wait is not None
-            and inbound.link == self.endpoint.name
+            and inbound.link == self.links.offboard.name
             and wait.answers(msg.time_boot_ms, self.config.lockstep_require_stamp)
         ):
             wait.answered = True
@@ -196,12 +242,12 @@ class MessageHandlers:
         reads it as the mode number and answers with a COMMAND_ACK for "command" 11."""
         if not self._for_us(msg.target_system):
             return
-        ap = self.autopilot
+        ap = self.state.autopilot
         result = ap.request_mode(ap.mode_for_custom(msg.custom_mode), self.clock.time_s)
-        self._event("set_mode", f"SET_MODE custom_mode {msg.custom_mode}: {result.name}")
+        self.flight_log.event("set_mode", f"SET_MODE custom_mode {msg.custom_mode}: {result.name}")
         if ap.acks_set_mode:
             self._ack(mavlink.MAVLINK_MSG_ID_SET_MODE, result, msg)
-        self._announce_events()
+        self.publisher.announce_events()
 
     def handle_param_request_list(self, msg: Any, inbound: Inbound) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
@@ -232,33 +278,33 @@ class MessageHandlers:
             return
         if msg.param_id in writable(self.config.autopilot):
             try:
-                self.params = with_param(
-                    self.params, msg.param_id, msg.param_value, self.config.autopilot
+                ap = self.state.autopilot
+                ap.params = with_param(
+                    ap.params, msg.param_id, msg.param_value, self.config.autopilot
                 )
-                self.autopilot.params = self.params
             except ValueError as exc:
-                self._event("param_rejected", str(exc))
+                self.flight_log.event("param_rejected", str(exc))
         self._send_param(names.index(msg.param_id))
 
     def handle_landing_target(self, msg: Any, inbound: Inbound) -> None:
-        """The precision land's input (:meth:`~sitl_sim.sitl_precland.PreclandLoop.
-        _on_landing_target`); a malformed one is counted and ignored."""
-        self._on_landing_target(msg, inbound)
+        """The precision land's input (:meth:`~sitl_sim.mavlink.precland_loop.PreclandLoop.
+        on_landing_target`); a malformed one is counted and ignored."""
+        self.precland.on_landing_target(msg, inbound)
 
     def handle_named_value_int(self, msg: Any, inbound: Inbound) -> None:
         """``VL_FRAME``: a landing-target companion's lockstep answer to a frame."""
-        self._on_frame_marker(msg, inbound)
+        self.precland.on_frame_marker(msg, inbound)
 
     def handle_timesync(self, msg: Any, inbound: Inbound) -> None:
         """Answer requests (tc1 = 0) with the sim clock in ns; our own requests: none."""
         if msg.tc1 == 0:
-            self._send(self.endpoint.mav.timesync_encode(self.clock.time_us * 1000, msg.ts1))
+            self.publisher.send(self.links.mav.timesync_encode(self.clock.time_us * 1000, msg.ts1))
 
     def handle_ping(self, msg: Any, inbound: Inbound) -> None:
         """MAVSDK pings PX4 autopilots: echo requests (targets 0/0) back to the sender."""
         if msg.target_system == 0 and msg.target_component == 0:
-            self._send(
-                self.endpoint.mav.ping_encode(
+            self.publisher.send(
+                self.links.mav.ping_encode(
                     msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
                 )
             )
@@ -271,21 +317,20 @@ class MessageHandlers:
         outcome is a STATUSTEXT (and an event in the flight log; the key never is)."""
         if not self._for_us(msg.target_system, msg.target_component):
             return
-        if self.autopilot.armed:
-            self._statustext(4, "SETUP_SIGNING refused: armed")
+        if self.state.autopilot.armed:
+            self.publisher.statustext(4, "SETUP_SIGNING refused: armed")
             return
         key = bytes(msg.secret_key)
         new_key = None if key == bytes(32) else key
-        for endpoint in self._endpoints:
-            endpoint.set_signing_key(new_key, int(msg.initial_timestamp))
+        self.links.set_signing_key(new_key, int(msg.initial_timestamp))
         # A signed reply tells the requester the key took (or, unsigned, that it is off).
-        self._statustext(6, "Signing on" if new_key is not None else "Signing off")
+        self.publisher.statustext(6, "Signing on" if new_key is not None else "Signing off")
 
     def handle_mission_request_list(self, msg: Any, inbound: Inbound) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
-        self._send(
-            self.endpoint.mav.mission_count_encode(
+        self.publisher.send(
+            self.links.mav.mission_count_encode(
                 msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
             )
         )
@@ -301,55 +346,55 @@ class MessageHandlers:
             result = handler(params, follow_up)
         self._ack(command, result, msg)
         for reply in follow_up:
-            self._send(reply)
-        self._event("command", f"command {command} {list(params)}: {result.name}")
-        self._announce_events()
+            self.publisher.send(reply)
+        self.flight_log.event("command", f"command {command} {list(params)}: {result.name}")
+        self.publisher.announce_events()
 
     def _in_air(self) -> bool:
-        return not self._on_ground(self.sim.ground_truth())
+        return not self.state.on_ground(self.sim.ground_truth())
 
-    def _command_arm_disarm(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+    def command_arm_disarm(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not math.isfinite(p[0]):
             return MavResult.DENIED
-        return self.autopilot.request_arm(
+        return self.state.autopilot.request_arm(
             round(p[0]) == 1, force=p[1] == FORCE_DISARM_MAGIC, in_air=self._in_air()
         )
 
-    def _command_do_set_mode(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+    def command_do_set_mode(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not all(math.isfinite(v) for v in p[:3]):
             return MavResult.DENIED
         if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return MavResult.DENIED  # PX4 and ArduPilot modes are custom modes
-        ap = self.autopilot
+        ap = self.state.autopilot
         mode = ap.mode_for_command(p[1], p[2])
         if (
             mode is FlightMode.PRECLAND
             and ap.precland_needs_range
-            and not math.isfinite(self._sample_now().range_m)
+            and not math.isfinite(self.publisher.sample().range_m)
         ):
             # PX4 needs a local position and distance to the ground (mode_requirements.cpp)
-            self._statustext(4, "Precision landing denied! Please land manually")
+            self.publisher.statustext(4, "Precision landing denied! Please land manually")
             return MavResult.TEMPORARILY_REJECTED
-        return self.autopilot.request_mode(mode, self.clock.time_s)
+        return self.state.autopilot.request_mode(mode, self.clock.time_s)
 
-    def _command_nav_land(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
-        return self.autopilot.request_mode(self.autopilot.land_mode(), self.clock.time_s)
+    def command_nav_land(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        return self.state.autopilot.request_mode(
+            self.state.autopilot.land_mode(), self.clock.time_s
+        )
 
-    def _command_request_message(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+    def command_request_message(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not math.isfinite(p[0]):
             return MavResult.DENIED
-        builder = self._builders.get(int(p[0]))
+        builder = self.publisher.builders.get(int(p[0]))
         if builder is None:
             return MavResult.UNSUPPORTED
         follow_up.append(builder())
         return MavResult.ACCEPTED
 
-    def _command_set_message_interval(
-        self, p: tuple[float, ...], follow_up: list[Any]
-    ) -> MavResult:
+    def command_set_message_interval(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not (math.isfinite(p[0]) and math.isfinite(p[1])):
             return MavResult.DENIED
-        stream = self._streams.get(int(p[0]))
+        stream = self.publisher.streams.get(int(p[0]))
         if stream is None:
             return MavResult.UNSUPPORTED
         interval = int(p[1])
@@ -362,23 +407,19 @@ class MessageHandlers:
         stream.set_interval(interval, self.clock.rate_hz)
         return MavResult.ACCEPTED
 
-    def _command_get_message_interval(
-        self, p: tuple[float, ...], follow_up: list[Any]
-    ) -> MavResult:
-        stream = self._streams.get(int(p[0])) if math.isfinite(p[0]) else None
+    def command_get_message_interval(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        stream = self.publisher.streams.get(int(p[0])) if math.isfinite(p[0]) else None
         if stream is None:
             return MavResult.UNSUPPORTED
-        follow_up.append(
-            self.endpoint.mav.message_interval_encode(stream.msg_id, stream.interval_us)
-        )
+        follow_up.append(self.links.mav.message_interval_encode(stream.msg_id, stream.interval_us))
         return MavResult.ACCEPTED
 
-    def _command_autopilot_capabilities(
+    def command_autopilot_capabilities(
         self, p: tuple[float, ...], follow_up: list[Any]
     ) -> MavResult:
-        follow_up.append(self._build_autopilot_version())
+        follow_up.append(self.publisher.build_autopilot_version())
         return MavResult.ACCEPTED
 
-    def _command_get_home_position(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
-        follow_up.append(self._build_home_position())
+    def command_get_home_position(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
+        follow_up.append(self.publisher.build_home_position())
         return MavResult.ACCEPTED

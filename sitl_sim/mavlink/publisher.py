@@ -1,15 +1,13 @@
 """What the SITL publishes: the MAVLink message builders (HEARTBEAT, SYS_STATUS, ... ODOMETRY),
-the stream table and its SET_MESSAGE_INTERVAL schedule, and the once-per-tick sensor sample the
-streams read from.
-
-:class:`MessageBuilders` is a mixin of :class:`~sitl_sim.mavlink_sitl.MavlinkSitl`: it reads the
-SITL's ``config``, ``endpoint`` (the codec), ``autopilot``, ``sim``, ``sim_cfg``, ``clock``,
-``lockstep_timeouts``, and its ``_send``, ``_on_ground`` and ``_total_stats``.
+the stream table and its SET_MESSAGE_INTERVAL schedule, the once-per-tick sensor sample the
+streams read from, and the way out for everything the SITL sends (each message sent is also
+logged).
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,13 +21,16 @@ from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.simulator import Simulator
 
 if TYPE_CHECKING:
-    from sitl_sim.autopilot import Autopilot
     from sitl_sim.config import SimConfig
-    from sitl_sim.mavlink_endpoint import MavlinkEndpoint
+    from sitl_sim.mavlink.flight_log import FlightLog
+    from sitl_sim.mavlink.links import Links
+    from sitl_sim.mavlink.state import FlightState
     from sitl_sim.sitl_clock import SimClock
     from sitl_sim.sitl_config import SitlConfig
 
-__all__ = ["ON_REQUEST", "PUBLISHES", "MessageBuilders", "Stream", "TickSample"]
+__all__ = ["ON_REQUEST", "PUBLISHES", "Publisher", "Stream", "TickSample"]
+
+log = logging.getLogger("visland.sitl")
 
 PUBLISHES = (
     "HEARTBEAT",
@@ -142,42 +143,97 @@ class TickSample:
         return self._sim.radar.read(gt.pos_ned_m, gt.quat_wxyz)
 
 
-class MessageBuilders:
-    """The ``_build_<message>`` methods, the streams that send them, and the tick's sample."""
+class Publisher:
+    """Builds and sends the SITL's messages.
 
-    config: SitlConfig
-    endpoint: MavlinkEndpoint
-    autopilot: Autopilot
-    sim: Simulator
-    sim_cfg: SimConfig
-    clock: SimClock
-    lockstep_timeouts: int
+    Args:
+        config: the stream rates, ``groundtruth``, the autopilot profile.
+        links: where messages go.
+        flight_log: where each message sent is logged.
+        state: the flight's autopilot and land detector.
+        sim: the simulator the sensor readings come from.
+        sim_cfg: the planet (gravity) and the radar's range.
+        clock: the SITL clock (message stamps, the stream schedule).
+    """
 
-    def _init_streams(self) -> None:
-        """The stream table at its default rates, the builders by message id, no sample yet."""
-        self._streams: dict[int, Stream] = {}
-        for name, default in _stream_table(self.config):
+    def __init__(
+        self,
+        config: SitlConfig,
+        links: Links,
+        flight_log: FlightLog,
+        state: FlightState,
+        sim: Simulator,
+        sim_cfg: SimConfig,
+        clock: SimClock,
+    ) -> None:
+        self.config = config
+        self.links = links
+        self.flight_log = flight_log
+        self.state = state
+        self.sim = sim
+        self.sim_cfg = sim_cfg
+        self.clock = clock
+        self.streams: dict[int, Stream] = {}
+        """The periodic messages by message id, at their current SET_MESSAGE_INTERVAL."""
+        for name, default in _stream_table(config):
             msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
             stream = Stream(name, msg_id, default)
-            stream.set_interval(default, self.clock.rate_hz)
-            self._streams[msg_id] = stream
-        names = [s.name for s in self._streams.values()] + list(ON_REQUEST)
-        self._builders: dict[int, Callable[[], Any]] = {
-            getattr(mavlink, f"MAVLINK_MSG_ID_{name}"): getattr(self, f"_build_{name.lower()}")
+            stream.set_interval(default, clock.rate_hz)
+            self.streams[msg_id] = stream
+        names = [s.name for s in self.streams.values()] + list(ON_REQUEST)
+        self.builders: dict[int, Callable[[], Any]] = {
+            getattr(mavlink, f"MAVLINK_MSG_ID_{name}"): getattr(self, f"build_{name.lower()}")
             for name in names
         }
+        """What MAV_CMD_REQUEST_MESSAGE can ask for, by message id."""
         self._sample: TickSample | None = None
         self._sample_tick = -1
         self._streamed: dict[str, tuple[float, Any]] = {}
         """The latest attitude / IMU / range reading sent (flight time, reading): the
         observation a client has at the next frame, logged as ``/observation``."""
 
-    def _reset_samples(self) -> None:
+    # ------------------------------------------------------------------ sending
+
+    def send(self, msg: Any) -> None:
+        self.links.send(msg)
+        self.flight_log.outbound(msg)
+
+    def statustext(self, severity: int, text: str) -> None:
+        self.send(self.links.mav.statustext_encode(severity, text[:50].encode()))
+        self.flight_log.event("statustext", text)
+
+    def heartbeat(self) -> None:
+        self.send(self.build_heartbeat())
+
+    def announce_events(self) -> None:
+        """The autopilot's events: logged, said in a STATUSTEXT, then a HEARTBEAT (PX4 shows a
+        mode/arming change in the next heartbeat; MAVSDK waits for it: send now)."""
+        events = self.state.autopilot.pop_events()
+        if not events:
+            return
+        for ev in events:
+            self.flight_log.event(ev.kind, ev.text)
+            if ev.kind != "takeover" and ev.statustext:
+                self.statustext(ev.severity, ev.text)
+            log.info("autopilot: %s", ev.text)
+        self.heartbeat()
+
+    def emit_streams(self) -> None:
+        """Every stream due at this tick."""
+        phase = self.clock.phase
+        for stream in self.streams.values():
+            if stream.period_ticks and phase % stream.period_ticks == 0:
+                self.send(self.builders[stream.msg_id]())
+
+    # ------------------------------------------------------------------ the tick's readings
+
+    def reset_samples(self) -> None:
         """The simulator was reset: nothing sampled or streamed since."""
         self._sample = None
         self._streamed.clear()
 
-    def _sample_now(self) -> TickSample:
+    def sample(self) -> TickSample:
+        """This tick's sensor readings (each sensor read at most once per tick)."""
         tick = self.clock.tick
         if self._sample is None or self._sample_tick != tick:
             self._sample = TickSample(self.sim, self.sim_cfg.planet.gravity_m_s2)
@@ -185,24 +241,47 @@ class MessageBuilders:
         return self._sample
 
     def _streamed_reading(self, kind: str) -> Any:
-        sample = self._sample_now()
+        sample = self.sample()
         reading = getattr(sample, kind)
         self._streamed[kind] = (sample.truth.time_s, reading)
         return reading
 
-    def _emit_streams(self) -> None:
-        phase = self.clock.phase
-        for stream in self._streams.values():
-            if stream.period_ticks and phase % stream.period_ticks == 0:
-                self._send(self._builders[stream.msg_id]())
+    def streamed_observation(self, frame_id: int, image_time_s: float) -> dict[str, Any] | None:
+        """What a client holds at this frame: the latest attitude, IMU and range readings this
+        SITL sent (before MAVLink's float32 / centimetre encoding), with their own times, in the
+        in-process log's ``/observation`` record. None until each has been sent since the
+        simulator was last reset."""
+        parts = self._streamed
+        if any(k not in parts for k in ("attitude", "imu", "range_m")):
+            return None
+        (att_t, att), (imu_t, imu), (rng_t, rng) = (
+            parts["attitude"],
+            parts["imu"],
+            parts["range_m"],
+        )
+        return {
+            "frame_id": frame_id,
+            "image_time_s": image_time_s,
+            "attitude_rad": att.attitude_rad,
+            "rate_frd_rad_s": att.rate_frd_rad_s,
+            "attitude_time_s": att_t,
+            "range_m": rng if math.isfinite(rng) else None,
+            "range_time_s": rng_t,
+            "accel_frd_m_s2": imu.accel_frd_m_s2,
+            "imu_time_s": imu_t,
+        }
 
-    def _build_heartbeat(self) -> Any:
+    # ------------------------------------------------------------------ builders
+
+    def build_heartbeat(self) -> Any:
         # autopilot id, base_mode, custom_mode and state as the profile's autopilot sets them
-        return self.endpoint.mav.heartbeat_encode(_MAV_TYPE_QUADROTOR, *self.autopilot.heartbeat())
+        return self.links.mav.heartbeat_encode(
+            _MAV_TYPE_QUADROTOR, *self.state.autopilot.heartbeat()
+        )
 
-    def _build_sys_status(self) -> Any:
-        st = self._total_stats()  # the system's counters: every link
-        return self.endpoint.mav.sys_status_encode(
+    def build_sys_status(self) -> Any:
+        st = self.links.total_stats()  # the system's counters: every link
+        return self.links.mav.sys_status_encode(
             _SENSORS,
             _SENSORS,
             _SENSORS,
@@ -214,46 +293,46 @@ class MessageBuilders:
             min(st.errors_comm, _UINT16_MAX),
             min(st.rx_unsigned_rejected + st.rx_bad_signature, _UINT16_MAX),  # errors_count1
             min(st.rx_wrong_target, _UINT16_MAX),  # errors_count2
-            min(self.lockstep_timeouts, _UINT16_MAX),  # errors_count3
+            min(self.state.lockstep_timeouts, _UINT16_MAX),  # errors_count3
             min(st.rx_unknown_msgid, _UINT16_MAX),  # errors_count4
         )
 
-    def _build_system_time(self) -> Any:
+    def build_system_time(self) -> Any:
         # time_unix_usec 0 = unknown: there is no wall-clock date in a simulation.
-        return self.endpoint.mav.system_time_encode(0, self.clock.time_boot_ms)
+        return self.links.mav.system_time_encode(0, self.clock.time_boot_ms)
 
     def _landed_state(self) -> int:
-        if self._on_ground(self._sample_now().truth):
+        if self.state.on_ground(self.sample().truth):
             return mavlink.MAV_LANDED_STATE_ON_GROUND
-        if self.autopilot.mode is FlightMode.LAND:
+        if self.state.autopilot.mode is FlightMode.LAND:
             return mavlink.MAV_LANDED_STATE_LANDING
         return mavlink.MAV_LANDED_STATE_IN_AIR
 
-    def _build_extended_sys_state(self) -> Any:
-        return self.endpoint.mav.extended_sys_state_encode(
+    def build_extended_sys_state(self) -> Any:
+        return self.links.mav.extended_sys_state_encode(
             mavlink.MAV_VTOL_STATE_UNDEFINED, self._landed_state()
         )
 
-    def _build_attitude(self) -> Any:
+    def build_attitude(self) -> Any:
         att = self._streamed_reading("attitude")
         r = att.attitude_rad
         w = att.rate_frd_rad_s
-        return self.endpoint.mav.attitude_encode(
+        return self.links.mav.attitude_encode(
             self.clock.time_boot_ms, r[0], r[1], r[2], w[0], w[1], w[2]
         )
 
-    def _build_attitude_quaternion(self) -> Any:
+    def build_attitude_quaternion(self) -> Any:
         att = self._streamed_reading("attitude")
         q = quat_from_euler(*att.attitude_rad)
         w = att.rate_frd_rad_s
-        return self.endpoint.mav.attitude_quaternion_encode(
+        return self.links.mav.attitude_quaternion_encode(
             self.clock.time_boot_ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2]
         )
 
-    def _build_highres_imu(self) -> Any:
+    def build_highres_imu(self) -> Any:
         imu = self._streamed_reading("imu")
         a, g = imu.accel_frd_m_s2, imu.gyro_frd_rad_s
-        return self.endpoint.mav.highres_imu_encode(
+        return self.links.mav.highres_imu_encode(
             self.clock.time_us,
             a[0],
             a[1],
@@ -271,14 +350,14 @@ class MessageBuilders:
             0b111111,  # fields_updated: accel x/y/z, gyro x/y/z
         )
 
-    def _build_distance_sensor(self) -> Any:
+    def build_distance_sensor(self) -> Any:
         rng = self._streamed_reading("range_m")
         max_cm = round(self.sim_cfg.radar.max_range_m * 100)
         if math.isfinite(rng):
             current, quality = min(round(rng * 100), _UINT16_MAX - 1), 100
         else:
             current, quality = _UINT16_MAX, 1  # no return: UINT16_MAX and quality 1 = invalid
-        return self.endpoint.mav.distance_sensor_encode(
+        return self.links.mav.distance_sensor_encode(
             self.clock.time_boot_ms,
             0,
             min(max_cm, _UINT16_MAX - 1),
@@ -290,14 +369,14 @@ class MessageBuilders:
             signal_quality=quality,
         )
 
-    def _build_odometry(self) -> Any:
+    def build_odometry(self) -> Any:
         """Ground truth: pose in LOCAL_NED (pad centre origin); velocity and rates in BODY_FRD
         (ODOMETRY's velocity is in ``child_frame_id``)."""
-        gt = self._sample_now().truth
+        gt = self.sample().truth
         vel_body = quat_to_rotation(gt.quat_wxyz).T @ gt.vel_ned_m_s
         p, q, w = gt.pos_ned_m, gt.quat_wxyz, gt.rate_frd_rad_s
         nan21 = [math.nan] + [0.0] * 20  # covariance unknown (first element NaN, per spec)
-        return self.endpoint.mav.odometry_encode(
+        return self.links.mav.odometry_encode(
             self.clock.time_us,
             mavlink.MAV_FRAME_LOCAL_NED,
             mavlink.MAV_FRAME_BODY_FRD,
@@ -318,14 +397,14 @@ class MessageBuilders:
             100,
         )
 
-    def _build_attitude_target(self) -> Any:
-        sp = self.autopilot.setpoint
+    def build_attitude_target(self) -> Any:
+        sp = self.state.autopilot.setpoint
         if sp is None:
             q, rates, thrust, mask = [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0, 128
         else:
             q = [1.0, 0.0, 0.0, 0.0] if sp.attitude_quat_wxyz is None else sp.attitude_quat_wxyz
             rates, thrust, mask = sp.rate_frd_rad_s, sp.thrust_norm, sp.type_mask
-        return self.endpoint.mav.attitude_target_encode(
+        return self.links.mav.attitude_target_encode(
             self.clock.time_boot_ms,
             mask,
             [float(v) for v in q],
@@ -335,18 +414,18 @@ class MessageBuilders:
             thrust,
         )
 
-    def _build_autopilot_version(self) -> Any:
+    def build_autopilot_version(self) -> Any:
         caps = _CAPABILITIES
         if self.config.autopilot == "ardupilot":  # ArduPilot sends parameter values as floats
             caps = (caps & ~mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE) | (
                 mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
             )
-        return self.endpoint.mav.autopilot_version_encode(
+        return self.links.mav.autopilot_version_encode(
             caps, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0
         )
 
-    def _build_home_position(self) -> Any:
+    def build_home_position(self) -> Any:
         # Home = the pad centre, the local origin; there is no GPS, so lat/lon/alt are 0.
-        return self.endpoint.mav.home_position_encode(
+        return self.links.mav.home_position_encode(
             0, 0, 0, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self.clock.time_us
         )

@@ -1,0 +1,182 @@
+"""The SITL's MCAP flight log of the episode being flown: every record the SITL writes goes
+through :class:`FlightLog`, stamped with the sim clock.
+
+The log is a training record: for each control step the companion flies it also holds
+``/observation`` (the attitude, IMU and range readings last streamed) and ``/command`` (the
+setpoint flown for the period after the frame), keyed by frame id like the in-process log, so
+``visland relabel`` labels SITL flights.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.contract.topics import (
+    SCHEMA_AUTOPILOT_COMMAND,
+    SCHEMA_COMMAND,
+    SCHEMA_EPISODE_RESULT,
+    SCHEMA_EVENT,
+    SCHEMA_GROUNDTRUTH,
+    SCHEMA_LINK_STATS,
+    SCHEMA_OBSERVATION,
+    SCHEMA_RX_ERROR,
+    TOPIC_AUTOPILOT_COMMAND,
+    TOPIC_COMMAND,
+    TOPIC_EVENTS,
+    TOPIC_GROUNDTRUTH,
+    TOPIC_LINK_STATS,
+    TOPIC_MAVLINK_IN,
+    TOPIC_MAVLINK_OUT,
+    TOPIC_OBSERVATION,
+    TOPIC_RESULT,
+    TOPIC_RX_ERRORS,
+    mavlink_schema,
+)
+from companion.flightlog import FlightLogWriter
+from sitl_sim.flight_record import command_msg, groundtruth_msg
+
+if TYPE_CHECKING:
+    from companion.contract import Command, GroundTruth
+    from sitl_sim.mavlink_endpoint import Inbound, RxError
+    from sitl_sim.simulator import CameraFrame
+    from sitl_sim.sitl_clock import SimClock
+
+__all__ = ["FlightLog"]
+
+
+def _jsonable_msg(msg: Any) -> dict[str, Any]:
+    d = msg.to_dict()
+    for key, value in d.items():
+        if isinstance(value, bytes | bytearray):
+            d[key] = value.decode("utf-8", errors="replace")
+    if "secret_key" in d:  # SETUP_SIGNING: a secret never goes into a log
+        d["secret_key"] = "<redacted>"
+    return d
+
+
+class FlightLog:
+    """The open episode's flight log (nothing is written while none is open).
+
+    Args:
+        clock: the SITL clock every record is stamped with.
+    """
+
+    def __init__(self, clock: SimClock) -> None:
+        self._clock = clock
+        self._writer: FlightLogWriter | None = None
+
+    @property
+    def active(self) -> bool:
+        return self._writer is not None
+
+    def open(self, path: Path, metadata: dict[str, Any]) -> None:
+        """Start the episode's log (closes none: :meth:`close_with_result` ends the last)."""
+        self._writer = FlightLogWriter(path, metadata=metadata)
+
+    def close_with_result(self, record: dict[str, Any]) -> None:
+        """Write the episode's result and close its log (no-op without one)."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, self._clock.time_s, record)
+            writer.close()
+
+    def write(self, topic: str, schema: str, body: dict[str, Any]) -> None:
+        if self._writer is not None:
+            self._writer.write(topic, schema, self._clock.time_s, body)
+
+    def event(self, kind: str, text: str) -> None:
+        self.write(TOPIC_EVENTS, SCHEMA_EVENT, {"kind": kind, "text": text})
+
+    def rx_error(self, err: RxError, link: str) -> None:
+        self.write(
+            TOPIC_RX_ERRORS,
+            SCHEMA_RX_ERROR,
+            {
+                "kind": err.kind,
+                "reason": err.reason,
+                "length": err.length,
+                "src": list(err.addr),
+                "link": link,
+            },
+        )
+
+    def link_stats(self, stats: dict[str, dict[str, int]]) -> None:
+        self.write(TOPIC_LINK_STATS, SCHEMA_LINK_STATS, stats)
+
+    def inbound(self, inbound: Inbound) -> None:
+        if self._writer is None:
+            return
+        msg = inbound.msg
+        name = msg.get_type()
+        self.write(
+            TOPIC_MAVLINK_IN + name,
+            mavlink_schema(name),
+            {
+                **_jsonable_msg(msg),
+                "src_system": msg.get_srcSystem(),
+                "src_component": msg.get_srcComponent(),
+                "signed": inbound.signed,
+                "link": inbound.link,
+            },
+        )
+
+    def outbound(self, msg: Any) -> None:
+        if self._writer is not None:
+            name = msg.get_type()
+            self.write(TOPIC_MAVLINK_OUT + name, mavlink_schema(name), _jsonable_msg(msg))
+
+    def commands(
+        self,
+        flight_time_s: float,
+        mode_label: str,
+        cmd: Command | None,
+        frame_id: int | None,
+    ) -> None:
+        """At a control period: what the autopilot flies, and with the ``frame_id`` of a
+        control step (the companion flies it) the training record's ``/command``: the command
+        flown for the period after that frame (in lockstep its answer)."""
+        self.write(
+            TOPIC_AUTOPILOT_COMMAND,
+            SCHEMA_AUTOPILOT_COMMAND,
+            {
+                "flight_time_s": flight_time_s,
+                "mode": mode_label,
+                "armed": cmd is not None,
+                "thrust_norm": cmd.thrust_norm if cmd is not None else 0.0,
+                "rate_frd_rad_s": cmd.rate_frd_rad_s if cmd is not None else [0.0, 0.0, 0.0],
+            },
+        )
+        if cmd is not None and frame_id is not None:
+            self.write(TOPIC_COMMAND, SCHEMA_COMMAND, command_msg(cmd, frame_id, "offboard"))
+
+    def frame(
+        self,
+        frame_id: int,
+        frame: CameraFrame,
+        gt: GroundTruth,
+        status: dict[str, Any],
+        observation: dict[str, Any] | None,
+    ) -> None:
+        """The camera frame just sent, its pose, the ground truth with the flight ``status``
+        (``flying``, ``mode``, ``armed``) and, in a control step, the training record's
+        ``/observation``. A lost frame (``frame_drop_prob``) is logged as what the client still
+        holds — the last delivered image and its exposure time —, as the in-process record
+        does, so the training record stays one entry per control step."""
+        writer = self._writer
+        if writer is None:
+            return
+        now = self._clock.time_s
+        writer.write_image(now, frame.image, frame_id)
+        writer.write_pose(now, gt.pos_ned_m, gt.quat_wxyz)
+        self.write(
+            TOPIC_GROUNDTRUTH,
+            SCHEMA_GROUNDTRUTH,
+            {
+                **groundtruth_msg(gt, frame_id),  # the same record as the in-process path
+                "flight_time_s": gt.time_s,
+                **status,
+            },
+        )
+        if observation is not None:
+            self.write(TOPIC_OBSERVATION, SCHEMA_OBSERVATION, observation)

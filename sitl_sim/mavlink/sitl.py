@@ -1,0 +1,588 @@
+"""``visland sitl``: the simulator behind a PX4-like MAVLink 2 autopilot endpoint over real UDP.
+
+One process, one thread, one clock. The loop advances the SITL clock one physics step (4 ms at
+250 Hz) at a time; everything the outside world sees is stamped with that sim clock
+(``time_boot_ms``/``time_usec`` = time since SITL start, monotonic across episodes; TIMESYNC
+answers in sim ns). Per physics step:
+
+1. physics (:class:`~sitl_sim.simulator.Simulator`) with the autopilot's command — or nothing
+   while the vehicle is frozen (HOLD: before the take-over, and whenever HOLD is selected);
+2. every stream whose interval is due (ATTITUDE, HIGHRES_IMU, ... at SET_MESSAGE_INTERVAL rates);
+3. at each control period (10 Hz): offboard/land checks, episode end, the camera frame
+   (UDP packets of :mod:`companion.contract.camera_packet`, stamped with its exposure time;
+   not sent when the scenario's ``[sensors]`` loses it), the ground-truth log record; in
+   lockstep and OFFBOARD, then wait for the companion's answer to a frame that was sent.
+
+**Lockstep** (default): in OFFBOARD the clock stops after each camera frame until a
+SET_ATTITUDE_TARGET arrives that was received after the frame was sent and is stamped
+(``time_boot_ms``) at or after the frame's time (``lockstep_require_stamp``; turn it off for
+clients that stamp with their own clock, e.g. MAVSDK), or until ``lockstep_timeout_s`` of wall
+time passes (counted; the last setpoint holds, so a dead client meets COM_OF_LOSS_T after 10
+frames). Outside OFFBOARD nobody paces the loop: LAND and the wait for disarm run as fast as the
+machine allows, and the frozen HOLD phase runs at wall-clock speed (the companion's hand-shake
+happens in wall time). **Real time** (``lockstep=False``): the clock follows the wall clock ×
+``speed`` throughout; the last setpoint holds between messages.
+
+**Episodes** (:mod:`sitl_sim.mavlink.episodes`) start in HOLD, armed, frozen; the flight starts
+at the first control period after the vehicle is armed in a mode other than HOLD; one MCAP
+flight log per episode (:mod:`sitl_sim.mavlink.flight_log`, a training record ``visland
+relabel`` reads); ``first_episode`` lets parallel SITLs fly disjoint parts of one seed.
+
+The SITL is composed of parts, each an object with its dependencies passed in (no part reaches
+into another's attributes; what they share is :class:`~sitl_sim.mavlink.state.FlightState`):
+
+* :class:`~sitl_sim.mavlink.links.Links`: the sockets (offboard, ground station, camera),
+  signing, the impaired link;
+* :class:`~sitl_sim.mavlink.publisher.Publisher`: the message streams and their rates, the
+  builders, the tick's sensor sample (``PUBLISHES``);
+* :class:`~sitl_sim.mavlink.handlers.Handlers`: commands, offboard setpoints, parameters
+  (``SUBSCRIBES``, ``COMMANDS``);
+* :class:`~sitl_sim.mavlink.episodes.Episodes`: reset, flight start, scoring;
+* :class:`~sitl_sim.mavlink.flight_log.FlightLog`: the episode's MCAP log;
+* :class:`~sitl_sim.mavlink.precland_loop.PreclandLoop`: AUTO.PRECLAND and LANDING_TARGET.
+
+:class:`MavlinkSitl` builds them and runs the loop (poll, tick, control period, the command
+flown, the camera frame); :mod:`sitl_sim.sitl_config` holds :class:`SitlConfig` and its
+``--flags``, :mod:`sitl_sim.sitl_clock` the sim clock, the lockstep frame wait and real-time
+pacing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from companion.contract import Command
+from companion.contract.camera_packet import encode_frame
+from sitl_sim.airframe import check_airframe_can_hover
+from sitl_sim.ardupilot import ardupilot_params, new_autopilot
+from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
+from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
+from sitl_sim.errors import ConfigError, SimError
+from sitl_sim.land_controller import CascadeLandController
+from sitl_sim.link_impairment import LinkConfig, LinkImpairment
+from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
+from sitl_sim.mavlink.flight_log import FlightLog
+from sitl_sim.mavlink.handlers import Handlers
+from sitl_sim.mavlink.links import Links
+from sitl_sim.mavlink.precland_loop import PreclandLoop
+from sitl_sim.mavlink.publisher import Publisher
+from sitl_sim.mavlink.state import FlightState
+from sitl_sim.mavlink_endpoint import LinkStats, MavlinkEndpoint, SitlError
+from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.params import parse_param_overrides, with_param
+from sitl_sim.scenario import InitialStateSampler, Scenario, load_scenario
+from sitl_sim.simulator import Simulator
+from sitl_sim.sitl_clock import FrameWait, Pacer, SimClock
+from sitl_sim.sitl_config import SitlConfig, add_sitl_arguments, sitl_config_from_args
+
+__all__ = ["MavlinkSitl", "main", "run_sitl"]
+
+log = logging.getLogger("visland.sitl")
+
+
+class MavlinkSitl:
+    """The MAVLink SITL: build it (binds the ports), then :meth:`run` (blocking) or
+    :meth:`stop` from another thread. Use as a context manager to release the ports.
+
+    Args:
+        config: the SitlConfig.
+        land_controller_factory: builds the AUTO.LAND controller from (vehicle, planet), called
+            again at an episode start whose vehicle differs (a scenario's ``[vehicle]``); the
+            default is the privileged
+            :class:`~sitl_sim.land_controller.CascadeLandController` (ground truth in).
+
+    Raises:
+        SitlPortInUseError: the MAVLink port is taken.
+        ConfigError: a TOML file is missing or invalid.
+    """
+
+    def __init__(
+        self,
+        config: SitlConfig,
+        land_controller_factory: Callable[[VehicleConfig, Any], LandController] | None = None,
+    ) -> None:
+        self.config = config
+        self.vehicle = load_vehicle(config.vehicle_config)
+        self.scenario: Scenario = load_scenario(config.scenario)
+        sim_cfg: SimConfig = load_sim(config.sim_config).with_planet(self.scenario.world)
+        if config.noiseless:
+            sim_cfg = sim_cfg.noiseless()
+        self.sim_cfg = sim_cfg
+        self.clock = SimClock(sim_cfg.physics_rate_hz, sim_cfg.physics_dt_s)
+        self._substeps = sim_cfg.substeps
+        if self.scenario.vehicle is not None:
+            check_airframe_can_hover(self.scenario.vehicle, self.vehicle, sim_cfg.planet)
+        factory = land_controller_factory or _default_land_controller
+        params = _initial_params(config, self.vehicle.hover_thrust_norm(sim_cfg.planet))
+        self.state = FlightState(
+            autopilot=new_autopilot(config.autopilot, params, armed=config.start_armed),
+            land_controller=factory(self.vehicle, sim_cfg.planet),
+        )
+        self.sampler = InitialStateSampler(self.scenario, config.seed)
+        self.link_impairment = _link_impairment(self.scenario, config)
+        """The impaired offboard + camera link (None: a perfect link)."""
+        self._pacer = Pacer(self.clock.dt_s, config.speed)
+        self.camera_frames_dropped = 0
+        """Frames the scenario's ``frame_drop_prob`` lost (not sent)."""
+        self.sim = Simulator(self.vehicle, sim_cfg, render=config.render)
+        try:
+            self.links = Links(config, self.link_impairment)
+        except SitlError:
+            self.sim.close()  # the pybullet client must not outlive a failed start
+            raise
+        self.flight_log = FlightLog(self.clock)
+        self.publisher = Publisher(
+            config, self.links, self.flight_log, self.state, self.sim, sim_cfg, self.clock
+        )
+        self.precland = PreclandLoop(
+            config,
+            self.state,
+            self.publisher,
+            self.flight_log,
+            self.sim,
+            self.clock,
+            self._substeps,
+            self.links.offboard.name,
+        )
+        self.handlers = Handlers(
+            config,
+            self.links,
+            self.publisher,
+            self.flight_log,
+            self.state,
+            self.precland,
+            self.sim,
+            self.clock,
+        )
+        setup = EpisodeSetup(
+            config=config,
+            scenario=self.scenario,
+            sampler=self.sampler,
+            vehicle=self.vehicle,
+            sim_cfg=sim_cfg,
+            episode_timeout_s=config.episode_timeout_s or sim_cfg.episode_timeout_s,
+            land_controller_factory=factory,
+        )
+        self.episodes = Episodes(
+            setup,
+            self.sim,
+            self.clock,
+            self.state,
+            self.links,
+            self.publisher,
+            self.handlers,
+            self.precland,
+            self.flight_log,
+        )
+        self._stop = threading.Event()
+        self._land_cmd: Command | None = None
+        """The command flown this control period when the autopilot flies its own (LAND,
+        PRECLAND): computed once per period."""
+        self._land_point_ne: np.ndarray | None = None
+        """AUTO.LAND's landing point (north, east, pad frame): where the mode was engaged."""
+        self._closed = False
+        self._last_stats_log_wall = 0.0
+        self._last_errors_logged = 0
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def time_s(self) -> float:
+        """The SITL clock: sim seconds since start (MAVLink time_boot_ms / 1000)."""
+        return self.clock.time_s
+
+    @property
+    def time_us(self) -> int:
+        return self.clock.time_us
+
+    @property
+    def autopilot(self) -> Autopilot:
+        """The autopilot flying the current episode."""
+        return self.state.autopilot
+
+    @property
+    def params(self) -> AutopilotParams:
+        """The autopilot's parameters now (PARAM_SET and the episode's airframe change them)."""
+        return self.state.autopilot.params
+
+    @property
+    def results(self) -> list[EpisodeResult]:
+        return self.episodes.results
+
+    @property
+    def lockstep_timeouts(self) -> int:
+        return self.state.lockstep_timeouts
+
+    @property
+    def pacing_overruns(self) -> int:
+        """Times the paced clock fell behind the wall clock and re-anchored."""
+        return self._pacer.overruns
+
+    @property
+    def endpoint(self) -> MavlinkEndpoint:
+        """The offboard link."""
+        return self.links.offboard
+
+    @property
+    def gcs_endpoint(self) -> MavlinkEndpoint | None:
+        """The ground-station link (None: ``gcs`` off, or its port was taken)."""
+        return self.links.gcs
+
+    @property
+    def stats(self) -> LinkStats:
+        """The offboard link's counters (read-only from other threads)."""
+        return self.links.offboard.stats
+
+    @property
+    def gcs_stats(self) -> LinkStats | None:
+        """The ground-station link's counters (None without that link)."""
+        return self.links.gcs.stats if self.links.gcs is not None else None
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to return (thread-safe); the current episode is logged as aborted."""
+        self._stop.set()
+
+    def run(self) -> list[EpisodeResult]:
+        """Fly ``config.episodes`` episodes (or until :meth:`stop`); returns their results."""
+        cfg = self.config
+        wall0 = time.monotonic()
+        state = self.state
+        try:
+            self.episodes.start(cfg.first_episode)
+            while not self._stop.is_set() and not self.episodes.done:
+                now = time.monotonic()
+                if cfg.max_wall_s is not None and now - wall0 > cfg.max_wall_s:
+                    log.warning("max_wall_s = %.1f s reached: stopping", cfg.max_wall_s)
+                    break
+                self.links.release()
+                self.poll()
+                wait = state.wait
+                if wait is not None:
+                    if wait.pending(now):
+                        self.links.sleep(min(wait.deadline_wall_s - now, 0.05))
+                        continue
+                    if not wait.answered:
+                        state.lockstep_timeouts += 1
+                        self.precland.wait_timed_out()
+                        if state.autopilot.runs_free_when_unanswered:
+                            state.offboard_paced = False
+                    state.wait = None
+                # Nobody paces HOLD or real time: the wall clock does (lockstep flight runs free).
+                paced = not self._physics_running() or not cfg.lockstep
+                delay = self._pacer.delay_s(now, self.clock.tick, paced)
+                if delay > 0:
+                    self.links.sleep(min(delay, 0.05))
+                    continue
+                self.tick_once()
+        finally:
+            self.episodes.finish(aborted=not self.episodes.done)
+            self.links.drain()
+            self.close()
+        return list(self.results)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.links.close()
+        self.sim.close()
+
+    def __enter__(self) -> MavlinkSitl:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ the loop
+
+    def poll(self) -> None:
+        """Read every link: log and act on what arrived, announce the autopilot's events."""
+        for endpoint, accepted, errors in self.links.receive():
+            for err in errors:
+                self.flight_log.rx_error(err, endpoint.name)
+            for inbound in accepted:
+                self.flight_log.inbound(inbound)
+                self.handlers.dispatch(inbound, endpoint)
+        self.publisher.announce_events()
+        self._maybe_log_stats()
+
+    def tick_once(self) -> None:
+        """One physics step, the streams due, and at a control period its checks and frame."""
+        running = self._physics_running()
+        if running:
+            cmd = self._current_command()
+            if self.clock.phase % self._substeps == 0:
+                frame_id = self.state.frame_id - 1 if self._control_step() else None
+                self.flight_log.commands(self.sim.time_s, self.autopilot.mode_label, cmd, frame_id)
+            self.sim.step_physics(cmd)
+        self._update_link_cut()
+        self.clock.tick += 1
+        boundary = self.clock.phase % self._substeps == 0
+        if boundary and not self._control_period():
+            return  # the episode ended here; the next one starts at the next tick
+        self.publisher.emit_streams()
+        if running:
+            self.precland.tick()  # after the streams: it reads the readings they sent
+        if boundary:
+            stamp_us = self._send_frame()
+            ap = self.autopilot
+            if (
+                stamp_us is not None  # a lost frame has no answer to wait for
+                and self.config.lockstep
+                and self._physics_running()
+                and (
+                    (ap.mode is FlightMode.OFFBOARD and self.state.offboard_paced)
+                    or self.precland.waits()
+                )
+                and ap.armed
+            ):
+                # the companion stamps its answer with the frame's (exposure) time
+                self.state.wait = FrameWait(
+                    frame_id=self.state.frame_id - 1,
+                    frame_time_ms=stamp_us // 1000,
+                    deadline_wall_s=time.monotonic() + self.config.lockstep_timeout_s,
+                )
+
+    def _physics_running(self) -> bool:
+        return self.state.flying and self.autopilot.physics_running
+
+    def _maybe_log_stats(self) -> None:
+        """At most once a second of wall time: the links' counters, when errors grew."""
+        now = time.monotonic()
+        if now - self._last_stats_log_wall < 1.0:
+            return
+        self._last_stats_log_wall = now
+        total = self.links.total_stats()
+        errors = total.errors_comm + total.rx_unknown_msgid
+        if errors != self._last_errors_logged:
+            self._last_errors_logged = errors
+            stats = self.links.stats_by_link()
+            log.warning("MAVLink link errors so far: %s", stats)
+            self.flight_log.link_stats(stats)
+
+    def _update_link_cut(self) -> None:
+        """The ``outage_s`` window, on flight time: log its start and end."""
+        imp = self.link_impairment
+        if imp is None:
+            return
+        cut = imp.config.in_outage(self.sim.time_s if self.state.flying else None)
+        if cut != imp.cut:
+            imp.cut = cut
+            what = "cut" if cut else "restored"
+            self.flight_log.event(
+                "link_outage", f"link {what} at flight time {self.sim.time_s:.3f} s"
+            )
+            log.info("link %s at flight time %.3f s (outage_s)", what, self.sim.time_s)
+
+    def _current_command(self) -> Command | None:
+        ap = self.autopilot
+        if ap.mode is not FlightMode.LAND:
+            self._land_point_ne = None
+        if not ap.armed:
+            return None  # disarmed: motors off
+        own = ap.flight_command(self.clock.time_s, self.sim.ground_truth)
+        if own is not None:
+            return own  # the profile's own (ArduCopter GUIDED_NOGPS, LAND)
+        if ap.mode is FlightMode.OFFBOARD and ap.setpoint is not None:
+            sp = ap.setpoint
+            quat = self.sim.ground_truth().quat_wxyz if sp.attitude_quat_wxyz is not None else None
+            return sp.command(quat)
+        if self._land_cmd is None and ap.mode is FlightMode.PRECLAND:
+            self._land_cmd = self.precland.command()  # on the autopilot's own estimate
+        if self._land_cmd is None:  # LAND (or OFFBOARD without setpoint, impossible by rule)
+            # PX4's AUTO.LAND lands where it was engaged, holding that position (ideally, on
+            # ground truth, as HOLD holds ideally): not on the pad, which it does not know —
+            # a failsafe landing must not count as a landing on the pad
+            gt = self.sim.ground_truth()
+            if self._land_point_ne is None:
+                self._land_point_ne = np.array(gt.pos_ned_m[:2], float)
+            rel = np.array(gt.pos_ned_m, float)
+            rel[:2] -= self._land_point_ne
+            self._land_cmd = self.state.land_controller.command(rel, gt.vel_ned_m_s, gt.quat_wxyz)
+        return self._land_cmd
+
+    def _control_step(self) -> bool:
+        """The companion flies this control period: in flight, before touchdown, armed in
+        OFFBOARD. Only these steps are the training record's control steps."""
+        ap = self.autopilot
+        return (
+            self.state.flying
+            and self.sim.contact is None
+            and ap.armed
+            and ap.mode is FlightMode.OFFBOARD
+        )
+
+    def _control_period(self) -> bool:
+        """10 Hz checks. Returns False when the episode ended (nothing more this tick)."""
+        ap = self.autopilot
+        truth = self.sim.ground_truth()
+        ap.update(self.clock.time_s, on_ground=self.state.on_ground(truth))
+        self.publisher.announce_events()
+        if not self.state.flying and ap.taken_over:
+            self.episodes.start_flight()
+            self._land_point_ne = None  # AUTO.LAND's point: where it is engaged in this flight
+        self._land_cmd = None
+        if self.episodes.over():
+            self.episodes.finish()
+            self.episodes.start_next()
+            return False
+        return True
+
+    def _send_frame(self) -> int | None:
+        """Send this control period's camera frame; its ``time_us`` stamp, or None when the
+        episode's ``frame_drop_prob`` lost it (nothing is sent; its frame id is skipped, as a
+        camera's sequence number would be). With ``camera_latency_ms`` the frame goes out now
+        but shows, and is stamped with, the scene ``latency`` earlier (its exposure)."""
+        gt = self.publisher.sample().truth
+        frame = self.sim.capture_frame(gt)
+        frame_id = self.state.frame_id
+        self.state.frame_id += 1
+        stamp_us = None
+        if frame.delivered:
+            exposure_tick = max(self.clock.tick - self.sim.camera_latency_steps, 0)
+            stamp_us = exposure_tick * 1_000_000 // self.clock.rate_hz
+            self.links.send_camera(encode_frame(frame.image, frame_id % 2**32, stamp_us))
+        else:
+            self.camera_frames_dropped += 1
+            self.flight_log.event(
+                "camera_frame_dropped", f"frame {frame_id} lost (frame_drop_prob)"
+            )
+        if self.flight_log.active:
+            ap = self.autopilot
+            observation = self.publisher.streamed_observation(frame_id, frame.exposure_time_s)
+            self.flight_log.frame(
+                frame_id,
+                frame,
+                gt,
+                {"flying": self.state.flying, "mode": ap.mode_label, "armed": ap.armed},
+                observation if self._control_step() else None,
+            )
+        return stamp_us
+
+
+def _link_impairment(scenario: Scenario, config: SitlConfig) -> LinkImpairment | None:
+    """The scenario's ``[link]`` with the ``--link-*`` flags over it; None for a perfect link.
+
+    Raises:
+        ConfigError: an impaired link in lockstep (delays are wall-clock time; a held answer
+            would stop the lockstep clock instead of arriving late).
+    """
+    base = scenario.link or LinkConfig(source=scenario.source)
+    cut = config.link_cut_at_s
+    link = base.with_overrides(
+        loss_prob=config.link_loss_prob,
+        delay_ms=config.link_delay_ms,
+        jitter_ms=config.link_jitter_ms,
+        duplicate_prob=config.link_duplicate_prob,
+        reorder_prob=config.link_reorder_prob,
+        outage_s=None if cut is None else (cut, math.inf),
+    )
+    if not link.active:
+        return None
+    if config.lockstep:
+        raise ConfigError(
+            f"{scenario.source}: [link] (or --link-*) impairs a real-time link, but this SITL "
+            "runs in lockstep, where a delayed answer would stop the clock instead of arriving "
+            "late; run with --no-lockstep (visland fly --realtime), or drop the impairment"
+        )
+    return LinkImpairment(link, config.seed, time.monotonic)
+
+
+def _initial_params(config: SitlConfig, hover_thrust_norm: float) -> AutopilotParams:
+    """The profile's parameters at their defaults, then ``config.param`` (``--param``).
+
+    Raises:
+        SitlError: a value the parameter rejects (names it).
+    """
+    if config.autopilot == "ardupilot":
+        params = ardupilot_params(hover_thrust_norm)
+    else:
+        params = AutopilotParams(mpc_thr_hover=hover_thrust_norm)
+    for name, value in parse_param_overrides(config.param, config.autopilot):
+        try:
+            params = with_param(params, name, value, config.autopilot)
+        except ValueError as exc:
+            raise SitlError(f"--param {name}={value:g}: {exc}") from None
+    return params
+
+
+def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:
+    # AUTO.LAND flies the SITL's own cascade lander on ground truth (the law that
+    # expert.cascade.CascadeLander wraps as a Policy); pass land_controller_factory to replace it.
+    return CascadeLandController(vehicle, planet)
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def run_sitl(
+    config: SitlConfig,
+    land_controller_factory: Callable[[VehicleConfig, Any], LandController] | None = None,
+) -> int:
+    """Run the SITL until its episodes are flown; 0 when all were, 1 when stopped early
+    (SIGINT/SIGTERM, ``max_wall_s``).
+
+    SIGINT/SIGTERM stop it cleanly (flight logs closed) when called from the main thread.
+
+    Raises:
+        SitlPortInUseError: the MAVLink port is taken.
+        SimError: any configuration error.
+    """
+    sitl = MavlinkSitl(config, land_controller_factory)
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: sitl.stop())
+    try:
+        log.info(
+            "SITL on udp %s:%d -> %s:%d, camera -> %s:%d, %s",
+            config.host,
+            sitl.endpoint.address[1],
+            config.remote_host,
+            config.remote_port,
+            config.camera_host,
+            config.camera_port,
+            "lockstep" if config.lockstep else f"real time x{config.speed}",
+        )
+        if sitl.gcs_endpoint is not None:
+            log.info(
+                "ground-station link on udp %s:%d -> %s:%d",
+                config.host,
+                sitl.gcs_endpoint.address[1],
+                config.gcs_remote_host,
+                config.gcs_remote_port,
+            )
+        results = sitl.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    log.info("summary: %s", json.dumps(summarize(results)))
+    return 0 if len(results) == config.episodes else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sitl_sim.mavlink`` (the CLI wires the same flags as ``visland sitl``)."""
+    parser = argparse.ArgumentParser(prog="visland sitl", description=__doc__.split("\n")[0])
+    add_sitl_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    try:
+        return run_sitl(sitl_config_from_args(args))
+    except SimError as exc:  # config, port in use, ...: one clear line, no traceback
+        print(f"visland sitl: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
