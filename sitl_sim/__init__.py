@@ -68,7 +68,7 @@ _LAZY = {
     "Simulator": "simulator",
 }
 """Public names imported on first access (PEP 562): the package itself imports nothing of the
-``[sim]`` extra (numpy aside), so a light submodule (``sitl_sim.mavlink_endpoint``, the CLI's
+``[sim]`` extra (numpy aside), so a light submodule (``sitl_sim.mavlink.endpoint``, the CLI's
 flags) loads where pybullet, scipy and gymnasium are not installed."""
 
 

@@ -30,7 +30,7 @@ from sitl_sim.airframe import (
 from sitl_sim.config import CONFIG_DIR, PLANETS, load_vehicle
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
-from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld, episode_world

@@ -23,11 +23,11 @@ from sitl_sim.ardupilot_params import ArduParams, CopterMode
 from sitl_sim.autopilot import Autopilot, FlightMode, MavResult, SetpointRejected
 from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.dynamics import euler_from_quat, quat_from_euler
-from sitl_sim.mavlink_endpoint import SitlError
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.endpoint import SitlError
 from sitl_sim.params import param_table, param_value_msg, parse_param_overrides, with_param
 from sitl_sim.scenario import InitialState
 from sitl_sim.simulator import Simulator
-from sitl_sim.sitl_config import SitlConfig
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
 
 REPO = Path(__file__).resolve().parent.parent
@@ -428,7 +428,7 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(tmp_path
         [
             py,
             "-m",
-            "sitl_sim.mavlink_sitl",
+            "sitl_sim.mavlink",
             "--autopilot",
             "ardupilot",
             "--param",

@@ -445,7 +445,7 @@ def ports() -> SimpleNamespace:
 def _sitl_args(ports, scenario, log_dir, *extra) -> list[str]:
     return [
         "-m",
-        "sitl_sim.mavlink_sitl",
+        "sitl_sim.mavlink",
         "--mavlink-port",
         str(ports.mavlink),
         "--remote-port",

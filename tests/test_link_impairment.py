@@ -25,9 +25,9 @@ from sitl_sim.link_impairment import (
     LinkImpairment,
     link_config_from_table,
 )
-from sitl_sim.mavlink_endpoint import SitlError
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.endpoint import SitlError
 from sitl_sim.scenario import scenario_from_dict
-from sitl_sim.sitl_config import SitlConfig
 
 REPO = Path(__file__).resolve().parent.parent
 _INITIAL = {
@@ -196,7 +196,7 @@ def test_a_misspelt_link_section_is_refused():
 
 
 def test_sitl_link_flags_are_checked_and_an_impaired_link_refuses_lockstep(tmp_path):
-    from sitl_sim.mavlink_sitl import MavlinkSitl
+    from sitl_sim.mavlink.sitl import MavlinkSitl
 
     with pytest.raises(SitlError, match=r"link_loss_prob = 2\.0; expected a probability"):
         SitlConfig(link_loss_prob=2.0)

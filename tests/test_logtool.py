@@ -21,8 +21,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.contract.topics import TOPIC_COMMAND, TOPIC_OBSERVATION
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from sitl_sim.env import LandingEnv
-from sitl_sim.mavlink_sitl import MavlinkSitl
-from sitl_sim.sitl_config import SitlConfig
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from tools.cli import main
 from tools.log_plots import default_plot_path, plot_flight, plot_log
 from tools.logtool import log_info

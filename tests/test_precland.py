@@ -18,7 +18,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.flightlog import read_log
 from companion.landing_target import landing_target_fields
 from sitl_sim.autopilot import AutopilotParams, FlightMode
-from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.nav_estimator import NavConfig, NavEstimator
 from sitl_sim.params import param_table, with_param
 from sitl_sim.precland import (
@@ -30,7 +31,6 @@ from sitl_sim.precland import (
     PreclandState,
     measurement_from_landing_target,
 )
-from sitl_sim.sitl_config import SitlConfig
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
 from training.provenance import REPO
 
@@ -366,7 +366,7 @@ def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(tmp_pat
         [
             py,
             "-m",
-            "sitl_sim.mavlink_sitl",
+            "sitl_sim.mavlink",
             "--mavlink-port",
             str(ports[0]),
             "--remote-port",

@@ -19,7 +19,7 @@ from expert.cascade import CascadeLander
 from sitl_sim.config import CONFIG_DIR
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
-from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.scene import Camera
 from sitl_sim.sensor_faults import SensorFaults, SensorFaultsConfig

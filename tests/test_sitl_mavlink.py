@@ -40,13 +40,13 @@ from sitl_sim.autopilot import (
     mode_from_custom,
     setpoint_from_target,
 )
-from sitl_sim.mavlink_endpoint import SitlPortInUseError
-from sitl_sim.mavlink_sitl import MavlinkSitl
-from sitl_sim.sitl_config import (
+from sitl_sim.mavlink.config import (
     SitlConfig,
     add_sitl_arguments,
     sitl_config_from_args,
 )
+from sitl_sim.mavlink.endpoint import SitlPortInUseError
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from tools.sitl_client import (
     HOLD_CUSTOM_MODE,
     LAND_CUSTOM_MODE,
@@ -524,7 +524,7 @@ def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_s
     cmd = [
         sys.executable,
         "-m",
-        "sitl_sim.mavlink_sitl",
+        "sitl_sim.mavlink",
         "--mavlink-port",
         str(ports.mavlink),
         "--remote-port",

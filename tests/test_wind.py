@@ -19,7 +19,7 @@ from sitl_sim.dynamics import Physics, derivative, quat_from_euler, translationa
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.flight_record import groundtruth_from_msg, groundtruth_msg
-from sitl_sim.mavlink_sitl import MavlinkSitl
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.wind import (

@@ -4,7 +4,7 @@ In one run, on the same initial state and with the same pilot (the privileged Ca
 
 1. **in-process**: :class:`~sitl_sim.simulator.Simulator` stepped directly (physics, sensors,
    camera render at 10 Hz) — the floor;
-2. **SITL over UDP**: ``python -m sitl_sim.mavlink_sitl`` as its own process in lockstep, and a
+2. **SITL over UDP**: ``python -m sitl_sim.mavlink`` as its own process in lockstep, and a
    scripted pymavlink client here that reads every camera frame and the ground truth (ODOMETRY)
    and answers with SET_ATTITUDE_TARGET.
 
@@ -83,7 +83,7 @@ def _in_process(cfg: SitlBenchConfig, frames: int) -> float:
 def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
     mav_port, remote_port, cam_port = free_udp_port(), free_udp_port(), free_udp_port()
     cmd = [
-        sys.executable, "-m", "sitl_sim.mavlink_sitl",
+        sys.executable, "-m", "sitl_sim.mavlink",
         "--mavlink-port", str(mav_port), "--remote-port", str(remote_port),
         "--camera-port", str(cam_port), "--gcs-port", str(free_udp_port()),
         "--gcs-remote-port", str(free_udp_port()), "--seed", str(cfg.seed), "--groundtruth",

@@ -1,6 +1,6 @@
 """``visland sitl``, ``companion``, ``fly`` and ``demo``: the SITL and the companion, alone or
 flown together as separate processes over MAVLink/UDP. Thin shells over
-:func:`sitl_sim.mavlink_sitl.run_sitl`, :func:`companion.app.run_from_args`,
+:func:`sitl_sim.mavlink.sitl.run_sitl`, :func:`companion.app.run_from_args`,
 :func:`training.exec.fly.fly` and :func:`tools.demo.run`."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ __all__ = ["cmd_fly", "register_sim"]
 
 class _LinkFlag(NamedTuple):
     """One ``visland fly`` flag that impairs the link, and the SITL's flag that does it
-    (``sitl_sim.sitl_config``)."""
+    (``sitl_sim.mavlink.config``)."""
 
     dest: str
     sitl_flag: str
@@ -81,8 +81,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_sitl(args: argparse.Namespace) -> int:
     import logging
 
-    from sitl_sim.mavlink_sitl import run_sitl
-    from sitl_sim.sitl_config import sitl_config_from_args
+    from sitl_sim.mavlink.config import sitl_config_from_args
+    from sitl_sim.mavlink.sitl import run_sitl
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     return run_sitl(sitl_config_from_args(args))
@@ -258,7 +258,7 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
 def register_sim(sub: argparse._SubParsersAction) -> None:
     """Add ``demo``, ``sitl``, ``companion`` and ``fly`` to the ``visland`` subcommands."""
     from companion.app import add_arguments as add_companion_arguments
-    from sitl_sim.sitl_config import add_sitl_arguments
+    from sitl_sim.mavlink.config import add_sitl_arguments
 
     _register_demo(sub)
     st = sub.add_parser(

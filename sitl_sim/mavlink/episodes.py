@@ -28,6 +28,8 @@ if TYPE_CHECKING:
 
     from sitl_sim.autopilot import LandController
     from sitl_sim.config import SimConfig, VehicleConfig
+    from sitl_sim.mavlink.clock import SimClock
+    from sitl_sim.mavlink.config import SitlConfig
     from sitl_sim.mavlink.flight_log import FlightLog
     from sitl_sim.mavlink.handlers import Handlers
     from sitl_sim.mavlink.links import Links
@@ -36,8 +38,6 @@ if TYPE_CHECKING:
     from sitl_sim.mavlink.state import FlightState
     from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario
     from sitl_sim.simulator import Simulator
-    from sitl_sim.sitl_clock import SimClock
-    from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["Episode", "EpisodeSetup", "Episodes"]
 

@@ -38,9 +38,9 @@ from sitl_sim.flight_record import command_msg, groundtruth_msg
 
 if TYPE_CHECKING:
     from companion.contract import Command, GroundTruth
-    from sitl_sim.mavlink_endpoint import Inbound, RxError
+    from sitl_sim.mavlink.clock import SimClock
+    from sitl_sim.mavlink.endpoint import Inbound, RxError
     from sitl_sim.simulator import CameraFrame
-    from sitl_sim.sitl_clock import SimClock
 
 __all__ = ["FlightLog"]
 

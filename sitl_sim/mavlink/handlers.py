@@ -24,15 +24,15 @@ from sitl_sim.autopilot import (
 from sitl_sim.params import param_table, param_value_msg, with_param, writable
 
 if TYPE_CHECKING:
+    from sitl_sim.mavlink.clock import SimClock
+    from sitl_sim.mavlink.config import SitlConfig
+    from sitl_sim.mavlink.endpoint import Inbound, LinkStats, MavlinkEndpoint
     from sitl_sim.mavlink.flight_log import FlightLog
     from sitl_sim.mavlink.links import Links
     from sitl_sim.mavlink.precland_loop import PreclandLoop
     from sitl_sim.mavlink.publisher import Publisher
     from sitl_sim.mavlink.state import FlightState
-    from sitl_sim.mavlink_endpoint import Inbound, LinkStats, MavlinkEndpoint
     from sitl_sim.simulator import Simulator
-    from sitl_sim.sitl_clock import SimClock
-    from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["COMMANDS", "SUBSCRIBES", "Handlers"]
 

@@ -15,11 +15,11 @@ from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from companion.contract.signing import signing_key_bytes
-from sitl_sim.mavlink_endpoint import Inbound, LinkStats, MavlinkEndpoint, RxError, SitlError
+from sitl_sim.mavlink.endpoint import Inbound, LinkStats, MavlinkEndpoint, RxError, SitlError
 
 if TYPE_CHECKING:
     from sitl_sim.link_impairment import LinkImpairment
-    from sitl_sim.sitl_config import SitlConfig
+    from sitl_sim.mavlink.config import SitlConfig
 
 __all__ = ["Links"]
 

@@ -43,13 +43,13 @@ from sitl_sim.precland import (
 )
 
 if TYPE_CHECKING:
+    from sitl_sim.mavlink.clock import SimClock
+    from sitl_sim.mavlink.config import SitlConfig
+    from sitl_sim.mavlink.endpoint import Inbound
     from sitl_sim.mavlink.flight_log import FlightLog
     from sitl_sim.mavlink.publisher import Publisher
     from sitl_sim.mavlink.state import FlightState
-    from sitl_sim.mavlink_endpoint import Inbound
     from sitl_sim.simulator import Simulator
-    from sitl_sim.sitl_clock import SimClock
-    from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["FRAME_MARKER_NAME", "NAV_RATE_HZ", "PreclandLoop"]
 

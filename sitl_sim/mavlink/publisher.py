@@ -22,11 +22,11 @@ from sitl_sim.simulator import Simulator
 
 if TYPE_CHECKING:
     from sitl_sim.config import SimConfig
+    from sitl_sim.mavlink.clock import SimClock
+    from sitl_sim.mavlink.config import SitlConfig
     from sitl_sim.mavlink.flight_log import FlightLog
     from sitl_sim.mavlink.links import Links
     from sitl_sim.mavlink.state import FlightState
-    from sitl_sim.sitl_clock import SimClock
-    from sitl_sim.sitl_config import SitlConfig
 
 __all__ = ["ON_REQUEST", "PUBLISHES", "Publisher", "Stream", "TickSample"]
 

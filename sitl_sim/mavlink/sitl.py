@@ -42,8 +42,8 @@ into another's attributes; what they share is :class:`~sitl_sim.mavlink.state.Fl
 * :class:`~sitl_sim.mavlink.precland_loop.PreclandLoop`: AUTO.PRECLAND and LANDING_TARGET.
 
 :class:`MavlinkSitl` builds them and runs the loop (poll, tick, control period, the command
-flown, the camera frame); :mod:`sitl_sim.sitl_config` holds :class:`SitlConfig` and its
-``--flags``, :mod:`sitl_sim.sitl_clock` the sim clock, the lockstep frame wait and real-time
+flown, the camera frame); :mod:`sitl_sim.mavlink.config` holds :class:`SitlConfig` and its
+``--flags``, :mod:`sitl_sim.mavlink.clock` the sim clock, the lockstep frame wait and real-time
 pacing.
 """
 
@@ -71,6 +71,9 @@ from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import ConfigError, SimError
 from sitl_sim.land_controller import CascadeLandController
 from sitl_sim.link_impairment import LinkConfig, LinkImpairment
+from sitl_sim.mavlink.clock import FrameWait, Pacer, SimClock
+from sitl_sim.mavlink.config import SitlConfig, add_sitl_arguments, sitl_config_from_args
+from sitl_sim.mavlink.endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
 from sitl_sim.mavlink.flight_log import FlightLog
 from sitl_sim.mavlink.handlers import Handlers
@@ -78,13 +81,10 @@ from sitl_sim.mavlink.links import Links
 from sitl_sim.mavlink.precland_loop import PreclandLoop
 from sitl_sim.mavlink.publisher import Publisher
 from sitl_sim.mavlink.state import FlightState
-from sitl_sim.mavlink_endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.metrics import EpisodeResult, summarize
 from sitl_sim.params import parse_param_overrides, with_param
 from sitl_sim.scenario import InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
-from sitl_sim.sitl_clock import FrameWait, Pacer, SimClock
-from sitl_sim.sitl_config import SitlConfig, add_sitl_arguments, sitl_config_from_args
 
 __all__ = ["MavlinkSitl", "main", "run_sitl"]
 

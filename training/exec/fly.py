@@ -1,6 +1,6 @@
 """``visland fly``: the SITL and the companion as two processes over UDP, N episodes, eval JSON.
 
-The SITL (``python -m sitl_sim.mavlink_sitl``) flies episodes ``0..N-1`` of ``seed``; the
+The SITL (``python -m sitl_sim.mavlink``) flies episodes ``0..N-1`` of ``seed``; the
 companion (``python -m training.companion_process``) flies each through MAVLink — pre-stream,
 OFFBOARD, one command per camera frame, touchdown, disarm. Results are the SITL's own
 (``/episode/result`` of its per-episode flight logs: ground truth at first contact, the same
@@ -167,7 +167,7 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 def sitl_log_name(seed: int, index: int) -> str:
-    """The SITL's flight log of episode ``index`` of ``seed`` (``sitl_sim.mavlink_sitl``)."""
+    """The SITL's flight log of episode ``index`` of ``seed`` (``sitl_sim.mavlink.sitl``)."""
     return f"sitl_seed{seed}_ep{index:04d}.mcap"
 
 
@@ -224,7 +224,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     sitl_cmd = [
         sys.executable,
         "-m",
-        "sitl_sim.mavlink_sitl",
+        "sitl_sim.mavlink",
         "--mavlink-port",
         str(mav),
         "--remote-port",

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.contract.signing import UNSIGNED_ALLOWED
+from companion.contract.signing import UNSIGNED_ALLOWED, sign_outgoing, signing_timestamp_now
 from sitl_sim.errors import SimError
 
 if TYPE_CHECKING:
@@ -47,11 +47,10 @@ __all__ = [
     "RxError",
     "SitlError",
     "SitlPortInUseError",
-    "signing_timestamp_now",
+    "signing_timestamp_now",  # re-exported from companion.contract.signing
 ]
 
 
-_SIGNING_EPOCH_UNIX_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC
 _NEW_STREAM_WINDOW = 6_000_000  # 60 s in 10 us units: how far behind a new stream may start
 _RCVBUF_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAM_BYTES = 4096
@@ -65,11 +64,6 @@ class SitlError(SimError):
 
 class SitlPortInUseError(SitlError, OSError):
     """A UDP port the SITL must bind is taken (another SITL, PX4, or a client bound there)."""
-
-
-def signing_timestamp_now() -> int:
-    """MAVLink signing time: 10 us units since 2015-01-01 UTC (wall clock, as the spec asks)."""
-    return int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000)
 
 
 @dataclass
@@ -193,10 +187,7 @@ class MavlinkEndpoint:
         self._sock.setblocking(False)
         self._encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         if signing_key is not None:
-            self._encoder.signing.secret_key = signing_key
-            self._encoder.signing.sign_outgoing = True
-            self._encoder.signing.link_id = 0
-            self._encoder.signing.timestamp = signing_timestamp_now()
+            sign_outgoing(self._encoder, signing_key, link_id=0)
         self.sysid = sysid
         self.compid = compid
         self._impairment: LinkImpairment | None = None
