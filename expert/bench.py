@@ -28,7 +28,13 @@ from scipy.linalg import expm
 from companion.contract import GroundTruth
 from expert.mpc import MpcConfig, MpcExpert, load_mpc_config
 from sitl_sim.config import SimConfig, load_sim, load_vehicle
-from sitl_sim.dynamics import Physics, derivative, euler_from_quat, make_state, quat_from_euler
+from sitl_sim.physics.dynamics import (
+    Physics,
+    derivative,
+    euler_from_quat,
+    make_state,
+    quat_from_euler,
+)
 from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 

@@ -1,16 +1,17 @@
 """A cascaded PD lander on privileged state: the simple baseline controller, as a Policy.
 
 The controller itself is the SITL autopilot's AUTO.LAND controller,
-:class:`sitl_sim.land_controller.CascadeLandController` (one implementation: the SITL's LAND mode
-and this baseline fly the same law). This module adds the :class:`companion.contract.policy.Policy`
-interface. It reads ground truth, so it is a *privileged* controller — the scripted pilot of the
-demo and of the simulator benchmarks, and the reference the MPC expert must beat.
+:class:`sitl_sim.autopilot.land_controller.CascadeLandController` (one implementation: the
+SITL's LAND mode and this baseline fly the same law). This module adds the
+:class:`companion.contract.policy.Policy` interface. It reads ground truth, so it is a
+*privileged* controller — the scripted pilot of the demo and of the simulator benchmarks, and
+the reference the MPC expert must beat.
 """
 
 from __future__ import annotations
 
 from companion.contract import MissingGroundTruthError
-from sitl_sim.land_controller import CascadeGains, CascadeLandController
+from sitl_sim.autopilot.land_controller import CascadeGains, CascadeLandController
 
 __all__ = ["CascadeGains", "CascadeLander"]
 

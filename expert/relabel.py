@@ -35,9 +35,9 @@ from companion.contract.topics import (
 from companion.files import sha256_file
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
-from sitl_sim.airframe import AirframeScales
 from sitl_sim.config import Planet, VehicleConfig, load_sim, load_vehicle, planet
 from sitl_sim.flight_record import groundtruth_from_msg, observation_from_msg
+from sitl_sim.physics.airframe import AirframeScales
 
 __all__ = ["RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
 

@@ -5,10 +5,11 @@ Importing this package registers the gymnasium environment ``visland/Landing-v0`
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from companion.lazy import lazy_exports
 from sitl_sim.errors import ConfigError, SimError, SimStateError
+from sitl_sim.gym_registration import ENV_ID
 
 if TYPE_CHECKING:
     from sitl_sim.config import (
@@ -24,9 +25,6 @@ if TYPE_CHECKING:
     from sitl_sim.metrics import EpisodeResult, summarize
     from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
     from sitl_sim.simulator import Simulator
-
-ENV_ID = "visland/Landing-v0"
-"""The gymnasium id of :class:`sitl_sim.env.LandingEnv`."""
 
 __all__ = [
     "ENV_ID",
@@ -72,22 +70,4 @@ _LAZY = {
 flags) loads where pybullet, scipy and gymnasium are not installed."""
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
-
-
-try:  # registered whenever gymnasium is installed (the [sim] extra); the entry point is lazy
-    import gymnasium as _gym
-except ImportError:  # pragma: no cover - a companion-only install
-    _gym = None
-if _gym is not None and ENV_ID not in _gym.registry:
-    _gym.register(id=ENV_ID, entry_point="sitl_sim.env:LandingEnv", max_episode_steps=None)
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, __all__)

@@ -309,7 +309,7 @@ class CameraConfig:
     noise_std_px: float
     renderer: str = "pybullet"
     """``"pybullet"`` (TinyRenderer, the reference) or ``"fast"`` (plane homographies, the same
-    image: :mod:`sitl_sim.render_fast`)."""
+    image: :mod:`sitl_sim.render.render_fast`)."""
 
 
 @dataclass(frozen=True)

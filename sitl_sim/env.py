@@ -36,10 +36,10 @@ import numpy as np
 from gymnasium import spaces
 
 from companion.contract import IMAGE_SIZE_PX, Command, ContractError, GroundTruth, Observation
-from sitl_sim import ENV_ID  # the one id: the package registers it
-from sitl_sim.airframe import AirframeScales, check_airframe_can_hover
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
+from sitl_sim.gym_registration import ENV_ID
 from sitl_sim.metrics import EpisodeResult
+from sitl_sim.physics.airframe import AirframeScales, check_airframe_can_hover
 from sitl_sim.scenario import InitialState, InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world

@@ -29,8 +29,8 @@ from companion.contract.topics import (
     TOPIC_SCENARIO,
 )
 from companion.flightlog import FlightLogWriter
-from sitl_sim.airframe import AirframeScales
 from sitl_sim.metrics import EpisodeResult
+from sitl_sim.physics.airframe import AirframeScales
 from sitl_sim.scenario import InitialState
 
 __all__ = [

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl_sim.dynamics import ContactEvent
+from sitl_sim.physics.dynamics import ContactEvent
 
 __all__ = [
     "SUCCESS_MAX_ERROR_M",

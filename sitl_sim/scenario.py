@@ -3,11 +3,12 @@
 ``sampler = "sobol+uniform"`` (the paper's hybrid): a scrambled Sobol sequence covers the six
 dimensions that shape a landing (north, east, altitude, and the three velocities) evenly; roll,
 pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everything uniformly.
-An optional ``[wind]`` section (:mod:`sitl_sim.wind`) adds wind, turbulence and gusts; an
-optional ``[vehicle]`` section (:mod:`sitl_sim.airframe`) scales the vehicle file per episode;
-``[visual]`` (:mod:`sitl_sim.visual`) draws ground families, sun, pad and camera effects;
-``[sensors]`` (:mod:`sitl_sim.sensor_faults`) adds sensor faults; ``[link]``
-(:mod:`sitl_sim.link_impairment`) impairs the MAVLink SITL's real-time link (loss, delay,
+An optional ``[wind]`` section (:mod:`sitl_sim.physics.wind`) adds wind, turbulence and gusts; an
+optional ``[vehicle]`` section (:mod:`sitl_sim.physics.airframe`) scales the vehicle file per
+episode;
+``[visual]`` (:mod:`sitl_sim.render.visual`) draws ground families, sun, pad and camera effects;
+``[sensors]`` (:mod:`sitl_sim.physics.sensor_faults`) adds sensor faults; ``[link]``
+(:mod:`sitl_sim.mavlink.link_impairment`) impairs the MAVLink SITL's real-time link (loss, delay,
 jitter, duplicates, reordering, outages).
 
 Episode ``i`` of seed ``s`` always gets the same initial state, whichever process asks for it, so
@@ -26,15 +27,15 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.stats import qmc
 
-from sitl_sim.airframe import AirframeConfig
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
-from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
-from sitl_sim.link_impairment import LinkConfig
-from sitl_sim.sensor_faults import SensorFaultsConfig
+from sitl_sim.mavlink.link_impairment import LinkConfig
+from sitl_sim.physics.airframe import AirframeConfig
+from sitl_sim.physics.dynamics import quat_from_euler
+from sitl_sim.physics.sensor_faults import SensorFaultsConfig
+from sitl_sim.physics.wind import WindConfig
+from sitl_sim.render.visual import VisualConfig
 from sitl_sim.table import Section, check_section, choice, keys_markdown, read_values, span
-from sitl_sim.visual import VisualConfig
-from sitl_sim.wind import WindConfig
 
 __all__ = [
     "SECTIONS",

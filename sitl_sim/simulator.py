@@ -3,8 +3,9 @@
 One :class:`Simulator` is one vehicle in one world. It knows nothing of episodes' start or end
 rules beyond reporting the first ground contact; the gymnasium env and the MAVLink SITL build on
 it. Randomness comes from the seed given to :meth:`Simulator.reset` only (and, with wind,
-visual effects or sensor faults, from the episode's :class:`~sitl_sim.wind.WindModel`,
-:class:`~sitl_sim.visual.VisualSample` and :class:`~sitl_sim.sensor_faults.SensorFaults`, which
+visual effects or sensor faults, from the episode's :class:`~sitl_sim.physics.wind.WindModel`,
+:class:`~sitl_sim.render.visual.VisualSample` and
+:class:`~sitl_sim.physics.sensor_faults.SensorFaults`, which
 carry their own generators). The vehicle given to the constructor is the vehicle file; each
 episode flies :attr:`Simulator.episode_vehicle`, that file scaled by the episode's airframe
 factors (a scenario's ``[vehicle]``), if any.
@@ -19,16 +20,16 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
-from sitl_sim.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
 from sitl_sim.errors import SimStateError
-from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
-from sitl_sim.rate_controller import RateController
+from sitl_sim.physics.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
+from sitl_sim.physics.rate_controller import RateController
+from sitl_sim.physics.sensor_faults import SensorFaults
+from sitl_sim.physics.sensors import AttitudeSensor, Imu, RadarAltimeter
+from sitl_sim.physics.wind import WindModel
+from sitl_sim.render.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.render.scene import Camera, Renderer, make_renderer
+from sitl_sim.render.visual import CameraEffects, VisualSample
 from sitl_sim.scenario import InitialState
-from sitl_sim.scene import Camera, Renderer, make_renderer
-from sitl_sim.sensor_faults import SensorFaults
-from sitl_sim.sensors import AttitudeSensor, Imu, RadarAltimeter
-from sitl_sim.visual import CameraEffects, VisualSample
-from sitl_sim.wind import WindModel
 from sitl_sim.world import EpisodeWorld
 
 __all__ = ["CameraFrame", "Simulator"]
@@ -60,8 +61,9 @@ class Simulator:
         vehicle: the vehicle and rate-loop configuration (the vehicle file; an episode's world
             may scale it, see :meth:`reset`).
         sim: rates, planet and sensor models.
-        scene: a renderer to draw from (:class:`sitl_sim.scene.Scene` or
-            :class:`sitl_sim.render_fast.FastRenderer`; made from ``sim.camera.renderer`` when
+        scene: a renderer to draw from (:class:`sitl_sim.render.scene.Scene` or
+            :class:`sitl_sim.render.render_fast.FastRenderer`; made from ``sim.camera.renderer``
+            when
             ``render`` is True; pass one to share it between simulators in one process — each
             reset shows that episode's ground and pad on it).
         render: whether observations carry a rendered camera image (False gives a black frame,

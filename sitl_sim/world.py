@@ -4,11 +4,12 @@ A :class:`~sitl_sim.scenario.Scenario` holds *ranges* (wind speeds, airframe sca
 terrain families, sensor fault rates, ...); :func:`episode_world` draws the values for episode
 ``index`` of seed ``seed`` into an :class:`EpisodeWorld`, which :meth:`Simulator.reset
 <sitl_sim.simulator.Simulator.reset>` takes. Every section draws from its own generator, keyed by
-``(seed, index, SECTION_STREAM)`` (a distinct constant per section: :data:`sitl_sim.wind.
-WIND_STREAM`, :data:`sitl_sim.airframe.AIRFRAME_STREAM`, :data:`sitl_sim.visual.VISUAL_STREAM`,
-:data:`sitl_sim.sensor_faults.SENSORS_STREAM`), so adding a section to a scenario never changes
-what another section draws, and the same (seed, episode) is the same world in every process (the
-gymnasium env, the MAVLink SITL, parallel evaluation workers, resumed runs).
+``(seed, index, SECTION_STREAM)`` (a distinct constant per section:
+:data:`sitl_sim.physics.wind.WIND_STREAM`, :data:`sitl_sim.physics.airframe.AIRFRAME_STREAM`,
+:data:`sitl_sim.render.visual.VISUAL_STREAM`,
+:data:`sitl_sim.physics.sensor_faults.SENSORS_STREAM`), so adding a section to a scenario never
+changes what another section draws, and the same (seed, episode) is the same world in every
+process (the gymnasium env, the MAVLink SITL, parallel evaluation workers, resumed runs).
 
 A scenario without a section gets that section's "as the config files say" value (None below),
 so the nominal scenario flies exactly the world it always did.
@@ -18,12 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sitl_sim.airframe import AirframeScales, draw_airframe
 from sitl_sim.config import VehicleConfig
+from sitl_sim.physics.airframe import AirframeScales, draw_airframe
+from sitl_sim.physics.sensor_faults import SensorFaults
+from sitl_sim.physics.wind import WindModel
+from sitl_sim.render.visual import VisualSample
 from sitl_sim.scenario import Scenario
-from sitl_sim.sensor_faults import SensorFaults
-from sitl_sim.visual import VisualSample
-from sitl_sim.wind import WindModel
 
 __all__ = ["EpisodeWorld", "episode_world"]
 
@@ -32,8 +33,8 @@ __all__ = ["EpisodeWorld", "episode_world"]
 class EpisodeWorld:
     """The drawn world of one episode (None fields: the section is absent, nominal world).
 
-    ``wind`` is a fresh :class:`~sitl_sim.wind.WindModel` and ``sensors`` fresh
-    :class:`~sitl_sim.sensor_faults.SensorFaults` (the drawn latency and IMU biases, and the
+    ``wind`` is a fresh :class:`~sitl_sim.physics.wind.WindModel` and ``sensors`` fresh
+    :class:`~sitl_sim.physics.sensor_faults.SensorFaults` (the drawn latency and IMU biases, and the
     generators of frame drops and radar faults), each carrying its own generator; they are
     stateful, so an EpisodeWorld is flown once (:func:`episode_world` again to re-fly).
     ``airframe`` holds the drawn factors of ``[vehicle]``, not a vehicle: the world does not

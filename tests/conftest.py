@@ -9,7 +9,7 @@ import pytest
 
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.mavlink.config import SitlConfig
-from sitl_sim.scene import Scene
+from sitl_sim.render.scene import Scene
 from training.exec.fly import free_udp_port
 
 

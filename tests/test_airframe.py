@@ -21,16 +21,16 @@ from companion.flightlog import read_log
 from expert.cascade import CascadeLander
 from expert.mpc import MpcExpert
 from expert.relabel import RelabelError, relabel_log
-from sitl_sim.airframe import (
+from sitl_sim.config import CONFIG_DIR, PLANETS, load_vehicle
+from sitl_sim.env import LandingEnv
+from sitl_sim.errors import ConfigError
+from sitl_sim.mavlink.sitl import MavlinkSitl
+from sitl_sim.physics.airframe import (
     AIRFRAME_KEYS,
     AirframeConfig,
     AirframeScales,
     draw_airframe,
 )
-from sitl_sim.config import CONFIG_DIR, PLANETS, load_vehicle
-from sitl_sim.env import LandingEnv
-from sitl_sim.errors import ConfigError
-from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld, episode_world

@@ -17,15 +17,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from companion.contract.autopilots import CopterMode
 from companion.flightlog import read_log
-from sitl_sim.ardupilot import ArduCopter, ModeRefused, ardupilot_params, new_autopilot
-from sitl_sim.ardupilot_params import ArduParams, CopterMode
-from sitl_sim.autopilot import Autopilot, FlightMode, MavResult, SetpointRejected
+from sitl_sim.autopilot.ardupilot import ArduCopter, ModeRefused, ardupilot_params, new_autopilot
+from sitl_sim.autopilot.ardupilot_params import ArduParams
+from sitl_sim.autopilot.params import (
+    param_table,
+    param_value_msg,
+    parse_param_overrides,
+    with_param,
+)
+from sitl_sim.autopilot.px4 import Autopilot, FlightMode, MavResult, SetpointRejected
 from sitl_sim.config import load_sim, load_vehicle
-from sitl_sim.dynamics import euler_from_quat, quat_from_euler
 from sitl_sim.mavlink.config import SitlConfig
 from sitl_sim.mavlink.endpoint import SitlError
-from sitl_sim.params import param_table, param_value_msg, parse_param_overrides, with_param
+from sitl_sim.physics.dynamics import euler_from_quat, quat_from_euler
 from sitl_sim.scenario import InitialState
 from sitl_sim.simulator import Simulator
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
@@ -263,7 +269,7 @@ def test_gcs_failsafe_lands_on_lost_gcs_heartbeats_only_when_enabled():
 
 
 def test_landing_target_frames_arducopter_reads():
-    from sitl_sim.precland import LandingTargetRejected
+    from sitl_sim.autopilot.precland import LandingTargetRejected
 
     ap = _copter(plnd_enabled=1, plnd_type=1)
     ap.check_landing_target(12, 1, 20.0)  # BODY_FRD with a distance: read

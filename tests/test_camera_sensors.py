@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from companion.contract import Command
-from sitl_sim.dynamics import quat_from_euler
+from sitl_sim.physics.dynamics import quat_from_euler
+from sitl_sim.physics.sensors import RadarAltimeter
+from sitl_sim.render.scene import Camera
 from sitl_sim.scenario import InitialState
-from sitl_sim.scene import Camera
-from sitl_sim.sensors import RadarAltimeter
 from sitl_sim.simulator import Simulator
 
 CENTRE = 63.5  # pixel centres run 0..127

@@ -20,7 +20,7 @@ import pytest
 from companion.app import CompanionConfig, CompanionError, _open_camera
 from companion.camera import CameraError, OpenCvCameraSource, focal_px_from_fov
 from sitl_sim.config import CameraConfig
-from sitl_sim.dynamics import quat_from_euler
+from sitl_sim.physics.dynamics import quat_from_euler
 
 cv2 = pytest.importorskip("cv2", reason="the camera extra: pip install 'visland[camera]'")
 

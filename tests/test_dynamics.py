@@ -10,7 +10,7 @@ import pytest
 
 from companion.contract import Command
 from sitl_sim.config import PLANETS
-from sitl_sim.dynamics import (
+from sitl_sim.physics.dynamics import (
     LAYOUT,
     Physics,
     euler_from_quat,
@@ -41,7 +41,7 @@ def test_hover_thrust_is_m_g(vehicle):
     x = make_state(pos_ned_m=(0, 0, -10), rotor_thrust_n=(phys.hover_rotor_thrust_n,) * 4)
     d = np.asarray(rk4_step(x.tolist(), [phys.hover_rotor_thrust_n] * 4, 0.0, phys))
     np.testing.assert_allclose(d, x)  # zero-length step is the identity
-    from sitl_sim.dynamics import derivative
+    from sitl_sim.physics.dynamics import derivative
 
     deriv = np.asarray(derivative(x.tolist(), [phys.hover_rotor_thrust_n] * 4, phys))
     np.testing.assert_allclose(deriv, 0.0, atol=1e-12)  # hover is an equilibrium

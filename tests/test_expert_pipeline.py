@@ -20,8 +20,8 @@ from companion.contract.topics import (
 )
 from companion.flightlog import FlightLogWriter, read_log
 from expert.relabel import RelabelError, relabel, relabel_log
-from sitl_sim.dynamics import ContactEvent
 from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.physics.dynamics import ContactEvent
 from training.evaluate import CollectConfig, EvalConfig, collect, evaluate
 
 

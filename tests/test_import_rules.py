@@ -38,6 +38,7 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
             "companion.flightlog",
             "companion.files",
             "companion.options",
+            "companion.lazy",
         ),
         {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2"},
     ),
@@ -185,20 +186,7 @@ def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-# packages whose circles another change is taking apart (issue 29); strict=False, so the mark
-# is removed once its circle is gone
-_CIRCLES_BEING_FIXED = {"sitl_sim": "sitl_sim's config tables and sitl_sim ↔ sitl_sim.env"}
-
-
-@pytest.mark.parametrize(
-    "package",
-    [
-        pytest.param(p, marks=pytest.mark.xfail(reason=_CIRCLES_BEING_FIXED[p], strict=False))
-        if p in _CIRCLES_BEING_FIXED
-        else p
-        for p in PROJECT
-    ],
-)
+@pytest.mark.parametrize("package", PROJECT)
 def test_no_import_circle_inside_a_package(package):
     """Modules of one package import each other one way only (DESIGN's layers): a part that
     needs its caller is told what to do instead of importing it."""
@@ -217,3 +205,56 @@ def test_a_circle_behind_lazy_and_type_checking_imports_is_found(tmp_path, monke
     )
     (pkg / "c.py").write_text("import training.a\n")
     assert _circles(_module_graph("training")) == [["training.a", "training.b"]]
+
+
+MAX_MODULE_LINES = 600
+
+
+@pytest.mark.parametrize("package", PROJECT)
+def test_no_module_is_over_600_lines(package):
+    """A module that big does several jobs: split it by job (not into mixins)."""
+    big = {
+        str(path.relative_to(REPO)): n
+        for path in sorted((REPO / package).rglob("*.py"))
+        if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES
+    }
+    assert big == {}
+
+
+def _project_classes() -> dict[str, tuple[str, list[str]]]:
+    """Every class defined in the project: ``name -> (file, base names)`` (bases as written,
+    last dotted part)."""
+    classes = {}
+    for package in PROJECT:
+        for path in sorted((REPO / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.ClassDef):
+                    bases = [ast.unparse(b).split(".")[-1].split("[")[0] for b in node.bases]
+                    classes[node.name] = (str(path.relative_to(REPO)), bases)
+    return classes
+
+
+def test_no_class_has_more_than_one_project_base_class():
+    """Parts, not mixins: a class is composed of the objects it uses, and inherits from at
+    most one class of the project (exceptions may add a standard-library one)."""
+    classes = _project_classes()
+    mixed = {
+        f"{file}: {name}({', '.join(bases)})"
+        for name, (file, bases) in classes.items()
+        if sum(base in classes for base in bases) > 1
+    }
+    assert mixed == set()
+
+
+def test_the_class_check_catches_a_mixin(tmp_path, monkeypatch):
+    """The check itself: a class built from two project classes sharing ``self`` is found."""
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    pkg = tmp_path / "sitl_sim"
+    pkg.mkdir()
+    (pkg / "parts.py").write_text(
+        "class Builders:\n    pass\n\n\nclass Handlers:\n    pass\n\n\n"
+        "class Sitl(Builders, Handlers):\n    pass\n\n\n"
+        "class PortError(Builders, OSError):\n    pass\n"
+    )
+    classes = _project_classes()
+    assert [n for n, (_, b) in classes.items() if sum(x in classes for x in b) > 1] == ["Sitl"]

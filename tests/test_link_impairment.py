@@ -18,15 +18,15 @@ import numpy as np
 import pytest
 
 from sitl_sim.errors import ConfigError
-from sitl_sim.link_impairment import (
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.endpoint import SitlError
+from sitl_sim.mavlink.link_impairment import (
     STREAMS,
     ImpairedStream,
     LinkConfig,
     LinkImpairment,
     link_config_from_table,
 )
-from sitl_sim.mavlink.config import SitlConfig
-from sitl_sim.mavlink.endpoint import SitlError
 from sitl_sim.scenario import scenario_from_dict
 
 REPO = Path(__file__).resolve().parent.parent

@@ -23,10 +23,10 @@ from expert.mpc import (
     model_derivative,
 )
 from sitl_sim.config import CONFIG_DIR, PLANETS, load_sim, load_vehicle
-from sitl_sim.dynamics import Physics, quat_from_euler
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.metrics import EpisodeResult
+from sitl_sim.physics.dynamics import Physics, quat_from_euler
 
 EXPERT_TOML = CONFIG_DIR / "expert.toml"
 

@@ -17,12 +17,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.flightlog import read_log
 from companion.landing_target import landing_target_fields
-from sitl_sim.autopilot import AutopilotParams, FlightMode
-from sitl_sim.mavlink.config import SitlConfig
-from sitl_sim.mavlink.sitl import MavlinkSitl
-from sitl_sim.nav_estimator import NavConfig, NavEstimator
-from sitl_sim.params import param_table, with_param
-from sitl_sim.precland import (
+from sitl_sim.autopilot.nav_estimator import NavConfig, NavEstimator
+from sitl_sim.autopilot.params import param_table, with_param
+from sitl_sim.autopilot.precland import (
     LandingTargetEstimator,
     LandingTargetRejected,
     LteParams,
@@ -31,6 +28,9 @@ from sitl_sim.precland import (
     PreclandState,
     measurement_from_landing_target,
 )
+from sitl_sim.autopilot.px4 import AutopilotParams, FlightMode
+from sitl_sim.mavlink.config import SitlConfig
+from sitl_sim.mavlink.sitl import MavlinkSitl
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
 from training.provenance import REPO
 

@@ -12,20 +12,20 @@ import pytest
 
 from companion.contract import Command
 from sitl_sim.config import load_sim, load_vehicle
-from sitl_sim.dynamics import quat_from_euler
 from sitl_sim.errors import ConfigError
-from sitl_sim.ground import PadGeometry, luma, nominal_ground
-from sitl_sim.render_fast import FastRenderer
+from sitl_sim.physics.dynamics import quat_from_euler
+from sitl_sim.render.ground import PadGeometry, luma, nominal_ground
+from sitl_sim.render.render_fast import FastRenderer
+from sitl_sim.render.scene import Scene
+from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
+from sitl_sim.render.visual import VisualConfig
 from sitl_sim.scenario import (
     InitialState,
     InitialStateSampler,
     load_scenario,
     scenario_from_dict,
 )
-from sitl_sim.scene import Scene
 from sitl_sim.simulator import Simulator
-from sitl_sim.terrain import FAMILIES, Sun, terrain_map
-from sitl_sim.visual import VisualConfig
 from sitl_sim.world import episode_world
 
 CAMERA = load_sim().camera

@@ -20,11 +20,11 @@ from sitl_sim.config import CONFIG_DIR
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink.sitl import MavlinkSitl
+from sitl_sim.physics.sensor_faults import SensorFaults, SensorFaultsConfig
+from sitl_sim.physics.wind import WindModel
+from sitl_sim.render.scene import Camera
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
-from sitl_sim.scene import Camera
-from sitl_sim.sensor_faults import SensorFaults, SensorFaultsConfig
 from sitl_sim.simulator import Simulator
-from sitl_sim.wind import WindModel
 from sitl_sim.world import episode_world
 from tools.sitl_client import ClientTimeout, SitlClient
 

@@ -29,7 +29,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.contract.signing import signing_key_bytes
 from companion.flightlog import read_log
 from expert.cascade import CascadeLander
-from sitl_sim.autopilot import (
+from sitl_sim.autopilot.px4 import (
     FORCE_DISARM_MAGIC,
     Autopilot,
     AutopilotParams,

@@ -15,19 +15,19 @@ from companion.contract import Command
 from companion.flightlog import read_log
 from expert.cascade import CascadeLander
 from sitl_sim.config import CONFIG_DIR, PLANETS
-from sitl_sim.dynamics import Physics, derivative, quat_from_euler, translational_accel_ned
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.flight_record import groundtruth_from_msg, groundtruth_msg
 from sitl_sim.mavlink.sitl import MavlinkSitl
-from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
-from sitl_sim.simulator import Simulator
-from sitl_sim.wind import (
+from sitl_sim.physics.dynamics import Physics, derivative, quat_from_euler, translational_accel_ned
+from sitl_sim.physics.wind import (
     TURBULENCE_W20_M_S,
     WindConfig,
     WindModel,
     dryden_low_altitude,
 )
+from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
+from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld
 from tools.sitl_client import ClientTimeout, SitlClient
 

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from training.exec.backend import Backend, LocalBackend
-from training.profiles import Profile
 from training.exec.rollout import RolloutSpec
+from training.profiles import Profile
 
 __all__ = ["RolloutBenchConfig", "bench_rollouts", "format_rollout_bench", "project_profile"]
 
@@ -79,8 +79,8 @@ def _time_kinds(backend: Backend, cfg: RolloutBenchConfig, root: Path) -> dict[s
 
 def bench_rollouts(cfg: RolloutBenchConfig) -> dict[str, Any]:
     """Local vs Ray over the same work, in one run; plus the projection of ``cfg.profile``."""
-    from training.provenance import REPO
     from training.exec.ray_backend import RayBackend
+    from training.provenance import REPO
 
     workers = cfg.workers or os.cpu_count() or 1
     root = Path(tempfile.mkdtemp(prefix="visland_bench_rollouts_"))

@@ -42,7 +42,7 @@ from companion.contract.topics import (
     TOPIC_RESULT,
 )
 from companion.flightlog import FlightLog, read_log
-from sitl_sim.dynamics import euler_from_quat
+from sitl_sim.physics.dynamics import euler_from_quat
 
 __all__ = [
     "PANELS",

@@ -10,7 +10,8 @@ Each sample draws an attitude, an altitude (log-uniform, so the last metres are 
 as the first hundred) and the bearing at which the pad centre should appear — inside the view for
 most samples, outside it for the rest — and places the vehicle where that bearing holds. Labels
 come from the same :func:`training.train.bearing_labels` as flight frames. Images go through
-:class:`sitl_sim.scene.Camera` (the configured renderer + the configured pixel noise), the camera
+:class:`sitl_sim.render.scene.Camera` (the configured renderer + the configured pixel noise), the
+camera
 that flies, and are cached as one ``.npz`` per (seed, count) in the run folder.
 
 With ``visuals`` (the ``[visual]`` sections of a run's training worlds), every chunk of
@@ -30,10 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from sitl_sim.config import CameraConfig
-from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
-from sitl_sim.ground import PadGeometry, nominal_ground
-from sitl_sim.scene import Camera, make_renderer
-from sitl_sim.visual import CameraEffects, VisualConfig
+from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.render.ground import PadGeometry, nominal_ground
+from sitl_sim.render.scene import Camera, make_renderer
+from sitl_sim.render.visual import CameraEffects, VisualConfig
 
 CHUNK = 256
 """Frames per rendering job, and per drawn visual world."""

@@ -25,7 +25,7 @@ from companion.policy_net import (
     control_features,
 )
 from sitl_sim.config import Planet, SimConfig, VehicleConfig
-from sitl_sim.dynamics import quat_to_rotation
+from sitl_sim.physics.dynamics import quat_to_rotation
 from training.dataset import Episode
 from training.replay import BufferedEpisode, ReplayBuffer
 

@@ -2,7 +2,8 @@
 
 Both ends of the MAVLink link read it: the companion's link (which mode to request, what a
 HEARTBEAT's ``custom_mode`` means, which parameter holds the hover thrust) and the SITL's
-autopilot profiles (:mod:`sitl_sim.autopilot` is the ``px4`` one, :mod:`sitl_sim.ardupilot` the
+autopilot profiles (:mod:`sitl_sim.autopilot.px4` is the ``px4`` one,
+:mod:`sitl_sim.autopilot.ardupilot` the
 ``ardupilot`` one: which numbers they show and accept). A mode number is written here once.
 
 * **PX4** ``custom_mode = (main << 16) | (sub << 24)`` (``px4_custom_mode.h``):

@@ -43,9 +43,9 @@ network config, the feature normalisation, training provenance and git commit.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from companion.lazy import lazy_exports
 from companion.policy_net.config import ESTIMATOR_FIELDS, CheckpointError, NetConfig
 from companion.policy_net.core import PolicyCore, PolicyState, attitude_at
 from companion.policy_net.estimator import EstimatorState, PadEstimator
@@ -105,14 +105,4 @@ _TORCH_NAMES = {
 """The public names whose modules import torch: imported on first access (PEP 562)."""
 
 
-def __getattr__(name: str) -> Any:
-    module = _TORCH_NAMES.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _TORCH_NAMES, __all__)

@@ -35,7 +35,7 @@ from expert.mpc.config import MpcConfig, load_mpc_config
 from expert.mpc.model import NU, NX, VEL, ModelInput, ModelState, linearise_hover
 from expert.mpc.qp import MpcQp
 from sitl_sim.config import SimConfig, VehicleConfig
-from sitl_sim.dynamics import (
+from sitl_sim.physics.dynamics import (
     Physics,
     derivative,
     euler_from_quat,

@@ -4,7 +4,7 @@ State ``x`` (9, :class:`ModelState`): position NED (m), velocity NED (m/s), roll
 (rad, ZYX). Input ``u`` (4, :class:`ModelInput`): ``thrust_norm`` and FRD body rates (rad/s) —
 exactly the :class:`~companion.contract.Command` space, so expert labels are what the companion
 sends. ``f(x, u)`` (:func:`model_derivative`) is evaluated through
-``sitl_sim.dynamics.derivative`` (gravity, collective thrust, body drag and quaternion
+``sitl_sim.physics.dynamics.derivative`` (gravity, collective thrust, body drag and quaternion
 kinematics), so no physics constant is retyped here; the Jacobians about hover
 (:func:`linearise_hover`) are central differences of it, discretised by zero-order hold
 (``scipy.linalg.expm``) at the control period.
@@ -18,7 +18,13 @@ from enum import IntEnum
 import numpy as np
 from scipy.linalg import expm
 
-from sitl_sim.dynamics import Physics, derivative, euler_from_quat, make_state, quat_from_euler
+from sitl_sim.physics.dynamics import (
+    Physics,
+    derivative,
+    euler_from_quat,
+    make_state,
+    quat_from_euler,
+)
 
 __all__ = [
     "NU",
@@ -65,7 +71,7 @@ _QUAT_STEP = 1e-6  # s: central-difference step of the Euler angles along the qu
 def model_derivative(phys: Physics, x: np.ndarray, u: np.ndarray) -> np.ndarray:
     """``f(x, u)``: time derivative (9,) of the MPC state for input ``u`` (4,).
 
-    Everything comes from ``sitl_sim.dynamics.derivative`` at rotor thrusts that give the
+    Everything comes from ``sitl_sim.physics.dynamics.derivative`` at rotor thrusts that give the
     collective ``thrust_norm * T_max`` with zero torque (equal rotors), body rates equal to the
     commanded ones (ideal rate loop): position and velocity rates directly, and the Euler-angle
     rates as the central difference of ``euler_from_quat`` along the quaternion rate.

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 from companion.contract import PolicyError
 from expert.mpc.config import MpcConfig
 from expert.mpc.model import NU, NX, HoverModel, ModelState
-from sitl_sim.dynamics import Physics
+from sitl_sim.physics.dynamics import Physics
 
 __all__ = ["MpcQp", "MpcSolveError"]
 

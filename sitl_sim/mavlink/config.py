@@ -10,8 +10,8 @@ from typing import Any
 
 from companion.contract.signing import SigningKeyError, signing_key_bytes
 from companion.options import add_arguments, option, redacted_dict, values_from_args
+from sitl_sim.autopilot.params import parse_param_overrides
 from sitl_sim.mavlink.endpoint import SitlError
-from sitl_sim.params import parse_param_overrides
 
 __all__ = [
     "SitlConfig",

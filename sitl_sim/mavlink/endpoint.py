@@ -14,7 +14,7 @@ pymavlink ``MAVLink`` object is used only as a codec (mavlink_notes.md section 1
   SITL does the same), at most ``max_peers``;
 * nothing received ever raises: malformed input is counted in :class:`LinkStats` and returned
   as :class:`RxError` records for the flight log;
-* with a :class:`~sitl_sim.link_impairment.LinkImpairment` (a scenario's ``[link]``) every
+* with a :class:`~sitl_sim.mavlink.link_impairment.LinkImpairment` (a scenario's ``[link]``) every
   datagram sent goes through its ``mavlink_tx`` stream (sent when :meth:`release` finds it
   due) and every datagram read from the socket through ``mavlink_rx`` (decoded when due), so
   loss, delay, jitter, duplicates and reordering act on the wire, below MAVLink.
@@ -37,7 +37,7 @@ from companion.contract.signing import UNSIGNED_ALLOWED, sign_outgoing, signing_
 from sitl_sim.errors import SimError
 
 if TYPE_CHECKING:
-    from sitl_sim.link_impairment import LinkImpairment
+    from sitl_sim.mavlink.link_impairment import LinkImpairment
 
 __all__ = [
     "MAX_DATAGRAM_BYTES",

@@ -19,14 +19,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.contract.topics import SCHEMA_EPISODE_SCENARIO, TOPIC_SCENARIO
-from sitl_sim.ardupilot import new_autopilot
+from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.world import EpisodeWorld, episode_world
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from sitl_sim.autopilot import LandController
+    from sitl_sim.autopilot.px4 import LandController
     from sitl_sim.config import SimConfig, VehicleConfig
     from sitl_sim.mavlink.clock import SimClock
     from sitl_sim.mavlink.config import SitlConfig

@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl_sim.autopilot import (
+from sitl_sim.autopilot.params import param_table, param_value_msg, with_param, writable
+from sitl_sim.autopilot.px4 import (
     FORCE_DISARM_MAGIC,
     FlightMode,
     MavResult,
     SetpointRejected,
 )
-from sitl_sim.params import param_table, param_value_msg, with_param, writable
 
 if TYPE_CHECKING:
     from sitl_sim.mavlink.clock import SimClock
@@ -185,7 +185,7 @@ class Handlers:
 
     def handle_set_attitude_target(self, msg: Any, inbound: Inbound) -> None:
         """Setpoint, read by the autopilot's profile (PX4:
-        :func:`~sitl_sim.autopilot.setpoint_from_target`; ArduCopter: :meth:`~sitl_sim.
+        :func:`~sitl_sim.autopilot.px4.setpoint_from_target`; ArduCopter: :meth:`~sitl_sim.
         ardupilot.ArduCopter.setpoint_from_message`); answers a frame in lockstep."""
         if not self._for_us(msg.target_system, msg.target_component):
             return
@@ -268,7 +268,8 @@ class Handlers:
         # unknown parameter: PX4 stays silent (the client times out)
 
     def handle_param_set(self, msg: Any, inbound: Inbound) -> None:
-        """The profile's writable parameters (:func:`sitl_sim.params.writable`) change; any other
+        """The profile's writable parameters (:func:`sitl_sim.autopilot.params.writable`) change;
+        any other
         PARAM_SET, or a value out of range, is answered with the unchanged value (the
         protocol's way of saying no)."""
         if not self._for_us(msg.target_system, msg.target_component):

@@ -18,8 +18,8 @@ from companion.contract.signing import signing_key_bytes
 from sitl_sim.mavlink.endpoint import Inbound, LinkStats, MavlinkEndpoint, RxError, SitlError
 
 if TYPE_CHECKING:
-    from sitl_sim.link_impairment import LinkImpairment
     from sitl_sim.mavlink.config import SitlConfig
+    from sitl_sim.mavlink.link_impairment import LinkImpairment
 
 __all__ = ["Links"]
 

@@ -1,5 +1,6 @@
 """AUTO.PRECLAND in the MAVLink SITL: the autopilot's GPS-less estimate, the landing-target
-estimator and the precision land (:mod:`sitl_sim.nav_estimator`, :mod:`sitl_sim.precland`)
+estimator and the precision land (:mod:`sitl_sim.autopilot.nav_estimator`,
+:mod:`sitl_sim.autopilot.precland`)
 wired to the loop, LANDING_TARGET and the flight log.
 
 :class:`PreclandLoop` is one part of :class:`~sitl_sim.mavlink.sitl.MavlinkSitl`: it reads the
@@ -32,15 +33,15 @@ import numpy as np
 
 from companion.contract import Command
 from companion.contract.topics import SCHEMA_PRECLAND, TOPIC_PRECLAND
-from sitl_sim.autopilot import FlightMode
-from sitl_sim.dynamics import quat_from_euler
-from sitl_sim.nav_estimator import NavConfig, NavEstimator
-from sitl_sim.precland import (
+from sitl_sim.autopilot.nav_estimator import NavConfig, NavEstimator
+from sitl_sim.autopilot.precland import (
     LandingTargetEstimator,
     LandingTargetRejected,
     PrecisionLand,
     measurement_from_landing_target,
 )
+from sitl_sim.autopilot.px4 import FlightMode
+from sitl_sim.physics.dynamics import quat_from_euler
 
 if TYPE_CHECKING:
     from sitl_sim.mavlink.clock import SimClock

@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import GroundTruth
-from sitl_sim.autopilot import FlightMode
-from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.autopilot.px4 import FlightMode
+from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.simulator import Simulator
 
 if TYPE_CHECKING:

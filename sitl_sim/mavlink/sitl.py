@@ -64,25 +64,25 @@ import numpy as np
 
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
-from sitl_sim.airframe import check_airframe_can_hover
-from sitl_sim.ardupilot import ardupilot_params, new_autopilot
-from sitl_sim.autopilot import Autopilot, AutopilotParams, FlightMode, LandController
+from sitl_sim.autopilot.ardupilot import ardupilot_params, new_autopilot
+from sitl_sim.autopilot.land_controller import CascadeLandController
+from sitl_sim.autopilot.params import parse_param_overrides, with_param
+from sitl_sim.autopilot.px4 import Autopilot, AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import ConfigError, SimError
-from sitl_sim.land_controller import CascadeLandController
-from sitl_sim.link_impairment import LinkConfig, LinkImpairment
 from sitl_sim.mavlink.clock import FrameWait, Pacer, SimClock
 from sitl_sim.mavlink.config import SitlConfig, add_sitl_arguments, sitl_config_from_args
 from sitl_sim.mavlink.endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
 from sitl_sim.mavlink.flight_log import FlightLog
 from sitl_sim.mavlink.handlers import Handlers
+from sitl_sim.mavlink.link_impairment import LinkConfig, LinkImpairment
 from sitl_sim.mavlink.links import Links
 from sitl_sim.mavlink.precland_loop import PreclandLoop
 from sitl_sim.mavlink.publisher import Publisher
 from sitl_sim.mavlink.state import FlightState
 from sitl_sim.metrics import EpisodeResult, summarize
-from sitl_sim.params import parse_param_overrides, with_param
+from sitl_sim.physics.airframe import check_airframe_can_hover
 from sitl_sim.scenario import InitialStateSampler, Scenario, load_scenario
 from sitl_sim.simulator import Simulator
 
@@ -100,7 +100,7 @@ class MavlinkSitl:
         land_controller_factory: builds the AUTO.LAND controller from (vehicle, planet), called
             again at an episode start whose vehicle differs (a scenario's ``[vehicle]``); the
             default is the privileged
-            :class:`~sitl_sim.land_controller.CascadeLandController` (ground truth in).
+            :class:`~sitl_sim.autopilot.land_controller.CascadeLandController` (ground truth in).
 
     Raises:
         SitlPortInUseError: the MAVLink port is taken.

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from companion.contract import GroundTruth
-    from sitl_sim.autopilot import Autopilot, LandController
+    from sitl_sim.autopilot.px4 import Autopilot, LandController
     from sitl_sim.mavlink.clock import FrameWait
 
 __all__ = ["FlightState"]

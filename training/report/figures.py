@@ -68,7 +68,7 @@ class _Recording:
     """Wraps a policy; records ground truth and command at every control step it answers."""
 
     def __init__(self, policy: Any, trace: Trace) -> None:
-        from sitl_sim.dynamics import euler_from_quat
+        from sitl_sim.physics.dynamics import euler_from_quat
 
         self._policy = policy
         self._trace = trace
@@ -244,12 +244,13 @@ def plot_inputs(traces: dict[str, Trace], title: str, path: Path, prov: Provenan
 
 
 def draw_pad(ax: Any, success_circle: bool = True) -> None:
-    """The pad (``sitl_sim.scene.PadGeometry``: green square, red cross) at the origin of a top
+    """The pad (``sitl_sim.render.scene.PadGeometry``: green square, red cross) at the origin of a
+    top
     view (x east, y north), and the success radius as a dashed circle."""
     from matplotlib.patches import Circle, Rectangle
 
     from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
-    from sitl_sim.scene import PadGeometry
+    from sitl_sim.render.scene import PadGeometry
 
     pad = PadGeometry()
     s, a, w = pad.side_m / 2, pad.cross_length_m / 2, pad.cross_width_m / 2

@@ -12,7 +12,7 @@ with ``R`` the body-to-NED rotation, ``(n, e, d)`` the camera position, ``C`` th
 axes (image right = body right, image down = body back, optical axis = body down) and ``K`` the
 pinhole intrinsics of :class:`~sitl_sim.config.CameraConfig` (vertical field of view, pixel
 centres at integers). Texels are sampled nearest-neighbour like pybullet's TinyRenderer, which
-stays the reference renderer (:class:`sitl_sim.scene.Scene`); ``tests/test_render_fast.py``
+stays the reference renderer (:class:`sitl_sim.render.scene.Scene`); ``tests/test_render_fast.py``
 holds the two to the same image across the visual conditions.
 
 Points behind the camera never reach the image: the homography is only valid for a camera
@@ -28,8 +28,8 @@ import cv2
 import numpy as np
 
 from sitl_sim.config import CameraConfig
-from sitl_sim.dynamics import quat_to_rotation
-from sitl_sim.ground import GroundMap, PadGeometry, luma, nominal_ground
+from sitl_sim.physics.dynamics import quat_to_rotation
+from sitl_sim.render.ground import GroundMap, PadGeometry, luma, nominal_ground
 
 __all__ = ["FastRenderer", "camera_intrinsics", "plane_homography"]
 
@@ -113,7 +113,7 @@ class FastRenderer:
         return image
 
     def close(self) -> None:
-        """Nothing to release (the same interface as :class:`sitl_sim.scene.Scene`)."""
+        """Nothing to release (the same interface as :class:`sitl_sim.render.scene.Scene`)."""
 
     def __enter__(self) -> FastRenderer:
         return self

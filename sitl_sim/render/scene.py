@@ -21,12 +21,12 @@ import numpy as np
 import pybullet as pb
 
 from sitl_sim.config import CameraConfig
-from sitl_sim.dynamics import quat_to_rotation
 from sitl_sim.errors import SimError
-from sitl_sim.ground import GROUND_HALF_SIDE_M, GroundMap, PadGeometry, luma, nominal_ground
+from sitl_sim.physics.dynamics import quat_to_rotation
+from sitl_sim.render.ground import GROUND_HALF_SIDE_M, GroundMap, PadGeometry, luma, nominal_ground
 
 if TYPE_CHECKING:
-    from sitl_sim.visual import CameraEffects
+    from sitl_sim.render.visual import CameraEffects
 
 __all__ = ["Camera", "PadGeometry", "Renderer", "Scene", "make_renderer", "ned_to_scene"]
 
@@ -40,7 +40,7 @@ def ned_to_scene(v_ned) -> np.ndarray:
 
 class Renderer(Protocol):
     """What the camera renders from: :class:`Scene` (pybullet, the reference) or
-    :class:`sitl_sim.render_fast.FastRenderer`; both draw the same ground map and pad."""
+    :class:`sitl_sim.render.render_fast.FastRenderer`; both draw the same ground map and pad."""
 
     def configure(self, ground: GroundMap, pad: PadGeometry) -> None: ...
 
@@ -58,7 +58,7 @@ def make_renderer(name: str) -> Renderer:
     if name == "pybullet":
         return Scene()
     if name == "fast":
-        from sitl_sim.render_fast import FastRenderer
+        from sitl_sim.render.render_fast import FastRenderer
 
         return FastRenderer()
     raise SimError(f"renderer {name!r}; expected one of {list(RENDERERS)}")
@@ -67,8 +67,8 @@ def make_renderer(name: str) -> Renderer:
 class Scene:
     """A pybullet DIRECT client holding the ground and the pad. Close it (or use ``with``).
 
-    The nominal ground is a 600 m box textured with :func:`~sitl_sim.ground.nominal_ground`
-    (pybullet's own box UVs); a periodic ground map (:mod:`sitl_sim.terrain`) is a mesh of
+    The nominal ground is a 600 m box textured with :func:`~sitl_sim.render.ground.nominal_ground`
+    (pybullet's own box UVs); a periodic ground map (:mod:`sitl_sim.render.terrain`) is a mesh of
     quads cut at the tile edges, each with uvs spanning its part of the tile, so texel (col, row)
     lies exactly where the map's ``texel_to_ne`` says.
     """
@@ -239,7 +239,7 @@ class Scene:
 
 class Camera:
     """The downward camera: a renderer's image, the episode's light and camera effects
-    (:class:`sitl_sim.visual.CameraEffects`, none in the nominal world), then seeded sensor
+    (:class:`sitl_sim.render.visual.CameraEffects`, none in the nominal world), then seeded sensor
     noise."""
 
     def __init__(

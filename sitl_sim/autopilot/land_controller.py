@@ -18,7 +18,7 @@ import numpy as np
 
 from companion.contract import Command
 from sitl_sim.config import Planet, VehicleConfig
-from sitl_sim.dynamics import quat_to_rotation
+from sitl_sim.physics.dynamics import quat_to_rotation
 
 __all__ = ["CascadeGains", "CascadeLandController"]
 
@@ -39,7 +39,7 @@ class CascadeGains:
 class CascadeLandController:
     """Ground truth in, Command out: ``command(pos, vel, quat) -> Command`` (stateless).
 
-    Satisfies :class:`sitl_sim.autopilot.LandController`.
+    Satisfies :class:`sitl_sim.autopilot.px4.LandController`.
     """
 
     def __init__(self, vehicle: VehicleConfig, world: Planet, gains: CascadeGains | None = None):

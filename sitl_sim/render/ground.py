@@ -3,9 +3,9 @@
 Both renderers read the same :class:`GroundMap` and :class:`PadGeometry`, which is what lets a
 test hold them to the same image:
 
-- :class:`sitl_sim.scene.Scene` (pybullet's TinyRenderer, the reference) textures its ground
+- :class:`sitl_sim.render.scene.Scene` (pybullet's TinyRenderer, the reference) textures its ground
   geometry with :attr:`GroundMap.rgb` and builds the pad from boxes;
-- :class:`sitl_sim.render_fast.FastRenderer` warps the same texels onto the image with the
+- :class:`sitl_sim.render.render_fast.FastRenderer` warps the same texels onto the image with the
   ground plane's homography and paints the pad's two layers the same way.
 
 A map's :attr:`~GroundMap.texel_to_ne` is the affine map from texel coordinates (column, row;
@@ -16,7 +16,8 @@ The nominal ground (no ``[visual]`` section) is the project's original texture o
 600 m box: pybullet's box mesh maps its top face to the last quarter of the texture in u and v
 (measured: texel column ``896 + n * 256/600``, row ``896 - e * 256/600``), so the nominal ground
 shows 256 x 256 texels of 2.34 m — kept exactly, so the flights and the policy trained on them
-see the world they always did. Procedural terrains (:mod:`sitl_sim.terrain`) are periodic tiles
+see the world they always did. Procedural terrains (:mod:`sitl_sim.render.terrain`) are periodic
+tiles
 laid edge to edge over the whole ground, mapped texel for texel.
 """
 

@@ -1,7 +1,7 @@
 """PX4-like precision landing on LANDING_TARGET: the message's reading, the landing-target
 estimator and the navigator's precision-land state machine. No I/O, sim time in, no ground truth:
 everything runs in the frame of the autopilot's own estimate
-(:class:`~sitl_sim.nav_estimator.NavEstimator`).
+(:class:`~sitl_sim.autopilot.nav_estimator.NavEstimator`).
 
 Sources (paraphrased in ``shared/reference/precland_notes.md``): PX4 ``mavlink_receiver.cpp``
 ``handle_message_landing_target`` (2.1), ``landing_target_estimator`` (2.3) and
@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl_sim.nav_estimator import NavEstimator, rotation_from_euler
+from sitl_sim.autopilot.nav_estimator import NavEstimator, rotation_from_euler
 
 __all__ = [
     "LTE_TIMEOUT_S",

@@ -3,7 +3,8 @@
 Keys (all optional, a key left out keeps its nominal value; ranges ``[lo, hi]`` are drawn
 uniformly per episode; the generated table: ``docs/scenario_keys.md``):
 
-``terrain``               list of ground families to pick from (:data:`sitl_sim.terrain.FAMILIES`,
+``terrain``               list of ground families to pick from
+(:data:`sitl_sim.render.terrain.FAMILIES`,
                           or ``"nominal"``: the original ground, which ignores the seed and sun;
                           default ``["nominal"]``)
 ``texture_seed``          ``[lo, hi]`` integers, inclusive (default ``[0, 999]``): disjoint ranges
@@ -36,9 +37,9 @@ import cv2
 import numpy as np
 
 from sitl_sim.config import CameraConfig
-from sitl_sim.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.render.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
 from sitl_sim.table import Section, choice_list, integer_span, number, span
-from sitl_sim.terrain import FAMILIES, Sun, terrain_map
 
 __all__ = [
     "VISUAL_STREAM",
@@ -198,7 +199,7 @@ class CameraEffects:
     rates over the exposure, brightness/contrast and the per-frame exposure flicker."""
 
     def __init__(self, sample: VisualSample, cfg: CameraConfig, light: float) -> None:
-        from sitl_sim.render_fast import camera_intrinsics
+        from sitl_sim.render.render_fast import camera_intrinsics
 
         self.sample = sample
         self._cfg = cfg

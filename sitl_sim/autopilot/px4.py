@@ -10,7 +10,8 @@ What it models (PX4 behaviour, ``shared/reference/mavlink_notes.md`` sections 6 
   hold), OFFBOARD (the companion flies SET_ATTITUDE_TARGET setpoints) and LAND (AUTO.LAND: the
   SITL's own land controller, on ground truth, landing where the mode was engaged, as PX4's —
   not on the pad, which the autopilot does not know), PRECLAND (AUTO.PRECLAND: the precision land
-  of :mod:`sitl_sim.precland` on LANDING_TARGET, on the autopilot's own estimate). Other PX4
+  of :mod:`sitl_sim.autopilot.precland` on LANDING_TARGET, on the autopilot's own estimate). Other
+  PX4
   modes (POSCTL, ALTCTL, ...) need GPS or sticks and are refused with TEMPORARILY_REJECTED,
   as PX4 refuses a mode whose requirements fail.
 * **Offboard rules** — OFFBOARD is accepted only while a setpoint arrived within
@@ -41,8 +42,8 @@ from companion.contract.autopilots import (
     Px4MainMode,
     Px4Mode,
 )
-from sitl_sim.ardupilot_params import ArduParams
-from sitl_sim.precland import LteParams, PldParams
+from sitl_sim.autopilot.ardupilot_params import ArduParams
+from sitl_sim.autopilot.precland import LteParams, PldParams
 
 __all__ = [
     "COM_OBL_RC_ACT_LAND",
@@ -91,7 +92,8 @@ class FlightMode(enum.Enum):
     HOLD = PX4.hold.value  # AUTO.LOITER, shown as "Hold"
     OFFBOARD = PX4.offboard.value
     LAND = PX4.land.value  # AUTO.LAND
-    PRECLAND = PX4.precland.value  # AUTO.PRECLAND (sitl_sim.precland, on its own estimate)
+    # AUTO.PRECLAND (sitl_sim.autopilot.precland, on its own estimate)
+    PRECLAND = PX4.precland.value
 
     @property
     def px4(self) -> Px4Mode:
@@ -286,7 +288,7 @@ def setpoint_from_target(
 
 class LandController(Protocol):
     """The autopilot's AUTO.LAND controller: ground truth in, Command out (the default is
-    :class:`sitl_sim.land_controller.CascadeLandController`)."""
+    :class:`sitl_sim.autopilot.land_controller.CascadeLandController`)."""
 
     def command(self, pos_ned_m, vel_ned_m_s, quat_wxyz, v_down_m_s=None) -> Command: ...
 
@@ -344,7 +346,8 @@ class AutopilotEvent:
 class Autopilot:
     """Mode / arming / offboard state machine; feed it messages and sim time, read the command.
 
-    This class is the ``px4`` profile; :class:`sitl_sim.ardupilot.ArduCopter` overrides the
+    This class is the ``px4`` profile; :class:`sitl_sim.autopilot.ardupilot.ArduCopter` overrides
+    the
     hooks marked *profile hook* for the ``ardupilot`` one.
 
     Args:
@@ -454,7 +457,7 @@ class Autopilot:
 
     def check_landing_target(self, frame: int, position_valid: int, distance: float) -> None:
         """Refuse a LANDING_TARGET this autopilot drops before reading it (PX4: none here;
-        :func:`sitl_sim.precland.measurement_from_landing_target` does PX4's checks)."""
+        :func:`sitl_sim.autopilot.precland.measurement_from_landing_target` does PX4's checks)."""
 
     # ------------------------------------------------------------------ inputs
 

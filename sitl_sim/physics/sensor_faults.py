@@ -28,7 +28,8 @@ an empty one) flies exactly the sensors of ``configs/sim.toml``.
   them: ATTITUDE is the autopilot estimator's output, whose filter estimates the gyro bias
   away, and the rate loop flies on the true rates, as before.
 
-Randomness, as :mod:`sitl_sim.wind`: one generator per episode keyed by ``(seed, episode index,
+Randomness, as :mod:`sitl_sim.physics.wind`: one generator per episode keyed by ``(seed, episode
+index,
 SENSORS_STREAM)``, an entropy no other stream uses, so ``[sensors]`` changes neither the initial
 states, the wind nor the sensors' noise streams. It draws the episode's latency and biases first
 (always in that order, so a fault added to a scenario does not change the others' values), then
@@ -59,7 +60,8 @@ __all__ = [
 
 SENSORS_STREAM = 0x53454E53
 """Third entropy word of the sensor faults' generator (ASCII "SENS"); distinct from
-:data:`sitl_sim.wind.WIND_STREAM` and from every two-word key the sampler and sensors use."""
+:data:`sitl_sim.physics.wind.WIND_STREAM` and from every two-word key the sampler and sensors
+use."""
 
 MAX_CAMERA_LATENCY_MS = 1000.0
 """Upper bound of ``camera_latency_ms``: a frame older than the companion's ``max_age_ms``

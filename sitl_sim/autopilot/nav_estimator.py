@@ -7,7 +7,8 @@ integrated sensor noise and bias, and its position drifts without bound — whic
 precision landing needs the landing target at all. Vertically the radar pins the altitude (flat
 ground: the local origin is on the ground under the vehicle's start, so ``-z`` is the height).
 
-The precision land (:mod:`sitl_sim.precland`) flies on this estimate, never on ground truth.
+The precision land (:mod:`sitl_sim.autopilot.precland`) flies on this estimate, never on ground
+truth.
 The one ground-truth input is the initial velocity, given *with an error* drawn from the
 episode's generator (``initial_vel_sigma_m_s``): the velocity the estimator held when its last
 aiding source was lost. A static landing target's relative velocity can aid the horizontal
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl_sim.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
 
 __all__ = ["NavConfig", "NavEstimator", "rotation_from_euler"]
 

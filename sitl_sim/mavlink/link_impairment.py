@@ -31,7 +31,7 @@ held answer would stop the world instead of arriving late; a SITL in lockstep wi
 ``[link]`` refuses to start (:class:`~sitl_sim.errors.ConfigError`). In process (``visland
 eval``, ``collect``) there is no link: the section is ignored there.
 
-Randomness, as :mod:`sitl_sim.sensor_faults`: one generator per episode keyed by ``(seed,
+Randomness, as :mod:`sitl_sim.physics.sensor_faults`: one generator per episode keyed by ``(seed,
 episode index, LINK_STREAM)``, spawned into one per stream, so the camera's datagrams never
 shift the MAVLink streams' fates. Each datagram takes exactly five uniforms (loss, duplicate,
 reorder, its jitter, the duplicate's jitter) whatever the settings, so the ``k``-th datagram of

@@ -1,9 +1,9 @@
-"""ArduCopter's flight-mode numbers and the ArduCopter parameters the SITL's ``ardupilot``
-profile models (names, units and defaults as ArduCopter 4.5's; sources in
+"""Which ArduCopter flight modes need a position, and the ArduCopter parameters the SITL's
+``ardupilot`` profile models (names, units and defaults as ArduCopter 4.5's; sources in
 ``shared/reference/mavlink_notes.md`` 1.4 and ``precland_notes.md`` 3). No I/O.
 
 Only what changes the behaviour on the wire is here; the precision land's ``PLND_XY_DIST_MAX``,
-``PLND_TIMEOUT`` and ``PLND_RET_MAX`` live in :class:`~sitl_sim.precland.PldParams` (the
+``PLND_TIMEOUT`` and ``PLND_RET_MAX`` live in :class:`~sitl_sim.autopilot.precland.PldParams` (the
 precision land the ``ardupilot`` profile reuses), ``MOT_THST_HOVER`` is
 ``AutopilotParams.mpc_thr_hover`` (the episode vehicle's hover thrust, as a tuned copter learns
 it).
@@ -11,53 +11,22 @@ it).
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
+
+from companion.contract.autopilots import CopterMode
 
 __all__ = [
     "GUID_OPTIONS_THRUST_AS_THRUST",
     "NEEDS_POSITION",
     "PLND_TYPE_MAVLINK",
     "ArduParams",
-    "CopterMode",
 ]
 
 GUID_OPTIONS_THRUST_AS_THRUST = 8
 """GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET's ``thrust`` is thrust, not a climb-rate demand."""
 PLND_TYPE_MAVLINK = 1
 """PLND_TYPE 1: the target comes from LANDING_TARGET (a companion computer)."""
-
-
-class CopterMode(enum.IntEnum):
-    """ArduCopter ``Mode::Number`` (the HEARTBEAT ``custom_mode``)."""
-
-    STABILIZE = 0
-    ACRO = 1
-    ALT_HOLD = 2
-    AUTO = 3
-    GUIDED = 4
-    LOITER = 5
-    RTL = 6
-    CIRCLE = 7
-    LAND = 9
-    DRIFT = 11
-    SPORT = 13
-    FLIP = 14
-    AUTOTUNE = 15
-    POSHOLD = 16
-    BRAKE = 17
-    THROW = 18
-    AVOID_ADSB = 19
-    GUIDED_NOGPS = 20
-    SMART_RTL = 21
-    FLOWHOLD = 22
-    FOLLOW = 23
-    ZIGZAG = 24
-    SYSTEMID = 25
-    AUTOROTATE = 26
-    AUTO_RTL = 27
-    TURTLE = 28
 
 
 NEEDS_POSITION = frozenset(

@@ -30,7 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sitl_sim.ground import GroundMap
+from sitl_sim.render.ground import GroundMap
 
 __all__ = ["FAMILIES", "TEXEL_M", "TILE_PX", "Sun", "terrain_map"]
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl_sim.autopilot import AutopilotParams
+from sitl_sim.autopilot.px4 import AutopilotParams
 
 __all__ = [
     "ARDU_WRITABLE",

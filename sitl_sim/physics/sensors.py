@@ -2,7 +2,7 @@
 
 Each model takes the ground truth and a ``numpy.random.Generator`` it was given; none keeps a
 global random state, so a seed reproduces every reading bit for bit. A scenario's ``[sensors]``
-faults (:mod:`sitl_sim.sensor_faults`) come in as the IMU's turn-on biases and the radar's
+faults (:mod:`sitl_sim.physics.sensor_faults`) come in as the IMU's turn-on biases and the radar's
 ``faults``; they draw from their own generators, never from these.
 """
 
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_sim.config import AttitudeConfig, ImuConfig, RadarConfig
-from sitl_sim.dynamics import euler_from_quat, quat_to_rotation
-from sitl_sim.sensor_faults import SensorFaults
+from sitl_sim.physics.dynamics import euler_from_quat, quat_to_rotation
+from sitl_sim.physics.sensor_faults import SensorFaults
 
 __all__ = ["AttitudeReading", "AttitudeSensor", "Imu", "ImuReading", "RadarAltimeter"]
 
@@ -106,7 +106,7 @@ class RadarAltimeter:
     ``range = altitude / cos(tilt)`` for the beam along body +z; the reading is NaN (invalid) when
     the beam does not hit the ground (tilt >= 90 deg) or the range exceeds ``max_range_m``.
     Noise: ``noise_std_m + noise_fraction * range`` (1-sigma), never below zero. ``faults``
-    (the episode's :class:`~sitl_sim.sensor_faults.SensorFaults`, or None) then replaces a
+    (the episode's :class:`~sitl_sim.physics.sensor_faults.SensorFaults`, or None) then replaces a
     reading by a dropout (NaN) or a spurious return; the noise is drawn as without faults, so
     the readings a fault leaves alone are those of the same flight without it.
     """

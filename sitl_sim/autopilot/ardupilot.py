@@ -1,5 +1,5 @@
 """The SITL's ``ardupilot`` profile: the autopilot behaves on the wire as ArduCopter 4.5 does for
-a GPS-less companion-flown copter. No I/O, sim time in, like :class:`~sitl_sim.autopilot.
+a GPS-less companion-flown copter. No I/O, sim time in, like :class:`~sitl_sim.autopilot.px4.
 Autopilot` (the ``px4`` profile), whose hooks it overrides.
 
 Sources (paraphrased in ``shared/reference/mavlink_notes.md`` 1.4 and ``precland_notes.md`` 3):
@@ -54,8 +54,9 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth
 from companion.contract.autopilots import ARDUPILOT, CopterMode
-from sitl_sim.ardupilot_params import NEEDS_POSITION
-from sitl_sim.autopilot import (
+from sitl_sim.autopilot.ardupilot_params import NEEDS_POSITION
+from sitl_sim.autopilot.precland import LandingTargetRejected, PldParams
+from sitl_sim.autopilot.px4 import (
     Autopilot,
     AutopilotEvent,
     AutopilotParams,
@@ -66,8 +67,7 @@ from sitl_sim.autopilot import (
     TypeMask,
     _quat_mul,
 )
-from sitl_sim.dynamics import euler_from_quat, quat_from_euler, quat_to_rotation
-from sitl_sim.precland import LandingTargetRejected, PldParams
+from sitl_sim.physics.dynamics import euler_from_quat, quat_from_euler, quat_to_rotation
 
 __all__ = [
     "ArduCopter",

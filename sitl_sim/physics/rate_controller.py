@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from companion.contract import Command
 from sitl_sim.config import RateControllerConfig
-from sitl_sim.dynamics import Physics
+from sitl_sim.physics.dynamics import Physics
 
 __all__ = ["RateController"]
 
