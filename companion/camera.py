@@ -2,7 +2,7 @@
 with a 45° full field of view, row 0 = body forward, column 0 = body left.
 
 * :class:`UdpCameraSource` — the SITL's (or a camera bridge's) UDP frames
-  (:mod:`companion.camera_packet`); time stamps on the autopilot's boot clock.
+  (:mod:`companion.contract.camera_packet`); time stamps on the autopilot's boot clock.
 * :class:`OpenCvCameraSource` — a real camera: an OpenCV device index, a video file or a
   GStreamer pipeline. Each frame is turned to mono8, centre-cropped to the 45° field of view
   given the camera's focal length (from intrinsics ``fx`` or its horizontal FOV), rotated for

@@ -1,6 +1,6 @@
 """What a simulated flight writes into its MCAP log, and how it is read back.
 
-Shared by the in-process rollout (``training.rollout``) and the MAVLink SITL so that both paths
+Shared by the in-process rollout (``training.exec.rollout``) and the MAVLink SITL so that both paths
 write the same topics (DESIGN.md "Flight logs"); read back by ``expert.relabel`` and training.
 Per control step (camera frame): ``/camera/image`` (foxglove.RawImage), ``/observation`` (the
 non-image Observation fields), ``/groundtruth/state`` + ``/groundtruth/pose`` (privileged), and

@@ -1,8 +1,9 @@
 """``visland log info`` / ``log plot`` on real flight logs of every kind.
 
-The logs are made by the real code: an in-process episode (``training.rollout.fly_episode``, the
-``collect`` path), a SITL episode over UDP landed by the SITL's own AUTO.LAND, a ``visland fly``
-episode (SITL and companion processes: the companion's own log), and a minimal companion-style
+The logs are made by the real code: an in-process episode
+(``training.exec.rollout.fly_episode``, the ``collect`` path), a SITL episode over UDP landed by
+the SITL's own AUTO.LAND, a ``visland fly`` episode (SITL and companion processes: the
+companion's own log), and a minimal companion-style
 log (``/observation`` + ``/command`` only) written with the flight-log writer. Every flight
 starts 5-6 m above the pad with rendering off, so the file runs in about ten seconds.
 """

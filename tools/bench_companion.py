@@ -34,8 +34,6 @@ from tools.cli_args import print_json
 
 __all__ = ["bench_companion", "compare_runtimes", "format_bench", "main", "print_bench"]
 
-DEFAULT_CHECKPOINT = "models/visland_vision.pt"
-
 
 class _Timed:
     """A Policy that records the wall time of each ``act`` of the policy it wraps."""

@@ -28,6 +28,7 @@ from typing import Any
 from training.exec.backend import Backend, LocalBackend
 from training.exec.rollout import RolloutSpec
 from training.profiles import Profile
+from training.provenance import SHIPPED_MODEL
 
 __all__ = ["RolloutBenchConfig", "bench_rollouts", "format_rollout_bench", "project_profile"]
 
@@ -40,7 +41,7 @@ class RolloutBenchConfig:
     """Local processes (0: the CPU count)."""
     ray: str = "local"
     """Ray address (``local``: an instance started here with ``workers`` CPUs)."""
-    policy: str = "models/visland_vision.pt"
+    policy: str = str(SHIPPED_MODEL)
     seed: int = 900
     run: str | None = "runs/robust"
     """A run folder whose recorded training seconds make the projection's serial part."""

@@ -27,11 +27,11 @@ def _bench_mpc(args: argparse.Namespace) -> int:
 
 
 def _bench_policy(args: argparse.Namespace) -> int:
-    from tools.bench_companion import DEFAULT_CHECKPOINT
     from training.bench_policy import bench_policy
+    from training.provenance import SHIPPED_MODEL
 
     res = bench_policy(
-        args.checkpoint or DEFAULT_CHECKPOINT, steps=300, seed=args.seed, runtime=args.runtime
+        args.checkpoint or str(SHIPPED_MODEL), steps=300, seed=args.seed, runtime=args.runtime
     )
     if args.json:
         print_json(res)
@@ -62,12 +62,13 @@ def _bench_policy(args: argparse.Namespace) -> int:
 
 
 def _bench_companion(args: argparse.Namespace) -> int:
-    from tools.bench_companion import DEFAULT_CHECKPOINT, bench_companion, print_bench
+    from tools.bench_companion import bench_companion, print_bench
     from training.exec.fly import FlyError
+    from training.provenance import SHIPPED_MODEL
 
     try:
         res = bench_companion(
-            policy=args.checkpoint or DEFAULT_CHECKPOINT,
+            policy=args.checkpoint or str(SHIPPED_MODEL),
             episodes=args.episodes or 3,
             seed=args.seed,
             runtime=args.runtime,

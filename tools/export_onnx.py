@@ -13,9 +13,9 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["main", "register_export"]
+from training.provenance import REPO, SHIPPED_MODEL
 
-DEFAULT_CHECKPOINT = "models/visland_vision.pt"
+__all__ = ["main", "register_export"]
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
@@ -43,8 +43,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--checkpoint",
         type=Path,
-        default=Path(DEFAULT_CHECKPOINT),
-        help=f"policy checkpoint; the .onnx files go beside it (default {DEFAULT_CHECKPOINT})",
+        default=SHIPPED_MODEL,
+        help="policy checkpoint; the .onnx files go beside it (default: the shipped model, "
+        f"{SHIPPED_MODEL.relative_to(REPO)})",
     )
     p.add_argument(
         "--check-samples",
