@@ -7,12 +7,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flights import sitl_with_client
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import Command
@@ -24,7 +24,6 @@ from expert.relabel import RelabelError, relabel_log
 from sitl_sim.config import CONFIG_DIR, PLANETS, load_vehicle
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
-from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.physics.airframe import (
     AIRFRAME_KEYS,
     AirframeConfig,
@@ -34,7 +33,7 @@ from sitl_sim.physics.airframe import (
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld, episode_world
-from tools.sitl_client import ClientTimeout, SitlClient
+from tools.sitl_client import ClientTimeout
 from training.exec.rollout import episode_pilot, fly_episode, make_policy
 
 EARTH, MARS = PLANETS["earth"], PLANETS["mars"]
@@ -345,12 +344,7 @@ def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(
         draw_airframe(airframe, 3, i).apply(load_vehicle()).hover_thrust_norm(EARTH) for i in (0, 1)
     ]
     assert expected[0] != expected[1]
-    with (
-        SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
-        ThreadPoolExecutor(1) as pool,
-    ):
-        sitl = MavlinkSitl(cfg)
-        running = pool.submit(sitl.run)
+    with sitl_with_client(p, cfg) as (client, runner):
         try:
             client.wait_for("HEARTBEAT", 5.0)
             client.send(client.mav.param_request_read_encode(1, 1, b"MPC_THR_HOVER", -1))
@@ -365,11 +359,8 @@ def test_sitl_reports_the_episode_hover_thrust_and_announces_a_change(
             assert pushed.param_value == pytest.approx(expected[1], rel=1e-6)
             assert pushed.param_count == 17 and pushed.param_index == 3
         except ClientTimeout as exc:
-            sitl.stop()
             raise AssertionError(f"no answer from the SITL: {exc}") from None
-        finally:
-            sitl.stop()
-            running.result(20.0)
+    sitl = runner.sitl
     assert sitl.results[0].landed and sitl.results[0].touchdown_vertical_speed_m_s <= 1.0
     for i in (0, 1):
         log = read_log(tmp_path / "logs" / f"sitl_seed3_ep{i:04d}.mcap", topics=[TOPIC_SCENARIO])

@@ -7,26 +7,23 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flights import fly_cascade, sitl_with_client
 
 from companion.contract import Command
 from companion.flightlog import read_log
-from expert.cascade import CascadeLander
 from sitl_sim.config import CONFIG_DIR
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
-from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.physics.sensor_faults import SensorFaults, SensorFaultsConfig
 from sitl_sim.physics.wind import WindModel
 from sitl_sim.render.scene import Camera
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
-from tools.sitl_client import ClientTimeout, SitlClient
 
 SENSORS = """
 [sensors]
@@ -383,22 +380,12 @@ def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(
         Path(low_scenario),
     )
     p, cfg = loopback_sitl(scenario, tmp_path / "logs", seed=6, hold_timeout_s=30.0)
-    with (
-        SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
-        ThreadPoolExecutor(1) as pool,
-    ):
-        sitl = MavlinkSitl(cfg)
-        running = pool.submit(sitl.run)
-        try:
-            client.wait_for("HEARTBEAT", 5.0)
-            stamps = [client.next_frame(2.0).time_us for _ in range(12)]
-            ranges = [m for m in client.inbox if m.get_type() == "DISTANCE_SENSOR"]
-            gyro = [
-                (m.xgyro, m.ygyro, m.zgyro) for m in client.inbox if m.get_type() == "HIGHRES_IMU"
-            ]
-        finally:
-            sitl.stop()
-            running.result(20.0)
+    with sitl_with_client(p, cfg) as (client, runner):
+        client.wait_for("HEARTBEAT", 5.0)
+        stamps = [client.next_frame(2.0).time_us for _ in range(12)]
+        ranges = [m for m in client.inbox if m.get_type() == "DISTANCE_SENSOR"]
+        gyro = [(m.xgyro, m.ygyro, m.zgyro) for m in client.inbox if m.get_type() == "HIGHRES_IMU"]
+    sitl = runner.sitl
     assert len(ranges) >= 8 and len(gyro) >= 40
     invalid = [m for m in ranges if m.current_distance == 65_535]
     assert all(m.signal_quality == 1 for m in invalid)
@@ -424,35 +411,10 @@ def test_lockstep_flight_with_latency_and_drops_answers_every_sent_frame(
         Path(low_scenario),
     )
     p, cfg = loopback_sitl(scenario, tmp_path / "logs", seed=6, groundtruth=True)
-    received: list[int] = []
-    with (
-        SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
-        ThreadPoolExecutor(1) as pool,
-    ):
-        sitl = MavlinkSitl(cfg)
-        running = pool.submit(sitl.run)
-        try:
-            lander = CascadeLander(sitl.vehicle, sitl.sim_cfg.planet)
-            hover = sitl.params.mpc_thr_hover
-            n = 0
-            while not running.done() and n < 400:
-                try:
-                    frame = client.next_frame(0.2)
-                except ClientTimeout:
-                    continue
-                received.append(frame.frame_id)
-                if n < 3:
-                    client.setpoint(hover, (0.0, 0.0, 0.0), frame.time_us // 1000)
-                    if n == 2:
-                        client.set_offboard()
-                else:
-                    gt = client.truth_at(frame.time_us)
-                    cmd = lander.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz)
-                    client.command(cmd, frame.time_us // 1000)
-                n += 1
-            running.result(20.0)
-        finally:
-            sitl.stop()
+    with sitl_with_client(p, cfg) as (client, runner):
+        received = fly_cascade(client, runner)
+        runner.finish(20.0)
+    sitl = runner.sitl
     assert sitl.results and sitl.results[0].landed
     assert sitl.lockstep_timeouts == 0
     log = read_log(tmp_path / "logs" / "sitl_seed6_ep0000.mcap")

@@ -23,12 +23,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from flights import SitlThread, fly_cascade, sitl_command, sitl_with_client
 from fuzzing import mavlink_fuzz
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract.signing import signing_key_bytes
 from companion.flightlog import read_log
-from expert.cascade import CascadeLander
 from sitl_sim.autopilot.px4 import (
     FORCE_DISARM_MAGIC,
     Autopilot,
@@ -74,42 +74,11 @@ def ports() -> SimpleNamespace:
     )
 
 
-class _Runner:
-    """A SITL on a thread; ``finish`` joins it and re-raises whatever it raised."""
-
-    def __init__(self, sitl: MavlinkSitl) -> None:
-        self.sitl = sitl
-        self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, daemon=True, name="sitl")
-        self.thread.start()
-
-    def _run(self) -> None:
-        try:
-            self.sitl.run()
-        except BaseException as exc:  # re-raised in the test thread by finish()
-            self.error = exc
-
-    def finish(self, timeout_s: float = 30.0) -> list:
-        self.thread.join(timeout_s)
-        if self.thread.is_alive():
-            self.sitl.stop()
-            self.thread.join(10)
-            raise AssertionError(f"SITL still running after {timeout_s} s")
-        if self.error is not None:
-            raise self.error
-        return self.sitl.results
-
-    def stop(self) -> None:
-        self.sitl.stop()
-        self.thread.join(10)
-        assert not self.thread.is_alive(), "SITL thread did not stop"
-
-
 @pytest.fixture
 def start_sitl(ports, low_scenario, tmp_path):
-    runners: list[_Runner] = []
+    runners: list[SitlThread] = []
 
-    def start(**overrides) -> _Runner:
+    def start(**overrides) -> SitlThread:
         values = dict(
             mavlink_port=ports.mavlink,
             remote_port=ports.remote,
@@ -123,7 +92,7 @@ def start_sitl(ports, low_scenario, tmp_path):
             max_wall_s=60.0,
         )
         values.update(overrides)
-        runner = _Runner(MavlinkSitl(SitlConfig(**values)))
+        runner = SitlThread(MavlinkSitl(SitlConfig(**values)))
         runners.append(runner)
         return runner
 
@@ -161,39 +130,6 @@ def _fly(client: SitlClient, frames: int, thrust: float, rates=(0.0, 0.0, 0.0)) 
     for _ in range(frames):
         frame = client.next_frame(5.0)
         client.setpoint(thrust, rates, frame.time_us // 1000)
-
-
-def _fly_cascade(
-    client: SitlClient, runner: _Runner, timeout_s: float = 30.0, max_delay_s: float = 0.0
-) -> int:
-    """A privileged scripted pilot (CascadeLander on ODOMETRY) until the SITL thread ends;
-    each answer is delayed by up to ``max_delay_s`` (uniform, seeded)."""
-    sitl = runner.sitl
-    rng = np.random.default_rng(11)
-    lander = CascadeLander(sitl.vehicle, sitl.sim_cfg.planet)
-    hover = sitl.params.mpc_thr_hover
-    deadline = time.monotonic() + timeout_s
-    n = 0
-    while time.monotonic() < deadline:
-        try:
-            frame = client.next_frame(0.2)
-        except ClientTimeout:
-            if not runner.thread.is_alive():
-                return n
-            continue
-        if n < 3:
-            client.setpoint(hover, (0.0, 0.0, 0.0), frame.time_us // 1000)
-            if n == 2:
-                assert client.set_offboard() == ACCEPTED
-        else:
-            gt = client.truth_at(frame.time_us)
-            if max_delay_s > 0:
-                time.sleep(rng.uniform(0.0, max_delay_s))
-            client.command(
-                lander.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz), frame.time_us // 1000
-            )
-        n += 1
-    raise AssertionError(f"flight not over after {timeout_s} s")
 
 
 # --------------------------------------------------------------------------- autopilot units
@@ -376,32 +312,18 @@ def _flight_record(log_path: Path) -> tuple[list[tuple], list[tuple]]:
     return truth, attitude
 
 
-def test_lockstep_is_deterministic_for_the_same_seed_and_commands(ports, low_scenario, tmp_path):
+def test_lockstep_is_deterministic_for_the_same_seed_and_commands(
+    low_scenario, loopback_sitl, tmp_path
+):
     """Same seed, same pilot: the same flight bit for bit — ground truth and noisy sensors —
     although the second client answers each frame after a random delay (lockstep waits)."""
     runs = []
     for k in range(2):
-        p = SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
         log_dir = tmp_path / f"run{k}"
-        cfg = SitlConfig(
-            mavlink_port=p.mavlink,
-            remote_port=p.remote,
-            camera_port=p.camera,
-            gcs=False,
-            scenario=low_scenario,
-            log_dir=str(log_dir),
-            render=False,
-            groundtruth=True,
-            seed=3,
-            max_wall_s=60.0,
-        )
-        with SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as c:
-            runner = _Runner(MavlinkSitl(cfg))
-            try:
-                _fly_cascade(c, runner, max_delay_s=0.02 * k)
-                results = runner.finish(30.0)
-            finally:
-                runner.stop()
+        p, cfg = loopback_sitl(low_scenario, log_dir, groundtruth=True, seed=3)
+        with sitl_with_client(p, cfg) as (c, runner):
+            fly_cascade(c, runner, max_delay_s=0.02 * k)
+            results = runner.finish(30.0)
         assert results[0].landed and runner.sitl.lockstep_timeouts == 0
         runs.append(_flight_record(log_dir / "sitl_seed3_ep0000.mcap"))
     assert len(runs[0][0]) > 50 and len(runs[0][1]) > 250
@@ -502,7 +424,7 @@ def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
         while sent[0] < 2500 and time.monotonic() < deadline:
             time.sleep(0.01)
         t0 = time.monotonic()
-        _fly_cascade(client, runner)
+        fly_cascade(client, runner)
         results = runner.finish(30.0)
         wall = time.monotonic() - t0
     finally:
@@ -521,26 +443,9 @@ def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
 
 def test_sigkilled_sitl_leaves_a_log_readable_up_to_a_second_before(ports, low_scenario, tmp_path):
     log_dir = tmp_path / "killed"
-    cmd = [
-        sys.executable,
-        "-m",
-        "sitl_sim.mavlink",
-        "--mavlink-port",
-        str(ports.mavlink),
-        "--remote-port",
-        str(ports.remote),
-        "--camera-port",
-        str(ports.camera),
-        "--no-gcs",
-        "--scenario",
-        low_scenario,
-        "--log-dir",
-        str(log_dir),
-        "--no-render",
-        "--no-lockstep",
-        "--max-wall-s",
-        "60",
-    ]
+    cmd = sitl_command(
+        ports, log_dir, "--scenario", low_scenario, "--no-render", "--no-lockstep", max_wall_s=60
+    )
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         with SitlClient(("127.0.0.1", ports.mavlink), ports.remote) as c:
@@ -803,7 +708,7 @@ def test_land_requests_fly_consecutive_episodes_each_with_its_log(start_sitl, cl
 
 def test_rendered_flight_log_has_every_record(start_sitl, client):
     runner = start_sitl(render=True, groundtruth=True)
-    _fly_cascade(client, runner)
+    fly_cascade(client, runner)
     results = runner.finish(30.0)
     assert results[0].success
     flight = read_log(Path(runner.sitl.config.log_dir) / "sitl_seed0_ep0000.mcap")

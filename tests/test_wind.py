@@ -5,11 +5,11 @@ is exactly what it was before wind existed."""
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flights import fly_cascade, sitl_with_client
 
 from companion.contract import Command
 from companion.flightlog import read_log
@@ -18,7 +18,6 @@ from sitl_sim.config import CONFIG_DIR, PLANETS
 from sitl_sim.env import LandingEnv
 from sitl_sim.errors import ConfigError
 from sitl_sim.flight_record import groundtruth_from_msg, groundtruth_msg
-from sitl_sim.mavlink.sitl import MavlinkSitl
 from sitl_sim.physics.dynamics import Physics, derivative, quat_from_euler, translational_accel_ned
 from sitl_sim.physics.wind import (
     TURBULENCE_W20_M_S,
@@ -29,7 +28,6 @@ from sitl_sim.physics.wind import (
 from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import EpisodeWorld
-from tools.sitl_client import ClientTimeout, SitlClient
 
 EARTH = PLANETS["earth"]
 WIND = """
@@ -385,33 +383,10 @@ def test_sitl_flies_in_the_scenario_wind_and_logs_it(tmp_path, low_scenario, loo
         + '\n[wind]\nspeed_m_s = [2.0, 3.0]\ndirection_deg = [0.0, 360.0]\nturbulence = "light"\n'
     )
     p, cfg = loopback_sitl(scenario, tmp_path / "logs", groundtruth=True, seed=6)
-    with (
-        SitlClient(("127.0.0.1", p.mavlink), p.remote, p.camera) as client,
-        ThreadPoolExecutor(1) as pool,
-    ):
-        sitl = MavlinkSitl(cfg)
-        running = pool.submit(sitl.run)
-        try:
-            lander = CascadeLander(sitl.vehicle, sitl.sim_cfg.planet)
-            hover = sitl.params.mpc_thr_hover
-            n = 0
-            while not running.done() and n < 400:
-                try:
-                    frame = client.next_frame(0.2)
-                except ClientTimeout:
-                    continue
-                if n < 3:
-                    client.setpoint(hover, (0.0, 0.0, 0.0), frame.time_us // 1000)
-                    if n == 2:
-                        client.set_offboard()
-                else:
-                    gt = client.truth_at(frame.time_us)
-                    cmd = lander.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz)
-                    client.command(cmd, frame.time_us // 1000)
-                n += 1
-            running.result(20.0)  # re-raises whatever the SITL raised
-        finally:
-            sitl.stop()
+    with sitl_with_client(p, cfg) as (client, runner):
+        fly_cascade(client, runner)
+        runner.finish(20.0)  # re-raises whatever the SITL raised
+    sitl = runner.sitl
     assert sitl.results and sitl.results[0].landed
     log = read_log(tmp_path / "logs" / "sitl_seed6_ep0000.mcap")
     (record,) = list(log.topic("/episode/scenario"))
