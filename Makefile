@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-slow lint bench clean
+.PHONY: setup demo readme test test-slow lint bench clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PY) -m venv $(VENV)
@@ -22,6 +22,10 @@ setup: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/visland demo
+
+# The README's demo picture and output block, from a real demo run of the shipped model.
+readme: $(STAMP)
+	$(BIN)/visland readme
 
 test: $(STAMP)
 	$(BIN)/ruff check .

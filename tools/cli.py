@@ -5,7 +5,8 @@ codes.
 Each subcommand is a thin shell over a ``run(config)``-style function that the tests call
 directly, registered by the module of its job:
 
-- :mod:`tools.cli_sim`: ``demo``, ``sitl``, ``companion``, ``fly`` (the processes over MAVLink);
+- :mod:`tools.cli_sim`: ``demo``, ``readme``, ``sitl``, ``companion``, ``fly`` (the processes
+  over MAVLink; ``readme`` writes the README's demo block from a demo run);
 - :mod:`tools.cli_eval`: ``eval``, ``collect``, ``relabel``, ``pictures`` (flights in process);
 - :mod:`tools.cli_log`: ``log info``, ``log plot``;
 - :mod:`tools.cli_bench`: ``bench sim|mpc|policy|companion|rollouts``;

@@ -1,7 +1,8 @@
-"""``visland sitl``, ``companion``, ``fly`` and ``demo``: the SITL and the companion, alone or
-flown together as separate processes over MAVLink/UDP. Thin shells over
+"""``visland sitl``, ``companion``, ``fly``, ``demo`` and ``readme``: the SITL and the companion,
+alone or flown together as separate processes over MAVLink/UDP. Thin shells over
 :func:`sitl_sim.mavlink.sitl.run_sitl`, :func:`companion.app.run_from_args`,
-:func:`training.exec.fly.fly` and :func:`tools.demo.run`."""
+:func:`training.exec.fly.fly`, :func:`tools.demo.run` and :func:`tools.readme.run` (the
+README's demo block, from a demo run)."""
 
 from __future__ import annotations
 
@@ -197,6 +198,55 @@ def _register_demo(sub: argparse._SubParsersAction) -> None:
     d.set_defaults(func=_cmd_demo)
 
 
+def _cmd_readme(args: argparse.Namespace) -> int:
+    from tools.readme import ReadmeConfig, run
+    from training.exec.fly import FlyError
+
+    try:
+        run(config_from_args(ReadmeConfig, args), sys.stdout)
+    except FlyError as exc:
+        print(f"visland readme: failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _register_readme(sub: argparse._SubParsersAction) -> None:
+    from tools.readme import ReadmeConfig
+
+    defaults = ReadmeConfig()
+    r = sub.add_parser(
+        "readme",
+        help="fly the demo and rewrite the README's demo output block and picture from it",
+        description="Fly `visland demo` with the shipped model (or read a finished demo's "
+        "demo.json), copy its flights.png to the README's picture and rewrite only the README's "
+        "regions between the <!-- demo-picture:start/end --> and <!-- demo-output:start/end --> "
+        "markers, naming the model's path and sha256. `make readme` runs it.",
+    )
+    r.add_argument("--readme", type=Path, default=defaults.readme, help="README to rewrite")
+    r.add_argument(
+        "--picture",
+        type=Path,
+        default=defaults.picture,
+        help="where the demo's flights.png goes (default docs/demo_flights.png)",
+    )
+    r.add_argument(
+        "--policy", default=defaults.policy, help="checkpoint to fly (default: the shipped model)"
+    )
+    r.add_argument(
+        "--episodes", type=int, default=defaults.episodes, help="landings to fly (default 3)"
+    )
+    r.add_argument(
+        "--out", type=Path, default=defaults.out, help="the demo's output folder (runs/demo)"
+    )
+    r.add_argument(
+        "--from-json",
+        type=Path,
+        default=None,
+        help="a finished demo's demo.json to write from instead of flying",
+    )
+    r.set_defaults(func=_cmd_readme)
+
+
 def _register_fly(sub: argparse._SubParsersAction) -> None:
     from training.exec.choose import add_backend_arguments
 
@@ -256,11 +306,13 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
 
 
 def register_sim(sub: argparse._SubParsersAction) -> None:
-    """Add ``demo``, ``sitl``, ``companion`` and ``fly`` to the ``visland`` subcommands."""
+    """Add ``demo``, ``readme``, ``sitl``, ``companion`` and ``fly`` to the ``visland``
+    subcommands."""
     from companion.app import add_arguments as add_companion_arguments
     from sitl_sim.mavlink.config import add_sitl_arguments
 
     _register_demo(sub)
+    _register_readme(sub)
     st = sub.add_parser(
         "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"
     )

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from companion.contract.topics import TOPIC_SCENARIO
+from companion.files import sha256_file
 from sitl_sim.metrics import (
     SUCCESS_MAX_ERROR_M,
     SUCCESS_MAX_TILT_DEG,
@@ -37,7 +38,7 @@ from training.exec.fly import FlyConfig, fly
 from training.provenance import SHIPPED_MODEL
 from training.seeds import EVAL_SEED
 
-__all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run"]
+__all__ = ["EVAL_SEED", "SHIPPED_MODEL", "DemoConfig", "DemoError", "run", "write_report"]
 
 
 MARKER = ".visland-demo"
@@ -68,11 +69,12 @@ class DemoConfig:
     """Print ``fly: k/N episodes`` on stderr while flying."""
 
 
-def _rel(path: str | Path) -> str:
-    """``path`` relative to the working directory when it lies below it (shorter to read)."""
+def _rel(path: str | Path, base: Path | None = None) -> str:
+    """``path`` relative to ``base`` (default: the working directory) when it lies below it
+    (shorter to read)."""
     path = Path(path)
     try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
+        return str(path.resolve().relative_to((base or Path.cwd()).resolve()))
     except ValueError:
         return str(path)
 
@@ -183,7 +185,36 @@ def _json_ready(value: Any) -> Any:
     return value
 
 
-def _write_report(report: dict[str, Any], out: TextIO) -> None:
+def _write_header(
+    episodes: int, seed: int, scenario: str, description: str, out: TextIO, base: Path | None
+) -> None:
+    """The demo's first lines: what flies, where, how (printed before anything flies)."""
+    seed_note = " (the evaluation seed)" if seed == EVAL_SEED else ""
+    out.write(
+        f"visland demo — {episodes} landing(s), episodes 0..{episodes - 1} of seed "
+        f"{seed}{seed_note}, scenario {_rel(scenario, base)}\npolicy {description}\n"
+        "SITL (`visland sitl`) and companion (`visland companion`) run as two processes talking "
+        "MAVLink 2 over UDP on 127.0.0.1, in lockstep\n"
+    )
+
+
+def write_report(report: dict[str, Any], out: TextIO, base: Path | None = None) -> None:
+    """The demo's whole printout — header, one row per landing, summary, latency, log paths —
+    from its report (:func:`run`'s return value, or ``demo.json`` read back); paths relative to
+    ``base`` (default: the working directory) where they lie below it."""
+    _write_header(
+        report["episodes"],
+        report["seed"],
+        report["scenario"],
+        report["policy_description"],
+        out,
+        base,
+    )
+    _write_results(report, out, base)
+
+
+def _write_results(report: dict[str, Any], out: TextIO, base: Path | None) -> None:
+    """Everything the demo prints after flying (see :func:`write_report`)."""
     w = out.write
     w(
         f"\n{'ep':>3} {'start N, E [m]':>15} {'alt [m]':>8} {'time [s]':>9} {'error [m]':>10} "
@@ -206,7 +237,8 @@ def _write_report(report: dict[str, Any], out: TextIO) -> None:
     err = report["landing_error_m"]
     w(
         f"\n{ok} of {n} landings successful ({100 * report['success_rate']:.0f} %); landing error "
-        f"mean {err['mean']:.3f} m, max {err['max']:.3f} m; timeouts {report['timeouts']}.\n"
+        f"mean {fmt_value(err['mean'])} m, max {fmt_value(err['max'])} m; timeouts "
+        f"{report['timeouts']}.\n"
         f"Success = landing error <= {SUCCESS_MAX_ERROR_M:g} m, vertical speed <= "
         f"{SUCCESS_MAX_VERTICAL_SPEED_M_S:g} m/s, tilt <= {SUCCESS_MAX_TILT_DEG:g} deg at "
         "touchdown (SITL ground truth). Large-sample figures: models/MODEL_CARD.md.\n"
@@ -220,15 +252,16 @@ def _write_report(report: dict[str, Any], out: TextIO) -> None:
     w(f"flown in {report['wall_s']:.1f} s wall (lockstep: as fast as this machine allows)\n")
     w("\nflight logs (MCAP: `visland log info FILE`, `visland log plot FILE`, or Foxglove):\n")
     for row, comp in zip(report["per_episode"], report["companion_logs"], strict=True):
-        w(f"  episode {row['episode']}  SITL       {_rel(row['log'])}\n")
+        w(f"  episode {row['episode']}  SITL       {_rel(row['log'], base)}\n")
         if comp:
-            w(f"             companion  {_rel(comp)}\n")
+            w(f"             companion  {_rel(comp, base)}\n")
     if not any(report["companion_logs"]) and report["companion_logs_all"]:
         w("  companion logs (not paired with episodes):\n")
         for path in report["companion_logs_all"]:
-            w(f"    {_rel(path)}\n")
-    w(f"process output: {_rel(report['sitl_stderr'])}, {_rel(report['companion_stderr'])}\n")
-    w(f"plot of the flights: {_rel(report['plot'])}\n")
+            w(f"    {_rel(path, base)}\n")
+    logs = [_rel(report[k], base) for k in ("sitl_stderr", "companion_stderr")]
+    w(f"process output: {logs[0]}, {logs[1]}\n")
+    w(f"plot of the flights: {_rel(report['plot'], base)}\n")
 
 
 def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
@@ -256,14 +289,8 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
     out_dir = Path(cfg.out).expanduser().resolve()  # fly's processes run in the repository
     _prepare_out(out_dir)
 
-    seed_note = " (the evaluation seed)" if cfg.seed == EVAL_SEED else ""
-    out.write(
-        f"visland demo — {cfg.episodes} landing(s), episodes 0..{cfg.episodes - 1} of seed "
-        f"{cfg.seed}{seed_note}, scenario {_rel(scenario) if scenario else 'configs/scenario.toml'}"
-        f"\npolicy {description}\n"
-        "SITL (`visland sitl`) and companion (`visland companion`) run as two processes talking "
-        "MAVLink 2 over UDP on 127.0.0.1, in lockstep\n"
-    )
+    scenario_text = str(scenario) if scenario else "configs/scenario.toml"
+    _write_header(cfg.episodes, cfg.seed, scenario_text, description, out, None)
     out.flush()
     report = fly(
         FlyConfig(
@@ -277,6 +304,7 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
     )
     rows = report["per_episode"]
     report["policy_description"] = description
+    report["policy_sha256"] = None if policy in ("expert", "cascade") else sha256_file(policy)
     report["initial_states"] = _initial_states(rows)
     report["companion_logs"], report["companion_logs_all"] = _companion_logs(out_dir, cfg.episodes)
     report["sitl_stderr"] = str(out_dir / "sitl.log")
@@ -290,7 +318,7 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
         labels=[f"episode {r['episode']}" for r in rows],
     )
     report["plot"] = str(plot.out)
-    _write_report(report, out)
+    _write_results(report, out, None)
     tmp = out_dir / "demo.json.tmp"
     tmp.write_text(json.dumps(_json_ready(report), indent=2, default=str) + "\n")
     os.replace(tmp, out_dir / "demo.json")
