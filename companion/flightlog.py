@@ -41,12 +41,18 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from companion.contract.topics import (
-    SCHEMA_GROUNDTRUTH_POSE,
-    SCHEMA_IMAGE,
-    TOPIC_GROUNDTRUTH_POSE,
-    TOPIC_IMAGE,
+from companion.contract.record_base import TIME_S, LogRecord
+from companion.contract.records import (
+    Pose,
+    PoseInFrameRecord,
+    Quaternion,
+    RawImageRecord,
+    Timestamp,
+    Vector3,
+    mavlink_schema_json,
+    schema_json,
 )
+from companion.contract.topics import TOPIC_GROUNDTRUTH_POSE, TOPIC_IMAGE
 
 __all__ = [
     "FlightLog",
@@ -61,59 +67,12 @@ _FLUSH_PERIOD_S = 1.0
 _COMPACT_JSON = json.JSONEncoder(separators=(",", ":"))  # = json.dumps(separators=...), reused
 _CHUNK_BYTES = 256 * 1024
 
-_TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
-_VEC = {"type": "array", "items": {"type": "number"}}
 
-_SCHEMAS: dict[str, dict[str, Any]] = {
-    SCHEMA_IMAGE: {
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME,
-            "frame_id": {"type": "string"},
-            "width": {"type": "integer"},
-            "height": {"type": "integer"},
-            "encoding": {"type": "string"},
-            "step": {"type": "integer"},
-            "data": {"type": "string", "contentEncoding": "base64"},
-        },
-    },
-    SCHEMA_GROUNDTRUTH_POSE: {
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME,
-            "frame_id": {"type": "string"},
-            "pose": {
-                "type": "object",
-                "properties": {
-                    "position": {
-                        "type": "object",
-                        "properties": {k: {"type": "number"} for k in "xyz"},
-                    },
-                    "orientation": {
-                        "type": "object",
-                        "properties": {k: {"type": "number"} for k in "xyzw"},
-                    },
-                },
-            },
-        },
-    },
-}
-
-
-def _generic_schema(name: str, example: Mapping[str, Any]) -> dict[str, Any]:
-    props: dict[str, Any] = {}
-    for key, value in example.items():
-        if isinstance(value, bool):
-            props[key] = {"type": "boolean"}
-        elif isinstance(value, int | float) or value is None:
-            props[key] = {"type": ["number", "null"]}
-        elif isinstance(value, str):
-            props[key] = {"type": "string"}
-        elif isinstance(value, list | tuple | np.ndarray):
-            props[key] = _VEC
-        else:
-            props[key] = {"type": "object"}
-    return {"title": name, "type": "object", "properties": props}
+def _schema(name: str) -> dict[str, Any]:
+    """The MCAP schema record's data for a schema name: the declared record's jsonschema
+    (:mod:`companion.contract.records`), pymavlink's fields for ``mavlink.NAME``; a name
+    neither declares gets an open object."""
+    return schema_json(name) or mavlink_schema_json(name) or {"title": name, "type": "object"}
 
 
 def _jsonable_slow(value: Any) -> Any:
@@ -267,15 +226,13 @@ class FlightLogWriter:
 
     # ------------------------------------------------------------------ writing
 
-    def _channel(self, topic: str, schema_name: str, example: Mapping[str, Any]) -> int:
+    def _channel(self, topic: str, schema_name: str) -> int:
         chan = self._channels.get(topic)
         if chan is None:
             sid = self._schemas.get(schema_name)
             if sid is None:
-                schema = _SCHEMAS.get(schema_name) or _generic_schema(schema_name, example)
-                schema = {"title": schema_name, **schema}
                 sid = self._writer.register_schema(
-                    schema_name, "jsonschema", json.dumps(schema).encode()
+                    schema_name, "jsonschema", json.dumps(_schema(schema_name)).encode()
                 )
                 self._schemas[schema_name] = sid
             chan = self._writer.register_channel(topic, "json", sid)
@@ -289,8 +246,8 @@ class FlightLogWriter:
         """Write one JSON message stamped with sim time ``time_s``."""
         if self._closed:
             raise FlightLogError(f"{self.path}: write after close")
-        body = {"time_s": float(time_s), **_jsonable(msg)}
-        chan = self._channel(topic, schema_name, body)
+        body = {TIME_S: float(time_s), **_jsonable(msg)}
+        chan = self._channel(topic, schema_name)
         t_ns = self.log_time_ns(time_s)
         self._writer.add_message(
             channel_id=chan,
@@ -302,44 +259,44 @@ class FlightLogWriter:
         self._seq[topic] += 1
         self._maybe_flush(time_s)
 
+    def write_record(self, topic: str, time_s: float, record: LogRecord) -> None:
+        """Write a declared record (schema: its ``SCHEMA``) stamped with sim time ``time_s``."""
+        self.write(topic, record.SCHEMA, time_s, record.to_dict())
+
     def write_image(self, time_s: float, image: np.ndarray, frame_id: int) -> None:
         """A mono8 frame as ``foxglove.RawImage`` on :data:`TOPIC_IMAGE`."""
         img = np.ascontiguousarray(image, dtype=np.uint8)
         if img.ndim != 2:
             raise FlightLogError(f"{self.path}: image must be 2-D mono8, got shape {img.shape}")
-        t_ns = self.log_time_ns(time_s)
-        self.write(
+        self.write_record(
             TOPIC_IMAGE,
-            SCHEMA_IMAGE,
             time_s,
-            {
-                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-                "frame_id": f"camera/{frame_id}",
-                "width": int(img.shape[1]),
-                "height": int(img.shape[0]),
-                "encoding": "mono8",
-                "step": int(img.shape[1]),
-                "data": base64.b64encode(img.tobytes()).decode("ascii"),
-            },
+            RawImageRecord(
+                timestamp=Timestamp.from_ns(self.log_time_ns(time_s)),
+                frame_id=f"camera/{frame_id}",
+                width=int(img.shape[1]),
+                height=int(img.shape[0]),
+                encoding="mono8",
+                step=int(img.shape[1]),
+                data=base64.b64encode(img.tobytes()).decode("ascii"),
+            ),
         )
 
     def write_pose(self, time_s: float, pos_ned_m, quat_wxyz) -> None:
         """Ground-truth pose as ``foxglove.PoseInFrame`` in frame ``ned`` (pad centre origin)."""
-        t_ns = self.log_time_ns(time_s)
         w, x, y, z = (float(v) for v in quat_wxyz)
         n, e, d = (float(v) for v in pos_ned_m)
-        self.write(
+        self.write_record(
             TOPIC_GROUNDTRUTH_POSE,
-            SCHEMA_GROUNDTRUTH_POSE,
             time_s,
-            {
-                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-                "frame_id": "ned",
-                "pose": {
-                    "position": {"x": n, "y": e, "z": d},
-                    "orientation": {"x": x, "y": y, "z": z, "w": w},
-                },
-            },
+            PoseInFrameRecord(
+                timestamp=Timestamp.from_ns(self.log_time_ns(time_s)),
+                frame_id="ned",
+                pose=Pose(
+                    position=Vector3(x=n, y=e, z=d),
+                    orientation=Quaternion(x=x, y=y, z=z, w=w),
+                ),
+            ),
         )
 
     def _maybe_flush(self, time_s: float) -> None:
@@ -473,6 +430,6 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
         except (struct.error, zstandard.ZstdError, ValueError, EOFError, OSError) as exc:
             # What a file cut mid-record raises below the MCAP layer.
             log.truncated = True
-            log.error = f"{type(exc).__name__}: {exc}"
+            log.error = f"the file is cut inside a record ({type(exc).__name__}: {exc})"
     log.messages = dict(log.messages)
     return log

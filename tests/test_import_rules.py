@@ -122,6 +122,9 @@ def test_the_contract_needs_no_torch_and_no_other_companion_module():
         "companion.contract",
         "companion.contract.messages",
         "companion.contract.policy",
+        "companion.contract.topics",
+        "companion.contract.record_base",
+        "companion.contract.companion_records",
     }
 
 

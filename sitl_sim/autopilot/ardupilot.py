@@ -54,6 +54,7 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth
 from companion.contract.autopilots import ARDUPILOT, CopterMode
+from companion.contract.records import EventKind
 from sitl_sim.autopilot.ardupilot_params import NEEDS_POSITION
 from sitl_sim.autopilot.precland import LandingTargetRejected, PldParams
 from sitl_sim.autopilot.px4 import (
@@ -205,7 +206,7 @@ class ArduCopter(Autopilot):
 
     def request_mode(self, mode, now_s: float) -> MavResult:  # type: ignore[override]
         if isinstance(mode, ModeRefused):
-            self._events.append(AutopilotEvent("mode_refused", mode.text, 4))
+            self._events.append(AutopilotEvent(EventKind.MODE_REFUSED, mode.text, 4))
             return MavResult.FAILED
         if not isinstance(mode, FlightMode):
             return MavResult.FAILED
@@ -220,7 +221,7 @@ class ArduCopter(Autopilot):
         if mode is FlightMode.OFFBOARD:
             self._guided_init(now_s)
         text = f"mode {self.mode_label}" + (f" ({why})" if why else "")
-        self._events.append(AutopilotEvent("mode", text, 6, statustext=False))
+        self._events.append(AutopilotEvent(EventKind.MODE, text, 6, statustext=False))
 
     def _guided_init(self, now_s: float) -> None:
         """ArduCopter ``angle_control_start``: level, zero climb rate, from now."""
@@ -297,7 +298,9 @@ class ArduCopter(Autopilot):
             self.guided_timed_out = False
             self._level_yaw_rad = None
             self._events.append(
-                AutopilotEvent("guided", "setpoints back: GUIDED_NOGPS follows them", 6, False)
+                AutopilotEvent(
+                    EventKind.GUIDED, "setpoints back: GUIDED_NOGPS follows them", 6, False
+                )
             )
 
     # ------------------------------------------------------------------ flying
@@ -318,7 +321,7 @@ class ArduCopter(Autopilot):
                 self.guided_timed_out = True
                 self._events.append(
                     AutopilotEvent(
-                        "guided_timeout",
+                        EventKind.GUIDED_TIMEOUT,
                         f"no setpoint for GUID_TIMEOUT = {self.params.ardu.guid_timeout_s:.1f} s:"
                         " level, zero climb rate",
                         4,
@@ -393,12 +396,12 @@ class ArduCopter(Autopilot):
         lost = now_s - self._gcs_heartbeat_s > ardu.fs_gcs_timeout_s
         if lost and not self.gcs_failsafe and self.armed and self.physics_running:
             self.gcs_failsafe = True
-            self._events.append(AutopilotEvent("failsafe", "GCS Failsafe", 4))
+            self._events.append(AutopilotEvent(EventKind.FAILSAFE, "GCS Failsafe", 4))
             if self.mode not in (FlightMode.LAND, FlightMode.PRECLAND):
                 self._enter(self.land_mode(), now_s, "GCS failsafe")
         elif not lost and self.gcs_failsafe:
             self.gcs_failsafe = False
-            self._events.append(AutopilotEvent("failsafe", "GCS Failsafe Cleared", 4))
+            self._events.append(AutopilotEvent(EventKind.FAILSAFE, "GCS Failsafe Cleared", 4))
 
     def check_landing_target(self, frame: int, position_valid: int, distance: float) -> None:
         if frame != _MAV_FRAME_BODY_FRD:

@@ -42,6 +42,7 @@ from companion.contract.autopilots import (
     Px4MainMode,
     Px4Mode,
 )
+from companion.contract.records import EventKind
 from sitl_sim.autopilot.ardupilot_params import ArduParams
 from sitl_sim.autopilot.precland import LteParams, PldParams
 
@@ -330,14 +331,15 @@ class AutopilotEvent:
     """Something the SITL must announce (STATUSTEXT, an immediate HEARTBEAT, the log).
 
     Attributes:
-        kind: ``mode``, ``armed``, ``disarmed``, ``failsafe``, ``takeover``, ... .
+        kind: the ``/events`` kind it is logged as (``mode``, ``armed``, ``disarmed``,
+            ``failsafe``, ``takeover``, ...).
         text: a human-readable line (the flight log's event; the STATUSTEXT).
         severity: MAV_SEVERITY (2 critical, 4 warning, 6 info).
         statustext: also sent as STATUSTEXT (False: the flight log only, e.g. an ArduCopter
             mode change, which ArduPilot shows in the HEARTBEAT alone).
     """
 
-    kind: str
+    kind: EventKind
     text: str
     severity: int = 6
     statustext: bool = True
@@ -483,7 +485,7 @@ class Autopilot:
         if arm:
             if not self.armed:
                 self.armed = True
-                self._events.append(AutopilotEvent("armed", self._armed_text, 6))
+                self._events.append(AutopilotEvent(EventKind.ARMED, self._armed_text, 6))
                 self._maybe_take_over()
             return MavResult.ACCEPTED
         if self.armed and in_air and not force:
@@ -499,7 +501,7 @@ class Autopilot:
                 FlightMode.LAND,
                 f"Failsafe: offboard setpoints lost > {self.params.com_of_loss_t_s:.1f} s, landing",
                 severity=2,
-                kind="failsafe",
+                kind=EventKind.FAILSAFE,
             )
         if self.armed and self.physics_running and on_ground:
             if self._landed_since_s is None:
@@ -511,7 +513,9 @@ class Autopilot:
 
     # ------------------------------------------------------------------ internals
 
-    def _set_mode(self, mode: FlightMode, text: str, severity: int = 6, kind: str = "mode") -> None:
+    def _set_mode(
+        self, mode: FlightMode, text: str, severity: int = 6, kind: EventKind = EventKind.MODE
+    ) -> None:
         if mode is not self.mode:
             self.mode = mode
             self._events.append(AutopilotEvent(kind, text, severity))
@@ -519,9 +523,11 @@ class Autopilot:
     def _disarm(self, text: str) -> None:
         self.armed = False
         self._landed_since_s = None
-        self._events.append(AutopilotEvent("disarmed", text, 6))
+        self._events.append(AutopilotEvent(EventKind.DISARMED, text, 6))
 
     def _maybe_take_over(self) -> None:
         if not self.taken_over and self.armed and self.mode is not FlightMode.HOLD:
             self.taken_over = True
-            self._events.append(AutopilotEvent("takeover", f"Flight starts in {self.mode_label}"))
+            self._events.append(
+                AutopilotEvent(EventKind.TAKEOVER, f"Flight starts in {self.mode_label}")
+            )

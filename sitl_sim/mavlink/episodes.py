@@ -18,7 +18,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.contract.topics import SCHEMA_EPISODE_SCENARIO, TOPIC_SCENARIO
+from companion.contract.records import (
+    ABSENT,
+    EpisodeResultRecord,
+    EpisodeScenarioRecord,
+    EventKind,
+)
+from companion.contract.topics import TOPIC_SCENARIO
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.world import EpisodeWorld, episode_world
@@ -148,16 +154,15 @@ class Episodes:
                 },
             )
         self.current = Episode(index, initial, seed_key, self.clock.tick)
-        self.flight_log.write(
+        self.flight_log.write_record(
             TOPIC_SCENARIO,
-            SCHEMA_EPISODE_SCENARIO,
-            {
-                "episode": index,
-                "seed": cfg.seed,
-                "initial_state": initial.to_dict(),
-                "scenario": self.setup.scenario.to_dict(),
+            EpisodeScenarioRecord(
+                episode=index,
+                seed=cfg.seed,
+                initial_state=initial.to_dict(),
+                scenario=self.setup.scenario.to_dict(),
                 **drawn,
-            },
+            ),
         )
         if hover_changed:
             self.handlers.announce_param(state.autopilot.hover_param)
@@ -200,17 +205,23 @@ class Episodes:
             result = EpisodeResult.timeout(self.sim.time_s, gt.pos_ned_m, gt.vel_ned_m_s)
         if not aborted:
             self.results.append(result)
-        record = {"episode": ep.index, "aborted": aborted, **result.to_dict()}
-        record["link_stats"] = self.links.offboard.stats.to_dict()
-        if self.links.gcs is not None:
-            record["gcs_link_stats"] = self.links.gcs.stats.to_dict()
-        record["lockstep_timeouts"] = self.state.lockstep_timeouts
-        record.update(self.precland.record())
         imp = self.links.impairment
-        if imp is not None:  # what the impaired link did in this episode, per stream
-            record["link_impairment"] = {"config": imp.config.to_dict(), "streams": imp.stats()}
+        gcs = self.links.gcs
+        record = EpisodeResultRecord(
+            episode=ep.index,
+            aborted=aborted,
+            **result.to_dict(),
+            link_stats=self.links.offboard.stats.to_dict(),
+            gcs_link_stats=ABSENT if gcs is None else gcs.stats.to_dict(),
+            lockstep_timeouts=self.state.lockstep_timeouts,
+            **self.precland.record(),
+            # what the impaired link did in this episode, per stream
+            link_impairment=ABSENT
+            if imp is None
+            else {"config": imp.config.to_dict(), "streams": imp.stats()},
+        )
         self.flight_log.close_with_result(record)
-        log.info("episode %d %s: %s", ep.index, "aborted" if aborted else "ended", record)
+        log.info("episode %d %s: %s", ep.index, "aborted" if aborted else "ended", record.to_dict())
         if not aborted:
             what = "landed" if result.landed else "timeout"
             self.publisher.statustext(
@@ -236,7 +247,7 @@ class Episodes:
         self.state.flying = True
         self.clock.restart_phase()
         self.flight_log.event(
-            "flight",
+            EventKind.FLIGHT,
             f"flight starts at t = {self.clock.time_s:.3f} s in {self.state.autopilot.mode_label}",
         )
 

@@ -12,15 +12,19 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from companion.contract.records import (
+    AutopilotCommandRecord,
+    CommandRecord,
+    EpisodeResultRecord,
+    EventKind,
+    EventRecord,
+    GroundTruthRecord,
+    LinkStatsRecord,
+    LogRecord,
+    ObservationRecord,
+    RxErrorRecord,
+)
 from companion.contract.topics import (
-    SCHEMA_AUTOPILOT_COMMAND,
-    SCHEMA_COMMAND,
-    SCHEMA_EPISODE_RESULT,
-    SCHEMA_EVENT,
-    SCHEMA_GROUNDTRUTH,
-    SCHEMA_LINK_STATS,
-    SCHEMA_OBSERVATION,
-    SCHEMA_RX_ERROR,
     TOPIC_AUTOPILOT_COMMAND,
     TOPIC_COMMAND,
     TOPIC_EVENTS,
@@ -34,7 +38,6 @@ from companion.contract.topics import (
     mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter
-from sitl_sim.flight_record import command_msg, groundtruth_msg
 
 if TYPE_CHECKING:
     from companion.contract import Command, GroundTruth
@@ -74,35 +77,41 @@ class FlightLog:
         """Start the episode's log (closes none: :meth:`close_with_result` ends the last)."""
         self._writer = FlightLogWriter(path, metadata=metadata)
 
-    def close_with_result(self, record: dict[str, Any]) -> None:
+    def close_with_result(self, record: EpisodeResultRecord) -> None:
         """Write the episode's result and close its log (no-op without one)."""
         writer, self._writer = self._writer, None
         if writer is not None:
-            writer.write(TOPIC_RESULT, SCHEMA_EPISODE_RESULT, self._clock.time_s, record)
+            writer.write_record(TOPIC_RESULT, self._clock.time_s, record)
             writer.close()
 
     def write(self, topic: str, schema: str, body: dict[str, Any]) -> None:
         if self._writer is not None:
             self._writer.write(topic, schema, self._clock.time_s, body)
 
-    def event(self, kind: str, text: str) -> None:
-        self.write(TOPIC_EVENTS, SCHEMA_EVENT, {"kind": kind, "text": text})
+    def write_record(self, topic: str, record: LogRecord) -> None:
+        if self._writer is not None:
+            self._writer.write_record(topic, self._clock.time_s, record)
+
+    def event(self, kind: EventKind, text: str) -> None:
+        if self._writer is not None:
+            self.write_record(TOPIC_EVENTS, EventRecord(kind=kind, text=text))
 
     def rx_error(self, err: RxError, link: str) -> None:
-        self.write(
-            TOPIC_RX_ERRORS,
-            SCHEMA_RX_ERROR,
-            {
-                "kind": err.kind,
-                "reason": err.reason,
-                "length": err.length,
-                "src": list(err.addr),
-                "link": link,
-            },
-        )
+        if self._writer is not None:
+            self.write_record(
+                TOPIC_RX_ERRORS,
+                RxErrorRecord(
+                    kind=err.kind,
+                    reason=err.reason,
+                    length=err.length,
+                    src=list(err.addr),
+                    link=link,
+                ),
+            )
 
     def link_stats(self, stats: dict[str, dict[str, int]]) -> None:
-        self.write(TOPIC_LINK_STATS, SCHEMA_LINK_STATS, stats)
+        if self._writer is not None:
+            self.write_record(TOPIC_LINK_STATS, LinkStatsRecord(**stats))
 
     def inbound(self, inbound: Inbound) -> None:
         if self._writer is None:
@@ -136,19 +145,20 @@ class FlightLog:
         """At a control period: what the autopilot flies, and with the ``frame_id`` of a
         control step (the companion flies it) the training record's ``/command``: the command
         flown for the period after that frame (in lockstep its answer)."""
-        self.write(
+        if self._writer is None:
+            return
+        self.write_record(
             TOPIC_AUTOPILOT_COMMAND,
-            SCHEMA_AUTOPILOT_COMMAND,
-            {
-                "flight_time_s": flight_time_s,
-                "mode": mode_label,
-                "armed": cmd is not None,
-                "thrust_norm": cmd.thrust_norm if cmd is not None else 0.0,
-                "rate_frd_rad_s": cmd.rate_frd_rad_s if cmd is not None else [0.0, 0.0, 0.0],
-            },
+            AutopilotCommandRecord(
+                flight_time_s=flight_time_s,
+                mode=mode_label,
+                armed=cmd is not None,
+                thrust_norm=cmd.thrust_norm if cmd is not None else 0.0,
+                rate_frd_rad_s=cmd.rate_frd_rad_s if cmd is not None else [0.0, 0.0, 0.0],
+            ),
         )
         if cmd is not None and frame_id is not None:
-            self.write(TOPIC_COMMAND, SCHEMA_COMMAND, command_msg(cmd, frame_id, "offboard"))
+            self.write_record(TOPIC_COMMAND, CommandRecord.from_command(cmd, frame_id, "offboard"))
 
     def frame(
         self,
@@ -156,7 +166,7 @@ class FlightLog:
         frame: CameraFrame,
         gt: GroundTruth,
         status: dict[str, Any],
-        observation: dict[str, Any] | None,
+        observation: ObservationRecord | None,
     ) -> None:
         """The camera frame just sent, its pose, the ground truth with the flight ``status``
         (``flying``, ``mode``, ``armed``) and, in a control step, the training record's
@@ -169,14 +179,9 @@ class FlightLog:
         now = self._clock.time_s
         writer.write_image(now, frame.image, frame_id)
         writer.write_pose(now, gt.pos_ned_m, gt.quat_wxyz)
-        self.write(
+        self.write_record(  # the in-process path's record, with the flight status
             TOPIC_GROUNDTRUTH,
-            SCHEMA_GROUNDTRUTH,
-            {
-                **groundtruth_msg(gt, frame_id),  # the same record as the in-process path
-                "flight_time_s": gt.time_s,
-                **status,
-            },
+            GroundTruthRecord.from_groundtruth(gt, frame_id, flight_time_s=gt.time_s, **status),
         )
         if observation is not None:
-            self.write(TOPIC_OBSERVATION, SCHEMA_OBSERVATION, observation)
+            self.write_record(TOPIC_OBSERVATION, observation)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.records import EventKind
 from sitl_sim.autopilot.params import param_table, param_value_msg, with_param, writable
 from sitl_sim.autopilot.px4 import (
     FORCE_DISARM_MAGIC,
@@ -200,7 +201,7 @@ class Handlers:
             )
         except SetpointRejected as exc:
             self._rx_stats.rx_rejected_setpoints += 1
-            self.flight_log.event("setpoint_rejected", str(exc))
+            self.flight_log.event(EventKind.SETPOINT_REJECTED, str(exc))
             return
         if sp is None:
             return  # ArduCopter outside GUIDED_NOGPS: ignored without a word
@@ -244,7 +245,9 @@ class Handlers:
             return
         ap = self.state.autopilot
         result = ap.request_mode(ap.mode_for_custom(msg.custom_mode), self.clock.time_s)
-        self.flight_log.event("set_mode", f"SET_MODE custom_mode {msg.custom_mode}: {result.name}")
+        self.flight_log.event(
+            EventKind.SET_MODE, f"SET_MODE custom_mode {msg.custom_mode}: {result.name}"
+        )
         if ap.acks_set_mode:
             self._ack(mavlink.MAVLINK_MSG_ID_SET_MODE, result, msg)
         self.publisher.announce_events()
@@ -284,7 +287,7 @@ class Handlers:
                     ap.params, msg.param_id, msg.param_value, self.config.autopilot
                 )
             except ValueError as exc:
-                self.flight_log.event("param_rejected", str(exc))
+                self.flight_log.event(EventKind.PARAM_REJECTED, str(exc))
         self._send_param(names.index(msg.param_id))
 
     def handle_landing_target(self, msg: Any, inbound: Inbound) -> None:
@@ -348,7 +351,7 @@ class Handlers:
         self._ack(command, result, msg)
         for reply in follow_up:
             self.publisher.send(reply)
-        self.flight_log.event("command", f"command {command} {list(params)}: {result.name}")
+        self.flight_log.event(EventKind.COMMAND, f"command {command} {list(params)}: {result.name}")
         self.publisher.announce_events()
 
     def _in_air(self) -> bool:

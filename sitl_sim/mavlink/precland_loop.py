@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.contract import Command
-from companion.contract.topics import SCHEMA_PRECLAND, TOPIC_PRECLAND
+from companion.contract.records import EventKind, PreclandRecord
+from companion.contract.topics import TOPIC_PRECLAND
 from sitl_sim.autopilot.nav_estimator import NavConfig, NavEstimator
 from sitl_sim.autopilot.precland import (
     LandingTargetEstimator,
@@ -181,7 +182,7 @@ class PreclandLoop:
         for ev in self.land.pop_events():
             log.info("precland: %s", ev.text)
             self.publisher.statustext(ev.severity, ev.text)
-            self.flight_log.event("precland", f"{ev.state.value}: {ev.text}")
+            self.flight_log.event(EventKind.PRECLAND, f"{ev.state.value}: {ev.text}")
 
     def command(self) -> Command:
         """The precision land's command for this control period (10 Hz), on the estimate."""
@@ -210,23 +211,22 @@ class PreclandLoop:
         assert pl is not None and nav is not None and lte is not None
         now = self.clock.time_s
         seen = math.isfinite(lte.last_update_s)
-        self.flight_log.write(
+        self.flight_log.write_record(
             TOPIC_PRECLAND,
-            SCHEMA_PRECLAND,
-            {
-                "flight_time_s": self.sim.time_s,
-                "state": pl.state.value,
-                "search_count": pl.search_count,
-                "est_pos_ned_m": nav.pos_ned_m,
-                "est_vel_ned_m_s": nav.vel_ned_m_s,
-                "target_valid": lte.age_s(now) <= pl.params.btout_s,
-                "target_age_s": lte.age_s(now) if seen else None,
-                "target_rel_ne_m": lte.x[:, 0] if lte.initialised else None,
-                "target_rel_vel_ne_m_s": lte.x[:, 1] if lte.initialised else None,
-                "target_ne_m": pl.target_ne_m() if seen else None,
-                "approx_ne_m": pl.approx_ne_m,
-                "hold_altitude_m": hold_altitude_m,
-            },
+            PreclandRecord(
+                flight_time_s=self.sim.time_s,
+                state=pl.state.value,
+                search_count=pl.search_count,
+                est_pos_ned_m=nav.pos_ned_m,
+                est_vel_ned_m_s=nav.vel_ned_m_s,
+                target_valid=lte.age_s(now) <= pl.params.btout_s,
+                target_age_s=lte.age_s(now) if seen else None,
+                target_rel_ne_m=lte.x[:, 0] if lte.initialised else None,
+                target_rel_vel_ne_m_s=lte.x[:, 1] if lte.initialised else None,
+                target_ne_m=pl.target_ne_m() if seen else None,
+                approx_ne_m=pl.approx_ne_m,
+                hold_altitude_m=hold_altitude_m,
+            ),
         )
 
     # ------------------------------------------------------------------ messages
@@ -252,7 +252,7 @@ class PreclandLoop:
             )
         except LandingTargetRejected as exc:
             counts["rejected"] += 1
-            self.flight_log.event("landing_target_rejected", str(exc))
+            self.flight_log.event(EventKind.LANDING_TARGET_REJECTED, str(exc))
             frame = exc.unsupported_frame
             if frame is not None and frame not in self._unsupported_frames:
                 self._unsupported_frames.add(frame)  # PX4 says it each time; once is enough
@@ -293,7 +293,9 @@ class PreclandLoop:
         """A frame went unanswered: in AUTO.PRECLAND the precision land runs free from now."""
         if self.waits():
             self.paced = False
-            self.flight_log.event("lockstep", "no answer to a frame in AUTO.PRECLAND: running free")
+            self.flight_log.event(
+                EventKind.LOCKSTEP, "no answer to a frame in AUTO.PRECLAND: running free"
+            )
 
     def record(self) -> dict[str, Any]:
         """The episode result's precision-land part."""

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import GroundTruth
+from companion.contract.records import EventKind, ObservationRecord
 from sitl_sim.autopilot.px4 import FlightMode
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.simulator import Simulator
@@ -200,7 +201,7 @@ class Publisher:
 
     def statustext(self, severity: int, text: str) -> None:
         self.send(self.links.mav.statustext_encode(severity, text[:50].encode()))
-        self.flight_log.event("statustext", text)
+        self.flight_log.event(EventKind.STATUSTEXT, text)
 
     def heartbeat(self) -> None:
         self.send(self.build_heartbeat())
@@ -213,7 +214,7 @@ class Publisher:
             return
         for ev in events:
             self.flight_log.event(ev.kind, ev.text)
-            if ev.kind != "takeover" and ev.statustext:
+            if ev.kind != EventKind.TAKEOVER and ev.statustext:
                 self.statustext(ev.severity, ev.text)
             log.info("autopilot: %s", ev.text)
         self.heartbeat()
@@ -246,7 +247,7 @@ class Publisher:
         self._streamed[kind] = (sample.truth.time_s, reading)
         return reading
 
-    def streamed_observation(self, frame_id: int, image_time_s: float) -> dict[str, Any] | None:
+    def streamed_observation(self, frame_id: int, image_time_s: float) -> ObservationRecord | None:
         """What a client holds at this frame: the latest attitude, IMU and range readings this
         SITL sent (before MAVLink's float32 / centimetre encoding), with their own times, in the
         in-process log's ``/observation`` record. None until each has been sent since the
@@ -259,17 +260,17 @@ class Publisher:
             parts["imu"],
             parts["range_m"],
         )
-        return {
-            "frame_id": frame_id,
-            "image_time_s": image_time_s,
-            "attitude_rad": att.attitude_rad,
-            "rate_frd_rad_s": att.rate_frd_rad_s,
-            "attitude_time_s": att_t,
-            "range_m": rng if math.isfinite(rng) else None,
-            "range_time_s": rng_t,
-            "accel_frd_m_s2": imu.accel_frd_m_s2,
-            "imu_time_s": imu_t,
-        }
+        return ObservationRecord(
+            frame_id=frame_id,
+            image_time_s=image_time_s,
+            attitude_rad=att.attitude_rad,
+            rate_frd_rad_s=att.rate_frd_rad_s,
+            attitude_time_s=att_t,
+            range_m=rng if math.isfinite(rng) else None,
+            range_time_s=rng_t,
+            accel_frd_m_s2=imu.accel_frd_m_s2,
+            imu_time_s=imu_t,
+        )
 
     # ------------------------------------------------------------------ builders
 

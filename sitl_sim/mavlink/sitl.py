@@ -64,6 +64,7 @@ import numpy as np
 
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
+from companion.contract.records import EventKind
 from sitl_sim.autopilot.ardupilot import ardupilot_params, new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
 from sitl_sim.autopilot.params import parse_param_overrides, with_param
@@ -381,7 +382,7 @@ class MavlinkSitl:
             imp.cut = cut
             what = "cut" if cut else "restored"
             self.flight_log.event(
-                "link_outage", f"link {what} at flight time {self.sim.time_s:.3f} s"
+                EventKind.LINK_OUTAGE, f"link {what} at flight time {self.sim.time_s:.3f} s"
             )
             log.info("link %s at flight time %.3f s (outage_s)", what, self.sim.time_s)
 
@@ -456,7 +457,7 @@ class MavlinkSitl:
         else:
             self.camera_frames_dropped += 1
             self.flight_log.event(
-                "camera_frame_dropped", f"frame {frame_id} lost (frame_drop_prob)"
+                EventKind.CAMERA_FRAME_DROPPED, f"frame {frame_id} lost (frame_drop_prob)"
             )
         if self.flight_log.active:
             ap = self.autopilot
