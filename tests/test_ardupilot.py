@@ -9,13 +9,13 @@ import math
 import re
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flights import companion_command, free_ports, sitl_command
 
 from companion.contract.autopilots import CopterMode
 from companion.flightlog import read_log
@@ -34,7 +34,7 @@ from sitl_sim.mavlink.endpoint import SitlError
 from sitl_sim.physics.dynamics import euler_from_quat, quat_from_euler
 from sitl_sim.scenario import InitialState
 from sitl_sim.simulator import Simulator
-from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
+from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -403,60 +403,25 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(tmp_path
     """SIGKILL in flight: ArduCopter stays in GUIDED_NOGPS, follows the last setpoint for
     GUID_TIMEOUT, then levels and holds zero climb rate (no crash) until the episode times out.
     After one unanswered frame the SITL stops waiting for the dead client (lockstep runs free)."""
-    ports = [free_udp_port() for _ in range(3)]
-    py = sys.executable
+    ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp_err = (tmp_path / "companion.log").open("w")
     comp = subprocess.Popen(
-        [
-            py,
-            "-m",
-            "training.companion_process",
-            "--policy",
-            "expert",
-            "--autopilot",
-            "ardupilot",
-            "--connect",
-            f"udpin:127.0.0.1:{ports[1]}",
-            "--camera",
-            f"udp:127.0.0.1:{ports[2]}",
-            "--log-dir",
-            str(comp_dir),
-            *_RELAXED,
-            "--max-wall-s",
-            "90",
-        ],
+        companion_command(
+            ports.remote, ports.camera, comp_dir, "--autopilot", "ardupilot", *_RELAXED
+        ),
         cwd=REPO,
         stderr=comp_err,
         stdout=subprocess.DEVNULL,
     )
     sitl = subprocess.Popen(
-        [
-            py,
-            "-m",
-            "sitl_sim.mavlink",
-            "--autopilot",
-            "ardupilot",
-            "--param",
-            "GUID_OPTIONS=8",
-            "--mavlink-port",
-            str(ports[0]),
-            "--remote-port",
-            str(ports[1]),
-            "--camera-port",
-            str(ports[2]),
-            "--no-gcs",
-            "--no-render",
-            "--groundtruth",
-            "--episode-timeout-s",
-            "25",
-            "--lockstep-timeout-s",
-            "0.2",
-            "--log-dir",
-            str(sitl_dir),
-            "--max-wall-s",
-            "90",
-        ],
+        sitl_command(
+            ports,
+            sitl_dir,
+            *("--autopilot", "ardupilot", "--param", "GUID_OPTIONS=8"),
+            *("--no-render", "--groundtruth"),
+            *("--episode-timeout-s", "25", "--lockstep-timeout-s", "0.2"),
+        ),
         cwd=REPO,
         stderr=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,

@@ -8,11 +8,11 @@ from __future__ import annotations
 import math
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
+from flights import companion_command, free_ports, sitl_command
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.flightlog import read_log
@@ -334,53 +334,24 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
 
 
 def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(tmp_path):
-    ports = [free_udp_port() for _ in range(3)]
-    py = sys.executable
+    ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = subprocess.Popen(
-        [
-            py,
-            "-m",
-            "training.companion_process",
-            "--mode",
-            "landing-target",
-            "--policy",
-            DEFAULT_VISION_POLICY,
-            "--connect",
-            f"udpin:127.0.0.1:{ports[1]}",
-            "--camera",
-            f"udp:127.0.0.1:{ports[2]}",
-            "--log-dir",
-            str(comp_dir),
-            "--max-age-ms",
-            "3000",
-            "--max-wall-s",
-            "120",
-        ],
+        companion_command(
+            ports.remote,
+            ports.camera,
+            comp_dir,
+            *("--mode", "landing-target", "--max-age-ms", "3000"),
+            policy=DEFAULT_VISION_POLICY,
+            max_wall_s=120,
+        ),
         cwd=REPO,
         stderr=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
     )
     sitl_err = (tmp_path / "sitl.log").open("w")
     sitl = subprocess.Popen(
-        [
-            py,
-            "-m",
-            "sitl_sim.mavlink",
-            "--mavlink-port",
-            str(ports[0]),
-            "--remote-port",
-            str(ports[1]),
-            "--camera-port",
-            str(ports[2]),
-            "--no-gcs",
-            "--lockstep-timeout-s",
-            "0.2",
-            "--log-dir",
-            str(sitl_dir),
-            "--max-wall-s",
-            "120",
-        ],
+        sitl_command(ports, sitl_dir, "--lockstep-timeout-s", "0.2", max_wall_s=120),
         cwd=REPO,
         stderr=sitl_err,
         stdout=subprocess.DEVNULL,
