@@ -15,6 +15,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from companion.contract import Command, GroundTruth, Observation, Policy, PolicyState
 
@@ -25,6 +26,7 @@ __all__ = [
     "PolicyRuntime",
     "StepResult",
     "installed",
+    "level_observation",
     "load_policy_file",
     "resolve_runtime",
 ]
@@ -71,17 +73,7 @@ class PolicyRuntime:
         a policy that cannot even do that raises (None when fine)."""
         import numpy as np
 
-        obs = Observation(
-            image=np.full((128, 128), 96, dtype=np.uint8),
-            image_time_s=0.0,
-            attitude_rad=np.zeros(3),
-            rate_frd_rad_s=np.zeros(3),
-            attitude_time_s=0.0,
-            range_m=20.0,
-            range_time_s=0.0,
-            accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
-            imu_time_s=0.0,
-        )
+        obs = level_observation()
         gt = GroundTruth(
             time_s=0.0,
             pos_ned_m=np.array([0.0, 0.0, -20.0]),
@@ -116,6 +108,29 @@ class PolicyRuntime:
         self._state = state
         self.steps += 1
         return StepResult(command, None, time.perf_counter() - t0)
+
+
+def level_observation(
+    range_m: float = 20.0, time_s: float = 0.0, grey: int = 96, **fields: Any
+) -> Observation:
+    """What a level vehicle at rest ``range_m`` above flat ground sees: a uniform ``grey``
+    128x128 image, no attitude and no rates, the IMU's 1 g up (FRD z = -9.81 m/s²), every
+    input stamped ``time_s``. ``fields`` replace any field (``hover_thrust_norm``,
+    ``frame_id``...). The warm-up's input, and the tests' stand-in observation."""
+    import numpy as np
+
+    values: dict[str, Any] = dict(
+        image=np.full((128, 128), grey, dtype=np.uint8),
+        image_time_s=time_s,
+        attitude_rad=np.zeros(3),
+        rate_frd_rad_s=np.zeros(3),
+        attitude_time_s=time_s,
+        range_m=range_m,
+        range_time_s=time_s,
+        accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
+        imu_time_s=time_s,
+    )
+    return Observation(**{**values, **fields})
 
 
 def resolve_runtime(path: str | Path, runtime: str = "auto") -> str:

@@ -21,25 +21,25 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from flights import Ports, companion_command, free_ports, sitl_command
+from helpers import NO_RETURN_CM, FakeMsg, attitude_msg, imu_msg, range_msg
 
 from companion.app import CompanionConfig, CompanionError, load_toml
 from companion.camera import CameraError, UdpCameraSource, fit_to_policy, focal_px_from_fov
-from companion.contract import Command, Observation
+from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
 from companion.contract.topics import TOPIC_COMPANION_COMMAND
 from companion.flight import OffboardConfig
 from companion.flightlog import read_log
 from companion.link import ARDUPILOT, PX4, LinkError, mavlink, parse_connection
 from companion.record import latency_stats, replay_log
-from companion.runtime import PolicyRuntime
+from companion.runtime import PolicyRuntime, level_observation
 from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
 from companion.states import FailsafeReason, FlightResult
 from companion.telemetry import TelemetryStore, odometry_from_msg
@@ -56,29 +56,6 @@ _PATIENT_LOCKSTEP = ("--lockstep-timeout-s", "5")
 """For cards that compare flights: the SITL goes on without the companion's answer to a frame
 after 0.5 s of wall time by default, which a descheduled companion could reach and which would
 change the flight; these cards wait for every answer (a dead companion is another card)."""
-
-
-class _Msg(SimpleNamespace):
-    """A stand-in for a decoded pymavlink message (its fields and get_type())."""
-
-    def get_type(self) -> str:
-        return self.name
-
-
-def _obs(**kw) -> Observation:
-    base = dict(
-        image=np.zeros((128, 128), np.uint8),
-        image_time_s=0.0,
-        attitude_rad=np.zeros(3),
-        rate_frd_rad_s=np.zeros(3),
-        attitude_time_s=0.0,
-        range_m=10.0,
-        range_time_s=0.0,
-        accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
-        imu_time_s=0.0,
-    )
-    base.update(kw)
-    return Observation(**base)
 
 
 # --------------------------------------------------------------------------- units
@@ -135,64 +112,19 @@ def test_udp_camera_source_assembles_frames_and_counts_bad_packets():
 
 def test_telemetry_store_validity_staleness_and_odometry_frames():
     store = TelemetryStore()
-    store.update(
-        _Msg(
-            name="DISTANCE_SENSOR",
-            time_boot_ms=1000,
-            min_distance=0,
-            max_distance=15000,
-            current_distance=65535,
-            orientation=25,
-            signal_quality=1,
-        ),
-        10.0,
-    )
+    store.update(range_msg(1000, NO_RETURN_CM, 1), 10.0)
     assert math.isnan(store.range.range_m) and store.last_valid_range is None
-    store.update(
-        _Msg(
-            name="DISTANCE_SENSOR",
-            time_boot_ms=1100,
-            min_distance=0,
-            max_distance=15000,
-            current_distance=523,
-            orientation=25,
-            signal_quality=100,
-        ),
-        10.1,
-    )
+    store.update(range_msg(1100, 523), 10.1)
     assert store.range.range_m == pytest.approx(5.23)
-    assert not store.update(
-        _Msg(
-            name="DISTANCE_SENSOR",
-            time_boot_ms=1100,
-            min_distance=0,
-            max_distance=9,
-            current_distance=5,
-            orientation=0,
-            signal_quality=0,
-        ),
-        10.1,
-    )
-    assert not store.update(
-        _Msg(
-            name="ATTITUDE",
-            time_boot_ms=1,
-            roll=math.nan,
-            pitch=0,
-            yaw=0,
-            rollspeed=0,
-            pitchspeed=0,
-            yawspeed=0,
-        ),
-        10.0,
-    )
+    assert not store.update(range_msg(1100, 5, 0, max_distance=9, orientation=0), 10.1)
+    assert not store.update(attitude_msg(1, roll=math.nan), 10.0)
     assert store.rejected == {"DISTANCE_SENSOR": 1, "ATTITUDE": 1}
     assert store.age_s("range", 10.4) == pytest.approx(0.3)
     assert store.age_s("attitude", 10.4) == math.inf
     # ODOMETRY velocity in BODY_FRD, yawed 90°: body forward = east
     half = math.pi / 4
     odo = odometry_from_msg(
-        _Msg(
+        FakeMsg(
             name="ODOMETRY",
             frame_id=1,
             child_frame_id=12,
@@ -211,43 +143,14 @@ def test_telemetry_store_validity_staleness_and_odometry_frames():
     )
     assert odo is not None and odo.time_s == 2.0
     assert np.allclose(odo.vel_ned_m_s, [0.0, 2.0, 0.5], atol=1e-9)
-    assert odometry_from_msg(_Msg(name="ODOMETRY", frame_id=20)) is None
+    assert odometry_from_msg(FakeMsg(name="ODOMETRY", frame_id=20)) is None
 
 
 def test_safety_monitor_stale_inputs_blind_ground_and_clamps():
     mon = SafetyMonitor(SafetyConfig(max_age_s=0.3, max_rate_rad_s=(1.0, 1.0, 0.5)))
     store = TelemetryStore()
-    for name, fields in (
-        (
-            "ATTITUDE",
-            dict(time_boot_ms=0, roll=0, pitch=0, yaw=0, rollspeed=0, pitchspeed=0, yawspeed=0),
-        ),
-        (
-            "HIGHRES_IMU",
-            dict(
-                time_usec=0,
-                xacc=0,
-                yacc=0,
-                zacc=-9.8,
-                xgyro=0,
-                ygyro=0,
-                zgyro=0,
-                fields_updated=0x3F,
-            ),
-        ),
-        (
-            "DISTANCE_SENSOR",
-            dict(
-                time_boot_ms=0,
-                min_distance=0,
-                max_distance=15000,
-                current_distance=400,
-                orientation=25,
-                signal_quality=90,
-            ),
-        ),
-    ):
-        store.update(_Msg(name=name, **fields), 100.0)
+    for msg in (attitude_msg(0), imu_msg(0, zacc=-9.8), range_msg(0, 400, 90)):
+        store.update(msg, 100.0)
     assert mon.check(100.1, store, 100.05, need_odometry=False) is None
     assert mon.check(100.1, store, 99.7, False).reason is FailsafeReason.CAMERA_STALE
     stale = mon.check(100.5, store, 100.45, False)
@@ -257,18 +160,7 @@ def test_safety_monitor_stale_inputs_blind_ground_and_clamps():
     assert no_odometry.reason is FailsafeReason.TELEMETRY_STALE
     assert no_odometry.detail.startswith("odometry inf ms old")
     # near the ground the radar goes invalid: blind after max_age
-    store.update(
-        _Msg(
-            name="DISTANCE_SENSOR",
-            time_boot_ms=100,
-            min_distance=0,
-            max_distance=15000,
-            current_distance=65535,
-            orientation=25,
-            signal_quality=1,
-        ),
-        100.35,
-    )
+    store.update(range_msg(100, NO_RETURN_CM, 1), 100.35)
     store.attitude = dataclasses.replace(store.attitude, rx_s=100.35)
     store.imu = dataclasses.replace(store.imu, rx_s=100.35)
     assert mon.check(100.4, store, 100.38, False).reason is FailsafeReason.RANGE_INVALID
@@ -281,34 +173,10 @@ def test_safety_monitor_stale_inputs_blind_ground_and_clamps():
 def test_touchdown_needs_a_still_low_range_not_just_a_low_one():
     det = TouchdownDetector()
     store = TelemetryStore()
-    store.update(
-        _Msg(
-            name="HIGHRES_IMU",
-            time_usec=0,
-            xacc=0,
-            yacc=0,
-            zacc=-9.8,
-            xgyro=0,
-            ygyro=0,
-            zgyro=0.01,
-            fields_updated=0x3F,
-        ),
-        0.0,
-    )
+    store.update(imu_msg(0, zacc=-9.8, zgyro=0.01), 0.0)
 
     def rng(t_ms: int, cm: int) -> bool:
-        store.update(
-            _Msg(
-                name="DISTANCE_SENSOR",
-                time_boot_ms=t_ms,
-                min_distance=0,
-                max_distance=15000,
-                current_distance=cm,
-                orientation=25,
-                signal_quality=100,
-            ),
-            t_ms / 1000,
-        )
+        store.update(range_msg(t_ms, cm), t_ms / 1000)
         return det.update(store, since_rx_s=0.0)
 
     # descending at 0.17 m/s through the last 15 cm: never a touchdown
@@ -320,9 +188,9 @@ def test_touchdown_needs_a_still_low_range_not_just_a_low_one():
     # the autopilot's land detector alone is enough
     det2 = TouchdownDetector()
     on_ground = mavlink.MAV_LANDED_STATE_ON_GROUND
-    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.0)
+    store.update(FakeMsg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.0)
     assert not det2.update(store, since_rx_s=4.0)  # once is not enough (1 cm above counts)
-    store.update(_Msg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.2)
+    store.update(FakeMsg(name="EXTENDED_SYS_STATE", vtol_state=0, landed_state=on_ground), 5.2)
     assert det2.update(store, since_rx_s=4.0) and not TouchdownDetector().update(store, 6.0)
 
 
@@ -345,14 +213,15 @@ def test_runtime_turns_policy_failures_into_errors_not_exceptions():
         def act(self, observation, groundtruth, state):
             return Command(thrust_norm=0.5, rate_frd_rad_s=[0.0, 0.0, float(state)]), state + 1
 
-    bad = PolicyRuntime(Nan(), "nan").step(_obs(), None)
+    obs = level_observation()
+    bad = PolicyRuntime(Nan(), "nan").step(obs, None)
     assert bad.command is None and "ContractError" in bad.error
     rt = PolicyRuntime(Counter(), "counter")
     assert rt.warm_up() is None
-    assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 0.0  # warm-up state forgotten
-    assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 1.0
+    assert rt.step(obs, None).command.rate_frd_rad_s[2] == 0.0  # warm-up state forgotten
+    assert rt.step(obs, None).command.rate_frd_rad_s[2] == 1.0
     rt.reset()
-    assert rt.step(_obs(), None).command.rate_frd_rad_s[2] == 0.0
+    assert rt.step(obs, None).command.rate_frd_rad_s[2] == 0.0
     with pytest.raises(TypeError, match=r"not a companion\.contract\.Policy"):
         PolicyRuntime(object(), "nothing")
 
@@ -399,10 +268,12 @@ class _Procs:
         self.tmp = tmp
         self.procs: list[subprocess.Popen] = []
 
-    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+    def start(self, name: str, command: list[str]) -> subprocess.Popen:
+        """Runs ``command`` (a whole command line) from the repository, its stdout and stderr
+        in ``<name>.out`` and ``<name>.err``."""
         err = (self.tmp / f"{name}.err").open("w")
         out = (self.tmp / f"{name}.out").open("w")
-        proc = subprocess.Popen([sys.executable, *args], cwd=REPO, stdout=out, stderr=err)
+        proc = subprocess.Popen(command, cwd=REPO, stdout=out, stderr=err)
         proc.name = name  # type: ignore[attr-defined]
         self.procs.append(proc)
         return proc
@@ -438,49 +309,15 @@ def procs(tmp_path):
 
 
 @pytest.fixture
-def ports() -> SimpleNamespace:
-    return SimpleNamespace(mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port())
+def ports() -> Ports:
+    return free_ports()
 
 
-def _sitl_args(ports, scenario, log_dir, *extra) -> list[str]:
-    return [
-        "-m",
-        "sitl_sim.mavlink",
-        "--mavlink-port",
-        str(ports.mavlink),
-        "--remote-port",
-        str(ports.remote),
-        "--camera-port",
-        str(ports.camera),
-        "--no-gcs",
-        "--no-render",
-        "--groundtruth",
-        "--scenario",
-        scenario,
-        "--log-dir",
-        str(log_dir),
-        "--max-wall-s",
-        "90",
-        *extra,
-    ]
-
-
-def _companion_args(remote_port, camera_port, log_dir, *extra) -> list[str]:
-    return [
-        "-m",
-        "training.companion_process",
-        "--policy",
-        "expert",
-        "--connect",
-        f"udpin:127.0.0.1:{remote_port}",
-        "--camera",
-        f"udp:127.0.0.1:{camera_port}",
-        "--log-dir",
-        str(log_dir),
-        "--max-wall-s",
-        "90",
-        *extra,
-    ]
+def _sitl_args(ports: Ports, scenario, log_dir, *extra) -> list[str]:
+    """The SITL of these cards: the expert flies on ground truth, nothing is rendered."""
+    return sitl_command(
+        ports, log_dir, "--no-render", "--groundtruth", "--scenario", str(scenario), *extra
+    )
 
 
 def _result(sitl_log: Path) -> dict:
@@ -495,7 +332,7 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
 ):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(
-        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+        "companion", companion_command(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
     )
     sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir, *_PATIENT_LOCKSTEP))
     assert sitl.wait(60) == 0, procs.text("sitl")
@@ -530,7 +367,7 @@ def test_card_companion_killed_mid_descent_sitl_failsafe_lands_it(procs, ports, 
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     scenario = REPO / "configs" / "scenario.toml"  # 75-100 m: time to kill it mid-descent
     comp = procs.start(  # the SITL's failsafe must be the one that lands it, not the companion's
-        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+        "companion", companion_command(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
     )
     sitl = procs.start(
         "sitl", _sitl_args(ports, str(scenario), sitl_dir, "--lockstep-timeout-s", "0.05")
@@ -586,7 +423,7 @@ def test_card_camera_stream_stopped_companion_requests_land_within_the_stale_lim
     comp_cam = free_udp_port()
     relay = _Relay(ports.camera, comp_cam)
     try:
-        comp = procs.start("companion", _companion_args(ports.remote, comp_cam, comp_dir))
+        comp = procs.start("companion", companion_command(ports.remote, comp_cam, comp_dir))
         sitl = procs.start(
             "sitl", _sitl_args(ports, str(REPO / "configs" / "scenario.toml"), sitl_dir)
         )
@@ -628,7 +465,7 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
     # flight flies). Either way one flight must land on the second SITL.
     comp = procs.start(
         "companion",
-        _companion_args(
+        companion_command(
             ports.remote,
             ports.camera,
             tmp_path / "companion",
@@ -682,7 +519,7 @@ def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(
         "companion",
-        _companion_args(ports.remote, ports.camera, comp_dir, "--shadow", *_RELAXED_MAX_AGE),
+        companion_command(ports.remote, ports.camera, comp_dir, "--shadow", *_RELAXED_MAX_AGE),
     )
     sitl = procs.start("sitl", _sitl_args(ports, low_scenario, sitl_dir, "--hold-timeout-s", "3"))
     procs.wait_text("companion", r"-> flying: shadow", 30.0)
@@ -706,7 +543,7 @@ def test_card_shadow_mode_computes_and_logs_but_sends_nothing(procs, ports, low_
 def test_card_sigterm_in_flight_hands_back_with_land_and_closes_the_log(procs, ports, tmp_path):
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(  # SIGTERM must be what ends the flight (aborted), not a staleness failsafe
-        "companion", _companion_args(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
+        "companion", companion_command(ports.remote, ports.camera, comp_dir, *_RELAXED_MAX_AGE)
     )
     sitl = procs.start("sitl", _sitl_args(ports, str(REPO / "configs" / "scenario.toml"), sitl_dir))
     procs.wait_text("companion", r"-> flying", 30.0)

@@ -13,11 +13,11 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers import NO_RETURN_CM, FakeMsg, attitude_msg, imu_msg, range_msg
 
 from companion.camera import ReceivedFrame
 from companion.contract import Command
@@ -148,14 +148,6 @@ class ConstantPolicy:
         return Command(thrust_norm=POLICY_THRUST, rate_frd_rad_s=POLICY_RATES), state + 1
 
 
-class _Msg(SimpleNamespace):
-    def get_type(self) -> str:
-        return self.name
-
-    def get_srcComponent(self) -> int:  # pymavlink's name
-        return 1
-
-
 class Rig:
     """One FlightController and everything around it, driven by hand."""
 
@@ -198,7 +190,10 @@ class Rig:
         return math.floor((self.clock() - AP_OFFSET_S) * 1000)
 
     def msg(self, name: str, **fields: Any) -> None:
-        msg = _Msg(name=name, **fields)
+        self.post(FakeMsg(name=name, **fields))
+
+    def post(self, msg: FakeMsg) -> None:
+        """``msg`` arrives now: the telemetry store, then the controller."""
         self.store.update(msg, self.clock())
         self.fc.on_message(msg, self.clock())
 
@@ -219,35 +214,10 @@ class Rig:
         ms = self.ap_ms
         valid = math.isfinite(range_m)
         if attitude:
-            self.msg(
-                "ATTITUDE",
-                time_boot_ms=ms,
-                roll=0.0,
-                pitch=0.0,
-                yaw=0.0,
-                rollspeed=0.0,
-                pitchspeed=0.0,
-                yawspeed=0.0,
-            )
-        self.msg(
-            "HIGHRES_IMU",
-            time_usec=ms * 1000,
-            xacc=0.0,
-            yacc=0.0,
-            zacc=-9.81,
-            xgyro=0.0,
-            ygyro=0.0,
-            zgyro=0.0,
-            fields_updated=0x3F,
-        )
-        self.msg(
-            "DISTANCE_SENSOR",
-            time_boot_ms=ms,
-            min_distance=0,
-            max_distance=15000,
-            current_distance=round(range_m * 100) if valid else 65535,
-            orientation=25,
-            signal_quality=100 if valid else 1,
+            self.post(attitude_msg(ms))
+        self.post(imu_msg(ms * 1000))
+        self.post(
+            range_msg(ms, round(range_m * 100) if valid else NO_RETURN_CM, 100 if valid else 1)
         )
 
     def landed(self, on_ground: bool) -> None:

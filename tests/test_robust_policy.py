@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import episode_observation
 
-from companion.contract import ContractError, Observation
+from companion.contract import ContractError
 from companion.policy_net import (
     CheckpointError,
     ControlLSTM,
@@ -26,6 +27,7 @@ from companion.policy_net import (
 )
 from companion.policy_net.geometry import HOVER_FEATURE, feature_names, rotation_zyx
 from companion.policy_net.policy import attitude_at
+from companion.runtime import level_observation
 from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from training.dataset import load_episode
@@ -39,30 +41,15 @@ REPO = Path(__file__).resolve().parents[1]
 ROBUST = dict(hover_input=True, accel_bias_states=True, latency_compensation=True)
 
 
-def _obs(**kw) -> Observation:
-    base = dict(
-        image=np.zeros((128, 128), np.uint8),
-        image_time_s=1.0,
-        attitude_rad=np.zeros(3),
-        rate_frd_rad_s=np.zeros(3),
-        attitude_time_s=1.0,
-        range_m=20.0,
-        range_time_s=1.0,
-        accel_frd_m_s2=np.array([0.0, 0.0, -9.81]),
-        imu_time_s=1.0,
-    )
-    return Observation(**{**base, **kw})
-
-
 # ----------------------------------------------------------------------------- hover input
 
 
 def test_observation_hover_thrust_is_checked_and_optional():
-    assert math.isnan(_obs().hover_thrust_norm)
-    assert _obs(hover_thrust_norm=0.15).hover_thrust_norm == 0.15
+    assert math.isnan(level_observation().hover_thrust_norm)
+    assert level_observation(hover_thrust_norm=0.15).hover_thrust_norm == 0.15
     for bad in (0.0, 1.0, 1.7, -0.2, math.inf):
         with pytest.raises(ContractError, match="hover_thrust_norm"):
-            _obs(hover_thrust_norm=bad)
+            level_observation(hover_thrust_norm=bad)
 
 
 def test_hover_input_centres_the_thrust_on_the_vehicles_hover():
@@ -362,17 +349,11 @@ def test_logged_flights_carry_hover_and_times_and_train_as_they_fly(mars_logs):
     batched = vision_episode(policy, ep).features
     state = policy.initial_state()
     for t in range(40):
-        obs = Observation(
-            image=np.ascontiguousarray(ep.images[t]),
+        obs = episode_observation(
+            ep,
+            t,
             image_time_s=float(ep.image_time_s[t]),
-            attitude_rad=ep.attitude_rad[t],
-            rate_frd_rad_s=ep.rate_frd_rad_s[t],
-            attitude_time_s=float(ep.attitude_time_s[t]),
-            range_m=float(ep.range_m[t]),
-            range_time_s=float(ep.attitude_time_s[t]),
-            accel_frd_m_s2=ep.accel_frd_m_s2[t],
-            imu_time_s=float(ep.attitude_time_s[t]),
-            frame_id=int(ep.frame_id[t]),
+            time_s=float(ep.attitude_time_s[t]),
             hover_thrust_norm=float(ep.hover_thrust_norm[t]),
         )
         feats, state = policy.features(obs, None, state)

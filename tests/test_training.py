@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from helpers import episode_observation
 
-from companion.contract import Observation
 from companion.policy_net import (
     CheckpointError,
     ControlLSTM,
@@ -23,6 +23,7 @@ from companion.policy_net import (
     save_checkpoint,
     untrained_policy,
 )
+from companion.runtime import level_observation
 from training.dataset import DatasetError, load_episode
 from training.replay import BufferedEpisode, ReplayBuffer
 from training.train import (
@@ -230,18 +231,8 @@ def test_vision_features_match_the_policy_in_flight(expert_logs):
     batched = vision_episode(policy, ep).features
     state = policy.initial_state()
     for t in range(30):
-        obs = Observation(
-            image=np.ascontiguousarray(ep.images[t]),
-            image_time_s=float(ep.time_s[t]),
-            attitude_rad=ep.attitude_rad[t],
-            rate_frd_rad_s=ep.rate_frd_rad_s[t],
-            attitude_time_s=float(ep.time_s[t]),
-            range_m=float(ep.range_m[t]),
-            range_time_s=float(ep.time_s[t]),
-            accel_frd_m_s2=ep.accel_frd_m_s2[t],
-            imu_time_s=float(ep.time_s[t]),
-            frame_id=int(ep.frame_id[t]),
-        )
+        time_s = float(ep.time_s[t])
+        obs = episode_observation(ep, t, image_time_s=time_s, time_s=time_s)
         feats, state = policy.features(obs, None, state)
         assert np.allclose(feats, batched[t], atol=1e-5), t
 
@@ -293,17 +284,7 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
 
 def test_policy_outputs_respect_command_ranges_and_refuse_bad_input():
     policy = untrained_policy(seed=1)
-    obs = Observation(
-        image=np.full((128, 128), 90, np.uint8),
-        image_time_s=0.0,
-        attitude_rad=np.zeros(3),
-        rate_frd_rad_s=np.zeros(3),
-        attitude_time_s=0.0,
-        range_m=40.0,
-        range_time_s=0.0,
-        accel_frd_m_s2=np.array([0.0, 0.0, -9.8]),
-        imu_time_s=0.0,
-    )
+    obs = level_observation(range_m=40.0, grey=90, accel_frd_m_s2=np.array([0.0, 0.0, -9.8]))
     state = policy.initial_state()
     for _ in range(5):
         cmd, state = policy.act(obs, None, state)
