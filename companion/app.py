@@ -34,6 +34,7 @@ from typing import Any
 
 from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
+from companion.contract.companion_records import CompanionSummaryRecord
 from companion.files import read_toml
 from companion.flight import FlightContext, OffboardConfig
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
@@ -394,16 +395,19 @@ class Companion:
         if flight is None:
             return
         self.flight = self.flight_log = None
-        out = flight.outcome.to_dict()
-        out["link"] = dataclasses.asdict(self.link.counters)
-        out["clamped"] = self.safety.clamped
-        out["camera"] = {  # what a lossy link did to the frames (UDP sources count these)
-            k: getattr(self.camera, k)
-            for k in ("bad_packets", "bad_size", "stale_frames")
-            if hasattr(self.camera, k)
-        }
-        out["telemetry_rejected"] = dict(self.store.rejected)
-        flog.close(summary=out)
+        summary = CompanionSummaryRecord(
+            **flight.outcome.to_dict(),
+            link=dataclasses.asdict(self.link.counters),
+            clamped=self.safety.clamped,
+            camera={  # what a lossy link did to the frames (UDP sources count these)
+                k: getattr(self.camera, k)
+                for k in ("bad_packets", "bad_size", "stale_frames")
+                if hasattr(self.camera, k)
+            },
+            telemetry_rejected=dict(self.store.rejected),
+        )
+        out = summary.to_dict()
+        flog.close(summary=summary)
         self.outcomes.append(out)
         print(
             f"visland companion: flight {flight.outcome.index} {flight.outcome.result}: "

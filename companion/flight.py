@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from companion.camera import ReceivedFrame
+from companion.contract.companion_records import CompanionCommandRecord, CompanionObservationRecord
+from companion.contract.records import EventKind
 from companion.link import mavlink
 from companion.states import Failsafe, FlightResult, FlightState, TouchdownAction
 
@@ -141,11 +143,11 @@ class FlightRecorder(Protocol):
 
     def frame(self, frame: ReceivedFrame) -> None: ...
 
-    def observation(self, t: float, body: dict[str, Any]) -> None: ...
+    def observation(self, t: float, record: CompanionObservationRecord) -> None: ...
 
-    def command(self, t: float, body: dict[str, Any]) -> None: ...
+    def command(self, t: float, record: CompanionCommandRecord) -> None: ...
 
-    def event(self, t: float, kind: str, text: str, **extra: Any) -> None: ...
+    def event(self, t: float, kind: EventKind, text: str, **extra: Any) -> None: ...
 
     def flight_start(self, t: float, text: str, shadow: bool) -> None: ...
 
@@ -218,13 +220,13 @@ class FlightMachine(ABC):
             return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
         return None
 
-    def _event(self, kind: str, text: str) -> None:
+    def _event(self, kind: EventKind, text: str) -> None:
         self.log.event(self._clock(), kind, text, state=self.state.value)
         self.outcome.events.append(f"{kind}: {text}")
         log.info("flight %d %s: %s", self.outcome.index, kind, text)
 
     def _enter(self, state: FlightState, text: str) -> None:
-        self._event("state", f"{self.state.value} -> {state.value}: {text}")
+        self._event(EventKind.STATE, f"{self.state.value} -> {state.value}: {text}")
         self.state = state
         self._entered_s = self._clock()
 
@@ -252,8 +254,12 @@ class FlightMachine(ABC):
         """A HEARTBEAT of the autopilot: its mode and arming state."""
 
     def on_link_event(self, kind: str, text: str) -> None:
-        self._event("link_" + kind, text)
-        if kind == "restarted" and self.state not in (FlightState.WAITING, FlightState.DONE):
+        event = EventKind.of_link(kind)
+        self._event(event, text)
+        if event is EventKind.LINK_RESTARTED and self.state not in (
+            FlightState.WAITING,
+            FlightState.DONE,
+        ):
             self._finish(FlightResult.ABORTED, "the autopilot restarted during the flight")
 
     def _sync(self, frame: ReceivedFrame) -> None:

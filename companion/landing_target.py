@@ -52,6 +52,8 @@ import numpy as np
 
 from companion.camera import ReceivedFrame
 from companion.contract import Observation
+from companion.contract.companion_records import CompanionLandingTargetRecord
+from companion.contract.records import EventKind
 from companion.flight import FlightContext, FlightMachine, FlightRecorder
 from companion.link import mavlink
 from companion.policy_net.geometry import rotation_zyx
@@ -192,7 +194,7 @@ class PadTracker:
 
 
 class LandingTargetRecorder(FlightRecorder, Protocol):
-    def landing_target(self, t: float, body: dict[str, Any]) -> None: ...
+    def landing_target(self, t: float, record: CompanionLandingTargetRecord) -> None: ...
 
 
 class LandingTargetController(FlightMachine):
@@ -232,7 +234,7 @@ class LandingTargetController(FlightMachine):
                 if now - self._created_s > 1.0:
                     self._last_arm_s = now
                     link.arm(True)
-                    self._event("arm", "arming (--arm)")
+                    self._event(EventKind.ARM, "arming (--arm)")
             return "disarmed (the pilot arms; --arm for SITL demos)"
         if not self.cfg.shadow and (
             profile.is_land(hb.custom_mode) or profile.is_offboard(hb.custom_mode)
@@ -257,13 +259,13 @@ class LandingTargetController(FlightMachine):
             return
         if result == mavlink.MAV_RESULT_ACCEPTED:
             self._mode_acked = True
-            self._event("precland_ack", "precision land accepted")
+            self._event(EventKind.PRECLAND_ACK, "precision land accepted")
         elif result != mavlink.MAV_RESULT_IN_PROGRESS:
             self._refused(f"DO_SET_MODE result {result}")
 
     def _refused(self, why: str) -> None:
         self._engage_attempts += 1
-        self._event("precland_refused", why)
+        self._event(EventKind.PRECLAND_REFUSED, why)
         if self._engage_attempts >= _ENGAGE_ATTEMPTS:
             self._finish(
                 FlightResult.ENGAGE_FAILED, f"precision land refused {self._engage_attempts} times"
@@ -305,10 +307,10 @@ class LandingTargetController(FlightMachine):
         stamp_ms = round(frame.time_s * 1e6) // 1000
         store = self.store
         age, worst = store.max_age_s(("attitude", "imu", "range"), now)
-        body: dict[str, Any] = {"frame_id": frame.frame_id, "image_time_s": frame.time_s}
+        body: dict[str, Any] = {}  # the record's optional fields, by keyword
         fields = None
         if age > self.safety.config.max_age_s:
-            body["why_not"] = f"{worst} {age * 1e3:.0f} ms old"
+            body.update(why_not=f"{worst} {age * 1e3:.0f} ms old")
             self.tracker.reset()  # an estimate built on stale inputs is not one
             result = None
         else:
@@ -342,8 +344,14 @@ class LandingTargetController(FlightMachine):
             if not self.cfg.shadow and self.camera_clock == "autopilot":
                 self.link.send_frame_marker(stamp_ms, frame.frame_id)
         self.outcome.policy_commands += sent is not None
-        body.update(sent=sent is not None, latency_ms=((sent or self._clock()) - frame.rx_s) * 1e3)
-        self.log.landing_target(now, body)
+        record = CompanionLandingTargetRecord(
+            frame_id=frame.frame_id,
+            image_time_s=frame.time_s,
+            **body,
+            sent=sent is not None,
+            latency_ms=((sent or self._clock()) - frame.rx_s) * 1e3,
+        )
+        self.log.landing_target(now, record)
 
     # ------------------------------------------------------------------ time
 
@@ -357,7 +365,7 @@ class LandingTargetController(FlightMachine):
                     self._enter(FlightState.WAITING, f"not ready any more: {reason}")
                 elif reason != self._wait_reason:
                     self._wait_reason = reason
-                    self._event("waiting", reason)
+                    self._event(EventKind.WAITING, reason)
                 return
             if state is FlightState.WAITING:
                 if self.cfg.shadow:
@@ -383,5 +391,7 @@ class LandingTargetController(FlightMachine):
         if self.done:
             return
         if self.state is FlightState.FLYING and not self.cfg.shadow:
-            self._event("hand_back", f"{reason}: LANDING_TARGET stream stops; the autopilot lands")
+            self._event(
+                EventKind.HAND_BACK, f"{reason}: LANDING_TARGET stream stops; the autopilot lands"
+            )
         self._finish(FlightResult.ABORTED, reason)

@@ -34,6 +34,8 @@ import math
 import numpy as np
 
 from companion.camera import ReceivedFrame
+from companion.contract.companion_records import CompanionCommandRecord, CompanionObservationRecord
+from companion.contract.records import EventKind
 from companion.flight import FlightContext, FlightMachine, FlightRecorder
 from companion.link import mavlink
 from companion.runtime import PolicyRuntime
@@ -102,7 +104,7 @@ class FlightController(FlightMachine):
             elif now - self._created_s > self.cfg.param_timeout_s:
                 self._hover = self.cfg.hover_thrust
                 self._event(
-                    "param",
+                    EventKind.PARAM,
                     f"{self.link.profile.hover_param} not reported; neutral thrust "
                     f"{self.cfg.hover_thrust} from the config",
                 )
@@ -148,7 +150,7 @@ class FlightController(FlightMachine):
                 if self.cfg.arm and now - self._last_arm_s > 2.0 and now - self._created_s > 1.0:
                     self._last_arm_s = now
                     link.arm(True)
-                    self._event("arm", "arming (--arm)")
+                    self._event(EventKind.ARM, "arming (--arm)")
                 return "disarmed (the pilot arms; --arm for SITL demos)"
         elif not hb.armed:
             return "disarmed"
@@ -176,10 +178,10 @@ class FlightController(FlightMachine):
             if result == mavlink.MAV_RESULT_ACCEPTED:
                 self._mode_acked = True
                 self._mode_change_ap_s = self.store.latest_time_s
-                self._event("offboard_ack", "OFFBOARD accepted")
+                self._event(EventKind.OFFBOARD_ACK, "OFFBOARD accepted")
             elif result != mavlink.MAV_RESULT_IN_PROGRESS:
                 self._engage_attempts += 1
-                self._event("offboard_refused", f"DO_SET_MODE result {result}")
+                self._event(EventKind.OFFBOARD_REFUSED, f"DO_SET_MODE result {result}")
                 if self._engage_attempts >= _ENGAGE_ATTEMPTS:
                     self._finish(
                         FlightResult.ENGAGE_FAILED,
@@ -284,16 +286,16 @@ class FlightController(FlightMachine):
         self.outcome.neutral_setpoints += handed is not None
         self.log.command(
             now,
-            {
-                "frame_id": frame.frame_id,
-                "policy": False,
-                "kind": kind,
-                "thrust_norm": thrust,
-                "rate_frd_rad_s": [0.0, 0.0, 0.0],
-                "sent": handed is not None,
-                "time_boot_ms": stamp,
-                "latency_ms": ((handed or self._clock()) - frame.rx_s) * 1e3,
-            },
+            CompanionCommandRecord(
+                frame_id=frame.frame_id,
+                policy=False,
+                kind=kind,
+                thrust_norm=thrust,
+                rate_frd_rad_s=[0.0, 0.0, 0.0],
+                sent=handed is not None,
+                time_boot_ms=stamp,
+                latency_ms=((handed or self._clock()) - frame.rx_s) * 1e3,
+            ),
         )
 
     def _policy_step(self, frame: ReceivedFrame) -> None:
@@ -322,39 +324,39 @@ class FlightController(FlightMachine):
         self.outcome.policy_commands += 1
         self.log.observation(
             now,
-            {
-                "frame_id": frame.frame_id,
-                "image_time_s": obs.image_time_s,
-                "attitude_rad": obs.attitude_rad,
-                "rate_frd_rad_s": obs.rate_frd_rad_s,
-                "attitude_time_s": obs.attitude_time_s,
-                "range_m": obs.range_m,
-                "range_time_s": obs.range_time_s,
-                "accel_frd_m_s2": obs.accel_frd_m_s2,
-                "imu_time_s": obs.imu_time_s,
-                "hover_thrust_norm": obs.hover_thrust_norm,  # NaN (not reported) is null
-                "groundtruth_time_s": None if gt is None else gt.time_s,
-            },
+            CompanionObservationRecord(
+                frame_id=frame.frame_id,
+                image_time_s=obs.image_time_s,
+                attitude_rad=obs.attitude_rad,
+                rate_frd_rad_s=obs.rate_frd_rad_s,
+                attitude_time_s=obs.attitude_time_s,
+                range_m=obs.range_m,
+                range_time_s=obs.range_time_s,
+                accel_frd_m_s2=obs.accel_frd_m_s2,
+                imu_time_s=obs.imu_time_s,
+                hover_thrust_norm=obs.hover_thrust_norm,  # NaN (not reported) is null
+                groundtruth_time_s=None if gt is None else gt.time_s,
+            ),
         )
         self.log.command(
             t_sent,
-            {
-                "frame_id": frame.frame_id,
-                "policy": True,
-                "kind": "shadow" if self.cfg.shadow else "policy",
-                "thrust_norm": cmd.thrust_norm,
-                "rate_frd_rad_s": cmd.rate_frd_rad_s,
-                "raw_thrust_norm": raw.thrust_norm,
-                "raw_rate_frd_rad_s": raw.rate_frd_rad_s,
-                "clamped": clamped,
-                "sent": handed is not None,
-                "time_boot_ms": stamp,
-                "latency_ms": (t_sent - frame.rx_s) * 1e3,
-                "send_call_ms": self.link.last_send_call_s * 1e3 if handed else None,
-                "compute_ms": result.compute_s * 1e3,
-                "queue_ms": (t_in - frame.rx_s) * 1e3,
-                "sync_ms": (now - t_in) * 1e3,
-            },
+            CompanionCommandRecord(
+                frame_id=frame.frame_id,
+                policy=True,
+                kind="shadow" if self.cfg.shadow else "policy",
+                thrust_norm=cmd.thrust_norm,
+                rate_frd_rad_s=cmd.rate_frd_rad_s,
+                raw_thrust_norm=raw.thrust_norm,
+                raw_rate_frd_rad_s=raw.rate_frd_rad_s,
+                clamped=clamped,
+                sent=handed is not None,
+                time_boot_ms=stamp,
+                latency_ms=(t_sent - frame.rx_s) * 1e3,
+                send_call_ms=self.link.last_send_call_s * 1e3 if handed else None,
+                compute_ms=result.compute_s * 1e3,
+                queue_ms=(t_in - frame.rx_s) * 1e3,
+                sync_ms=(now - t_in) * 1e3,
+            ),
         )
         if self._touchdown.update(self.store, self._flight_start_rx):
             self._on_touchdown()
@@ -372,7 +374,7 @@ class FlightController(FlightMachine):
     def _failsafe(self, failsafe: Failsafe) -> None:
         self.outcome.failsafe = failsafe
         if self.cfg.shadow:
-            self._event("failsafe_shadow", f"would request LAND: {failsafe}")
+            self._event(EventKind.FAILSAFE_SHADOW, f"would request LAND: {failsafe}")
             self._finish(FlightResult.SHADOW, f"failsafe (shadow): {failsafe}")
             return
         self._enter(FlightState.FAILSAFE, f"{failsafe}: LAND requested, setpoints stopped")
@@ -397,7 +399,7 @@ class FlightController(FlightMachine):
                     self._enter(FlightState.PRESTREAM, "ready: pre-streaming neutral setpoints")
             elif reason != self._wait_reason:
                 self._wait_reason = reason
-                self._event("waiting", reason)
+                self._event(EventKind.WAITING, reason)
         elif state is FlightState.PRESTREAM:
             reason = self._gate(now)
             if reason is not None:
@@ -475,5 +477,7 @@ class FlightController(FlightMachine):
             profile = self.link.profile
             target = profile.land if mode == "land" else profile.hold
             self.link.request_mode(target, armed=self._armed())
-            self._event("hand_back", f"{reason}: {mode.upper()} requested, setpoints stopped")
+            self._event(
+                EventKind.HAND_BACK, f"{reason}: {mode.upper()} requested, setpoints stopped"
+            )
         self._finish(FlightResult.ABORTED, reason)

@@ -15,6 +15,9 @@ file was opened; every record also has ``time_s`` on that clock):
   the policy's state was reset (:meth:`CompanionLog.flight_start`; the replay resets there too);
 * ``/companion/summary`` — the flight's counters, last.
 
+Every message's fields are a record of the contract (:mod:`companion.contract.companion_records`,
+:mod:`companion.contract.records`): written from one, read back with its ``from_dict``.
+
 Writes are queued while a frame is being answered and written after the setpoint is sent
 (:meth:`CompanionLog.flush_pending`), so logging never adds to the latency; the queue keeps
 receipt order, which is what makes a log replayable (:func:`replay_log`).
@@ -35,32 +38,33 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
+from companion.contract.companion_records import (
+    CompanionCommandRecord,
+    CompanionLandingTargetRecord,
+    CompanionObservationRecord,
+    CompanionSummaryRecord,
+)
+from companion.contract.record_base import ABSENT, TIME_S, LogRecord
+from companion.contract.records import EventKind, EventRecord, RawImageRecord, Timestamp
 from companion.contract.topics import (
-    SCHEMA_COMPANION_LANDING_TARGET,
+    TOPIC_COMPANION_COMMAND,
     TOPIC_COMPANION_LANDING_TARGET,
+    TOPIC_COMPANION_OBSERVATION,
+    TOPIC_COMPANION_SUMMARY,
     TOPIC_EVENTS,
     TOPIC_IMAGE,
+    TOPIC_MAVLINK_IN,
+    mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter, read_log
 from companion.telemetry import TelemetryStore, assemble_observation
 
 __all__ = [
-    "EVENT_FLIGHT_START",
-    "TOPIC_COMMAND",
-    "TOPIC_OBSERVATION",
-    "TOPIC_SUMMARY",
     "CompanionLog",
     "ReplayReport",
     "latency_stats",
     "replay_log",
 ]
-
-TOPIC_MAVLINK_IN = "/mavlink/in/"
-TOPIC_OBSERVATION = "/companion/observation"
-TOPIC_COMMAND = "/companion/command"
-TOPIC_SUMMARY = "/companion/summary"
-EVENT_FLIGHT_START = "flight_start"
-"""The ``/events`` kind written when the policy takes over (its state reset)."""
 
 
 def _jsonable_msg(msg: Any) -> dict[str, Any]:
@@ -110,56 +114,57 @@ class CompanionLog:
         for topic, schema, t, body in pending:
             self.writer.write(topic, schema, t, body)
 
+    def _put_record(self, topic: str, t: float, record: LogRecord) -> None:
+        self._put(topic, record.SCHEMA, t, record.to_dict())
+
     def message(self, msg: Any, rx_s: float) -> None:
         name = msg.get_type()
         self._put(
-            TOPIC_MAVLINK_IN + name, "mavlink." + name, rx_s, {**_jsonable_msg(msg), "rx_s": rx_s}
+            TOPIC_MAVLINK_IN + name,
+            mavlink_schema(name),
+            rx_s,
+            {**_jsonable_msg(msg), "rx_s": rx_s},
         )
 
     def frame(self, frame: ReceivedFrame) -> None:
         img = np.ascontiguousarray(frame.image, dtype=np.uint8)
         t_ns = self.writer.log_time_ns(max(0.0, self.rel(frame.rx_s)))
-        self._put(
-            TOPIC_IMAGE,
-            "foxglove.RawImage",
-            frame.rx_s,
-            {
-                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-                "frame_id": f"camera/{frame.frame_id}",
-                "width": int(img.shape[1]),
-                "height": int(img.shape[0]),
-                "encoding": "mono8",
-                "step": int(img.shape[1]),
-                "data": base64.b64encode(img.tobytes()).decode("ascii"),
-                "frame_number": frame.frame_id,
-                "capture_time_s": frame.time_s,
-                "rx_s": frame.rx_s,
-            },
+        record = RawImageRecord(
+            timestamp=Timestamp.from_ns(t_ns),
+            frame_id=f"camera/{frame.frame_id}",
+            width=int(img.shape[1]),
+            height=int(img.shape[0]),
+            encoding="mono8",
+            step=int(img.shape[1]),
+            data=base64.b64encode(img.tobytes()).decode("ascii"),
+            frame_number=frame.frame_id,
+            capture_time_s=frame.time_s,
+            rx_s=frame.rx_s,
         )
+        self._put_record(TOPIC_IMAGE, frame.rx_s, record)
 
-    def observation(self, t: float, body: dict[str, Any]) -> None:
-        self._put(TOPIC_OBSERVATION, "visland.CompanionObservation", t, body)
+    def observation(self, t: float, record: CompanionObservationRecord) -> None:
+        self._put_record(TOPIC_COMPANION_OBSERVATION, t, record)
 
-    def command(self, t: float, body: dict[str, Any]) -> None:
-        self._put(TOPIC_COMMAND, "visland.CompanionCommand", t, body)
+    def command(self, t: float, record: CompanionCommandRecord) -> None:
+        self._put_record(TOPIC_COMPANION_COMMAND, t, record)
 
-    def landing_target(self, t: float, body: dict[str, Any]) -> None:
+    def landing_target(self, t: float, record: CompanionLandingTargetRecord) -> None:
         """Landing-target mode: a frame's pad estimate and what was sent."""
-        self._put(TOPIC_COMPANION_LANDING_TARGET, SCHEMA_COMPANION_LANDING_TARGET, t, body)
+        self._put_record(TOPIC_COMPANION_LANDING_TARGET, t, record)
 
-    def event(self, t: float, kind: str, text: str, **extra: Any) -> None:
-        self._put(TOPIC_EVENTS, "visland.Event", t, {"kind": kind, "text": text, **extra})
+    def event(self, t: float, kind: EventKind, text: str, **extra: Any) -> None:
+        """An ``/events`` record (``extra``: the companion's ``state`` or ``shadow``)."""
+        self._put_record(TOPIC_EVENTS, t, EventRecord(kind=kind, text=text, **extra))
 
     def flight_start(self, t: float, text: str, shadow: bool) -> None:
         """The policy takes over (state reset): where :func:`replay_log` resets it too."""
-        self.event(t, EVENT_FLIGHT_START, text, shadow=shadow)
+        self.event(t, EventKind.FLIGHT_START, text, shadow=shadow)
 
-    def close(self, summary: dict[str, Any] | None = None) -> None:
+    def close(self, summary: CompanionSummaryRecord | None = None) -> None:
         self.flush_pending()
         if summary is not None:
-            self.writer.write(
-                TOPIC_SUMMARY, "visland.CompanionSummary", self.rel(self._clock()), summary
-            )
+            self.writer.write_record(TOPIC_COMPANION_SUMMARY, self.rel(self._clock()), summary)
         self.writer.close()
 
 
@@ -171,11 +176,14 @@ def latency_stats(paths: list[str | Path]) -> dict[str, Any]:
     lat: list[float] = []
     compute: list[float] = []
     for path in paths:
-        log = read_log(path, topics=[TOPIC_COMMAND])
-        for m in log.topic(TOPIC_COMMAND):
-            if m.get("policy") and m.get("sent") and m.get("latency_ms") is not None:
-                lat.append(float(m["latency_ms"]))
-                compute.append(float(m.get("compute_ms") or 0.0))
+        log = read_log(path, topics=[TOPIC_COMPANION_COMMAND])
+        for m in log.topic(TOPIC_COMPANION_COMMAND):
+            rec = CompanionCommandRecord.from_dict(m)
+            if rec.policy and rec.sent and rec.latency_ms is not None:
+                lat.append(float(rec.latency_ms))
+                compute.append(
+                    float(rec.compute_ms or 0.0) if rec.compute_ms is not ABSENT else 0.0
+                )
     if not lat:
         return {"commands": 0}
     arr = np.asarray(lat)
@@ -258,33 +266,39 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
     times: dict[int, dict[str, float | None]] = {}  # the sample times it was given
     for topic, msg in _raw_records(path):
         if topic.startswith(TOPIC_MAVLINK_IN):
-            fields = {k: v for k, v in msg.items() if k not in ("time_s", "mavpackettype")}
+            fields = {k: v for k, v in msg.items() if k not in (TIME_S, "mavpackettype")}
             for key in ("x", "y", "z"):  # JSON null = NaN (never in fields we read, but safe)
                 if key in fields and fields[key] is None:
                     fields[key] = float("nan")
-            store.update(_Recorded(topic[len(TOPIC_MAVLINK_IN) :], fields), float(msg["rx_s"]))
+            store.update(_Recorded(topic[len(TOPIC_MAVLINK_IN) :], fields), float(fields["rx_s"]))
         elif topic == TOPIC_IMAGE:
-            img = np.frombuffer(base64.b64decode(msg["data"]), dtype=np.uint8).reshape(
-                msg["height"], msg["width"]
+            image = RawImageRecord.from_dict(msg)
+            img = np.frombuffer(base64.b64decode(image.data), dtype=np.uint8).reshape(
+                image.height, image.width
             )
-            fid = int(msg["frame_number"])
-            frames = {fid: ReceivedFrame(fid, float(msg["capture_time_s"]), img, msg["rx_s"])}
-        elif topic == TOPIC_OBSERVATION:
-            if msg.get("hover_thrust_norm") is not None:
-                hovers = {int(msg["frame_id"]): float(msg["hover_thrust_norm"])}
+            fid = int(image.frame_number)
+            frames = {fid: ReceivedFrame(fid, float(image.capture_time_s), img, image.rx_s)}
+        elif topic == TOPIC_COMPANION_OBSERVATION:
+            obs_rec = CompanionObservationRecord.from_dict(msg)
+            fid = int(obs_rec.frame_id)
+            if obs_rec.hover_thrust_norm is not None:
+                hovers = {fid: float(obs_rec.hover_thrust_norm)}
             # the samples the flight used (on a jittery link not always the newest)
             times = {
-                int(msg["frame_id"]): {
-                    "attitude": msg.get("attitude_time_s"),
-                    "imu": msg.get("imu_time_s"),
-                    "range": msg.get("range_time_s"),
-                    "odometry": msg.get("groundtruth_time_s"),
+                fid: {
+                    "attitude": obs_rec.attitude_time_s,
+                    "imu": obs_rec.imu_time_s,
+                    "range": obs_rec.range_time_s,
+                    "odometry": obs_rec.groundtruth_time_s,
                 }
             }
-        elif topic == TOPIC_EVENTS and msg.get("kind") == EVENT_FLIGHT_START:
+        elif topic == TOPIC_EVENTS and EventRecord.from_dict(msg).kind == EventKind.FLIGHT_START:
             runtime.reset()
-        elif topic == TOPIC_COMMAND and msg.get("policy"):
-            fid = int(msg["frame_id"])
+        elif (
+            topic == TOPIC_COMPANION_COMMAND
+            and (rec := CompanionCommandRecord.from_dict(msg)).policy
+        ):
+            fid = int(rec.frame_id)
             frame = frames.get(fid)
             if frame is None:
                 report.errors.append(f"frame {fid}: not in the log before its command")
@@ -297,7 +311,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
                 report.errors.append(f"frame {fid}: {result.error}")
                 continue
             ours = np.concatenate(([result.command.thrust_norm], result.command.rate_frd_rad_s))
-            theirs = np.asarray([msg["raw_thrust_norm"], *msg["raw_rate_frd_rad_s"]], float)
+            theirs = np.asarray([rec.raw_thrust_norm, *rec.raw_rate_frd_rad_s], float)
             diff = float(np.max(np.abs(ours - theirs)))
             report.commands += 1
             if report.worst_frame is None or diff > report.max_abs_diff:

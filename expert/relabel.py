@@ -24,8 +24,14 @@ from typing import Any
 import numpy as np
 
 from companion.contract import IMAGE_SIZE_PX, ContractError
+from companion.contract.records import (
+    TIME_S,
+    CommandRecord,
+    GroundTruthRecord,
+    LabelRecord,
+    ObservationRecord,
+)
 from companion.contract.topics import (
-    SCHEMA_LABEL,
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_LABEL,
@@ -36,7 +42,6 @@ from companion.files import sha256_file
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from expert.mpc import MpcExpert, MpcSolveError
 from sitl_sim.config import Planet, VehicleConfig, load_sim, load_vehicle, planet
-from sitl_sim.flight_record import groundtruth_from_msg, observation_from_msg
 from sitl_sim.physics.airframe import AirframeScales
 
 __all__ = ["RelabelError", "RelabelReport", "label_path", "relabel", "relabel_log"]
@@ -171,27 +176,24 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
     with FlightLogWriter(tmp, meta, reproducible=True) as writer:
         for fid in frames:
             try:
-                gt = groundtruth_from_msg(truths[fid])
-                obs = observation_from_msg(observations[fid], _BLANK)
+                truth = truths[fid]
+                gt = GroundTruthRecord.from_dict(truth).groundtruth(truth[TIME_S])
+                obs = ObservationRecord.from_dict(observations[fid]).observation(_BLANK)
             except (KeyError, ValueError, TypeError, ContractError) as exc:
                 raise RelabelError(f"{log_path}: frame {fid}: bad record: {exc}") from None
             try:
                 command, state = expert.act(obs, gt, state)
             except MpcSolveError as exc:
                 raise RelabelError(f"{log_path}: frame {fid}: expert failed: {exc}") from None
-            rec = recorded.get(fid)
-            writer.write(
-                TOPIC_LABEL,
-                SCHEMA_LABEL,
-                gt.time_s,
-                {
-                    "frame_id": fid,
-                    "thrust_norm": command.thrust_norm,
-                    "rate_frd_rad_s": command.rate_frd_rad_s,
-                    "recorded_thrust_norm": rec["thrust_norm"] if rec else math.nan,
-                    "recorded_rate_frd_rad_s": rec["rate_frd_rad_s"] if rec else [math.nan] * 3,
-                },
+            rec = CommandRecord.from_dict(recorded[fid]) if fid in recorded else None
+            label = LabelRecord(
+                frame_id=fid,
+                thrust_norm=command.thrust_norm,
+                rate_frd_rad_s=command.rate_frd_rad_s,
+                recorded_thrust_norm=rec.thrust_norm if rec else math.nan,
+                recorded_rate_frd_rad_s=rec.rate_frd_rad_s if rec else [math.nan] * 3,
             )
+            writer.write_record(TOPIC_LABEL, gt.time_s, label)
             steps += 1
     tmp.replace(out)
     return RelabelReport(str(log_path), str(out), steps, log.truncated, None)
