@@ -182,84 +182,30 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
     fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
     (ax_top, ax_alt), (ax_att, ax_cmd) = axes
     try:
-        # Top view: east to the right, north up, the pad and its cross at the origin.
-        topic = src.sources["position"]
-        if topic is None:
-            _missing(ax_top, "no position\n" + _missing_line(src, "position"))
-        else:
-            _, pos, _ = _series(log, "position", topic)
-            draw_pad(ax_top, success_circle=False)
-            ax_top.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
-            ax_top.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
-            ax_top.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
-            span = max(3.0, float(np.nanmax(np.abs(pos[:, :2]))) * 1.15)
-            ax_top.set_xlim(-span, span)
-            ax_top.set_ylim(-span, span)
-            ax_top.set_aspect("equal")
-            ax_top.legend(loc="upper right", fontsize=8)
-            ax_top.grid(alpha=0.3)
-        ax_top.set_title(f"top view ({topic or 'missing'})", fontsize=10)
-        ax_top.set_xlabel("east (m)")
-        ax_top.set_ylabel("north (m)")
-
-        topic = src.sources["altitude"]
-        if topic is None:
-            _missing(ax_alt, "no altitude or range\n" + _missing_line(src, "altitude"))
-        else:
-            t, alt, label = _series(log, "altitude", topic)
-            ax_alt.plot(t, alt[:, 0], color="tab:blue", label=label)
-            radar = next(
-                (
-                    t
-                    for t, _, lab in SOURCES["altitude"]
-                    if lab.startswith("radar") and log.topic(t)
-                ),
-                None,
-            )
-            if radar is not None and radar != topic:  # the measurement beside the truth
-                t2, rng, label2 = _series(log, "altitude", radar)
-                ax_alt.plot(t2, rng[:, 0], color="tab:orange", linewidth=0.8, label=label2)
-            ax_alt.legend(fontsize=8)
-            ax_alt.grid(alpha=0.3)
-            _mark_events(ax_alt, events, label=True)
-        ax_alt.set_title(f"altitude ({topic or 'missing'})", fontsize=10)
-        ax_alt.set_xlabel("time (s)")
-        ax_alt.set_ylabel("m")
-
-        topic = src.sources["attitude"]
-        if topic is None:
-            _missing(ax_att, "no attitude\n" + _missing_line(src, "attitude"))
-        else:
-            t, att, label = _series(log, "attitude", topic)
-            for k, name in enumerate(("roll", "pitch", "yaw")):
-                ax_att.plot(t, np.degrees(att[:, k]), label=name)
-            ax_att.legend(fontsize=8)
-            ax_att.grid(alpha=0.3)
-            _mark_events(ax_att, events)
-        ax_att.set_title(f"attitude ({topic or 'missing'})", fontsize=10)
-        ax_att.set_xlabel("time (s)")
-        ax_att.set_ylabel("deg")
-
-        topic = src.sources["command"]
-        if topic is None:
-            _missing(ax_cmd, "no commands\n" + _missing_line(src, "command"))
-        else:
-            t, cmd, label = _series(log, "command", topic)
-            thrust, rates = cmd[:, 0], cmd[:, 1:]
-            ax_cmd.step(t, thrust, where="post", color="k", label=f"thrust_norm ({label})")
-            ax_cmd.set_ylabel("thrust_norm")
-            ax_cmd.set_ylim(-0.02, 1.02)
-            ax_rate = ax_cmd.twinx()
-            for k, name in enumerate(("p (roll rate)", "q (pitch rate)", "r (yaw rate)")):
-                ax_rate.step(t, rates[:, k], where="post", linewidth=0.9, label=name)
-            ax_rate.set_ylabel("body rate (rad/s, FRD)")
-            handles = ax_cmd.get_legend_handles_labels()
-            rate_handles = ax_rate.get_legend_handles_labels()
-            ax_cmd.legend(handles[0] + rate_handles[0], handles[1] + rate_handles[1], fontsize=8)
-            ax_cmd.grid(alpha=0.3)
-            _mark_events(ax_cmd, events)
-        ax_cmd.set_title(f"commands ({topic or 'missing'})", fontsize=10)
-        ax_cmd.set_xlabel("time (s)")
+        for ax, panel, draw, title, missing, xlabel, ylabel in (
+            (ax_top, "position", _draw_top, "top view", "no position", "east (m)", "north (m)"),
+            (
+                ax_alt,
+                "altitude",
+                _draw_altitude,
+                "altitude",
+                "no altitude or range",
+                "time (s)",
+                "m",
+            ),
+            (ax_att, "attitude", _draw_attitude, "attitude", "no attitude", "time (s)", "deg"),
+            (ax_cmd, "command", _draw_commands, "commands", "no commands", "time (s)", None),
+        ):
+            # each panel draws its source, or says which topics it looked for
+            topic = src.sources[panel]
+            if topic is None:
+                _missing(ax, f"{missing}\n" + _missing_line(src, panel))
+            else:
+                draw(ax, log, topic, events)
+            ax.set_title(f"{title} ({topic or 'missing'})", fontsize=10)
+            ax.set_xlabel(xlabel)
+            if ylabel is not None:
+                ax.set_ylabel(ylabel)
 
         fig.suptitle(_title(log, kind), fontsize=11)
         fig.tight_layout()
@@ -268,6 +214,66 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
     finally:
         plt.close(fig)
     return PlotReport(out_path, kind, src.sources, src.missing, log.truncated, log.error)
+
+
+def _draw_top(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
+    """Top view: east to the right, north up, the pad and its cross at the origin (no event
+    marks: a map has no time axis)."""
+    _, pos, _ = _series(log, "position", topic)
+    draw_pad(ax, success_circle=False)
+    ax.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
+    ax.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
+    ax.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
+    span = max(3.0, float(np.nanmax(np.abs(pos[:, :2]))) * 1.15)
+    ax.set_xlim(-span, span)
+    ax.set_ylim(-span, span)
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(alpha=0.3)
+
+
+def _draw_altitude(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
+    """Altitude (or range) against time, the radar's measurement beside the truth."""
+    t, alt, label = _series(log, "altitude", topic)
+    ax.plot(t, alt[:, 0], color="tab:blue", label=label)
+    radar = next(
+        (t for t, _, lab in SOURCES["altitude"] if lab.startswith("radar") and log.topic(t)),
+        None,
+    )
+    if radar is not None and radar != topic:
+        t2, rng, label2 = _series(log, "altitude", radar)
+        ax.plot(t2, rng[:, 0], color="tab:orange", linewidth=0.8, label=label2)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    _mark_events(ax, events, label=True)
+
+
+def _draw_attitude(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
+    """Roll, pitch and yaw (degrees) against time."""
+    t, att, _ = _series(log, "attitude", topic)
+    for k, name in enumerate(("roll", "pitch", "yaw")):
+        ax.plot(t, np.degrees(att[:, k]), label=name)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    _mark_events(ax, events)
+
+
+def _draw_commands(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
+    """thrust_norm (left axis) and the body-rate commands (right axis) as steps in time."""
+    t, cmd, label = _series(log, "command", topic)
+    thrust, rates = cmd[:, 0], cmd[:, 1:]
+    ax.step(t, thrust, where="post", color="k", label=f"thrust_norm ({label})")
+    ax.set_ylabel("thrust_norm")
+    ax.set_ylim(-0.02, 1.02)
+    ax_rate = ax.twinx()
+    for k, name in enumerate(("p (roll rate)", "q (pitch rate)", "r (yaw rate)")):
+        ax_rate.step(t, rates[:, k], where="post", linewidth=0.9, label=name)
+    ax_rate.set_ylabel("body rate (rad/s, FRD)")
+    handles = ax.get_legend_handles_labels()
+    rate_handles = ax_rate.get_legend_handles_labels()
+    ax.legend(handles[0] + rate_handles[0], handles[1] + rate_handles[1], fontsize=8)
+    ax.grid(alpha=0.3)
+    _mark_events(ax, events)
 
 
 def _missing_line(src: PlotSources, panel: str) -> str:
