@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.contract.records import TIME_S, EventKind, EventRecord, RecordError
 from companion.contract.topics import TOPIC_EVENTS
 from companion.flightlog import FlightLog, read_log
 from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
@@ -40,7 +41,14 @@ __all__ = [
     "plot_log",
 ]
 
-_MARKED_EVENTS = ("flight", "mode", "failsafe", "disarmed", "flight_start", "state")
+_MARKED_EVENTS = (
+    EventKind.FLIGHT,
+    EventKind.MODE,
+    EventKind.FAILSAFE,
+    EventKind.DISARMED,
+    EventKind.FLIGHT_START,
+    EventKind.STATE,
+)
 """Event kinds drawn as vertical lines on the time plots (the SITL autopilot's mode/arming
 story; the companion's state machine)."""
 
@@ -74,10 +82,21 @@ def _series(log: FlightLog, panel: str, topic: str) -> tuple[np.ndarray, np.ndar
 
 def _events(log: FlightLog) -> list[tuple[float, str]]:
     return [
-        (float(e["time_s"]), str(e.get("text", e["kind"])))
-        for e in log.topic(TOPIC_EVENTS)
-        if e.get("kind") in _MARKED_EVENTS and "time_s" in e
+        (float(m[TIME_S]), ev.text)
+        for m, ev in _event_records(log)
+        if ev.kind in _MARKED_EVENTS and TIME_S in m
     ]
+
+
+def _event_records(log: FlightLog) -> list[tuple[dict[str, Any], EventRecord]]:
+    """``(message, record)`` of every readable ``/events`` message."""
+    out = []
+    for m in log.topic(TOPIC_EVENTS):
+        try:
+            out.append((m, EventRecord.from_dict(m)))
+        except RecordError:
+            continue  # not an event this reader knows how to draw
+    return out
 
 
 # --------------------------------------------------------------------------- plot
@@ -283,7 +302,7 @@ def _missing_line(src: PlotSources, panel: str) -> str:
 
 # --------------------------------------------------------------------------- several flights
 
-_FLIGHT_START_EVENTS = ("flight", "flight_start")
+_FLIGHT_START_EVENTS = (EventKind.FLIGHT, EventKind.FLIGHT_START)
 """Event kinds that mark the start of the flight proper (SITL: OFFBOARD/LAND took over;
 companion: the policy took over); the multi-flight plot's clock starts there."""
 _ZOOM_HALF_M = 3.0  # the touchdown panel: the pad (+-2 m) and a margin
@@ -308,9 +327,9 @@ class FlightsPlotReport:
 
 def _flight_start_s(log: FlightLog, first_sample_s: float) -> float:
     starts = [
-        float(e["time_s"])
-        for e in log.topic(TOPIC_EVENTS)
-        if e.get("kind") in _FLIGHT_START_EVENTS and "time_s" in e
+        float(m[TIME_S])
+        for m, ev in _event_records(log)
+        if ev.kind in _FLIGHT_START_EVENTS and TIME_S in m
     ]
     return min(starts) if starts else first_sample_s
 
