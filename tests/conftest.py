@@ -1,16 +1,17 @@
-"""Shared fixtures: configs read from the repository's configs/, one pybullet scene per session."""
+"""Shared fixtures: configs read from the repository's configs/, one pybullet scene per session,
+a test's subprocesses, in-process SITL configs on free loopback ports."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
+from flights import Ports, Processes, free_ports
 
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.mavlink.config import SitlConfig
 from sitl_sim.render.scene import Scene
-from training.exec.fly import free_udp_port
 
 
 @pytest.fixture(scope="session")
@@ -27,6 +28,14 @@ def sim_cfg() -> SimConfig:
 def quiet_cfg(sim_cfg: SimConfig) -> SimConfig:
     """The default simulation with every sensor noise off (physics tests)."""
     return sim_cfg.noiseless()
+
+
+@pytest.fixture
+def procs(tmp_path) -> Iterator[Processes]:
+    """The test's subprocesses (:class:`flights.Processes`), stopped by PID at teardown."""
+    p = Processes(tmp_path)
+    yield p
+    p.stop_all()
 
 
 @pytest.fixture(scope="session")
@@ -65,10 +74,8 @@ def loopback_sitl():
     loopback UDP ports (``ports.mavlink``, ``.remote``, ``.camera``) and an in-process SITL
     config on them without GCS link or rendering, stopping after 60 s of wall time at most."""
 
-    def make(scenario, log_dir, **overrides) -> tuple[SimpleNamespace, SitlConfig]:
-        ports = SimpleNamespace(
-            mavlink=free_udp_port(), remote=free_udp_port(), camera=free_udp_port()
-        )
+    def make(scenario, log_dir, **overrides) -> tuple[Ports, SitlConfig]:
+        ports = free_ports()
         values = dict(
             mavlink_port=ports.mavlink,
             remote_port=ports.remote,

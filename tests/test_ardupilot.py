@@ -6,9 +6,7 @@ the companion's ``--autopilot ardupilot`` against the SITL's ``--autopilot ardup
 from __future__ import annotations
 
 import math
-import re
 import signal
-import subprocess
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -399,22 +397,20 @@ def test_card_guid_options_0_companion_refuses_to_engage_and_says_why(tmp_path):
     ) in events, events
 
 
-def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(tmp_path):
+def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, tmp_path):
     """SIGKILL in flight: ArduCopter stays in GUIDED_NOGPS, follows the last setpoint for
     GUID_TIMEOUT, then levels and holds zero climb rate (no crash) until the episode times out.
     After one unanswered frame the SITL stops waiting for the dead client (lockstep runs free)."""
     ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
-    comp_err = (tmp_path / "companion.log").open("w")
-    comp = subprocess.Popen(
+    comp = procs.start(
+        "companion",
         companion_command(
             ports.remote, ports.camera, comp_dir, "--autopilot", "ardupilot", *_RELAXED
         ),
-        cwd=REPO,
-        stderr=comp_err,
-        stdout=subprocess.DEVNULL,
     )
-    sitl = subprocess.Popen(
+    sitl = procs.start(
+        "sitl",
         sitl_command(
             ports,
             sitl_dir,
@@ -422,25 +418,12 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(tmp_path
             *("--no-render", "--groundtruth"),
             *("--episode-timeout-s", "25", "--lockstep-timeout-s", "0.2"),
         ),
-        cwd=REPO,
-        stderr=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
     )
-    try:
-        deadline = time.monotonic() + 60
-        while not re.search(r"-> flying", (tmp_path / "companion.log").read_text()):
-            assert time.monotonic() < deadline and comp.poll() is None, "never flew"
-            time.sleep(0.02)
-        time.sleep(0.3)
-        comp.send_signal(signal.SIGKILL)
-        comp.wait(10)
-        assert sitl.wait(60) == 0
-    finally:
-        for proc in (comp, sitl):
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-        comp_err.close()
+    procs.wait_text("companion", r"-> flying", 60.0)
+    time.sleep(0.3)
+    comp.send_signal(signal.SIGKILL)
+    comp.wait(10)
+    assert sitl.wait(60) == 0
     flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
     assert {m["mode"] for m in flight.topic("/autopilot/command")} == {"GUIDED_NOGPS"}
     last_sp_s = flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")[-1]["time_s"]

@@ -17,10 +17,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 import signal
 import socket
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -259,53 +257,6 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
 
 
 # --------------------------------------------------------------------------- flight cards
-
-
-class _Procs:
-    """Subprocesses of one test, stopped by PID at teardown (SIGTERM, then SIGKILL)."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, name: str, command: list[str]) -> subprocess.Popen:
-        """Runs ``command`` (a whole command line) from the repository, its stdout and stderr
-        in ``<name>.out`` and ``<name>.err``."""
-        err = (self.tmp / f"{name}.err").open("w")
-        out = (self.tmp / f"{name}.out").open("w")
-        proc = subprocess.Popen(command, cwd=REPO, stdout=out, stderr=err)
-        proc.name = name  # type: ignore[attr-defined]
-        self.procs.append(proc)
-        return proc
-
-    def text(self, name: str) -> str:
-        return (self.tmp / f"{name}.err").read_text(errors="replace")
-
-    def wait_text(self, name: str, pattern: str, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if re.search(pattern, self.text(name)):
-                return
-            time.sleep(0.05)
-        raise AssertionError(f"{name}: no {pattern!r} within {timeout_s} s:\n{self.text(name)}")
-
-    def stop_all(self) -> None:
-        for proc in self.procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-        for proc in self.procs:
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-
-
-@pytest.fixture
-def procs(tmp_path):
-    p = _Procs(tmp_path)
-    yield p
-    p.stop_all()
 
 
 @pytest.fixture

@@ -6,8 +6,8 @@ companion killed mid-descent, and malformed LANDING_TARGETs."""
 from __future__ import annotations
 
 import math
+import re
 import signal
-import subprocess
 import time
 
 import numpy as np
@@ -32,7 +32,6 @@ from sitl_sim.autopilot.px4 import AutopilotParams, FlightMode
 from sitl_sim.mavlink.config import SitlConfig
 from sitl_sim.mavlink.sitl import MavlinkSitl
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly, free_udp_port
-from training.provenance import REPO
 
 G = 9.80665
 LEVEL_F = np.array([0.0, 0.0, -G])  # specific force of a level vehicle at rest (FRD)
@@ -333,10 +332,11 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
         assert not flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")
 
 
-def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(tmp_path):
+def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(procs, tmp_path):
     ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
-    comp = subprocess.Popen(
+    comp = procs.start(
+        "companion",
         companion_command(
             ports.remote,
             ports.camera,
@@ -345,33 +345,17 @@ def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(tmp_pat
             policy=DEFAULT_VISION_POLICY,
             max_wall_s=120,
         ),
-        cwd=REPO,
-        stderr=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
     )
-    sitl_err = (tmp_path / "sitl.log").open("w")
-    sitl = subprocess.Popen(
-        sitl_command(ports, sitl_dir, "--lockstep-timeout-s", "0.2", max_wall_s=120),
-        cwd=REPO,
-        stderr=sitl_err,
-        stdout=subprocess.DEVNULL,
+    sitl = procs.start(
+        "sitl", sitl_command(ports, sitl_dir, "--lockstep-timeout-s", "0.2", max_wall_s=120)
     )
-    try:
-        deadline = time.monotonic() + 90
-        descending = "precland: Precision landing: over the target, descending"
-        # the SITL's own log line (no wall-clock guess): the descent starts 75-100 m up
-        while descending not in (tmp_path / "sitl.log").read_text():
-            assert time.monotonic() < deadline and sitl.poll() is None, "no descent"
-            time.sleep(0.02)
-        comp.send_signal(signal.SIGKILL)
-        comp.wait(10)
-        assert sitl.wait(90) == 0
-    finally:
-        for proc in (comp, sitl):
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-        sitl_err.close()
+    # the SITL's own log line (no wall-clock guess): the descent starts 75-100 m up
+    procs.wait_text(
+        "sitl", re.escape("precland: Precision landing: over the target, descending"), 90.0
+    )
+    comp.send_signal(signal.SIGKILL)
+    comp.wait(10)
+    assert sitl.wait(90) == 0
     flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
     texts = [e["text"] for e in flight.topic("/events")]
     assert "Precision landing: target lost in descent, searching" in texts, texts
