@@ -9,7 +9,7 @@ import argparse
 import sys
 from collections.abc import Callable
 
-from tools.cli_args import print_json
+from tools.cli_args import config_from_args, print_json, print_result
 
 __all__ = ["register_bench"]
 
@@ -101,25 +101,14 @@ def _bench_rollouts(args: argparse.Namespace) -> int:
             profile=args.profile,
         )
     )
-    if args.json:
-        print_json(res)
-    else:
-        print(format_rollout_bench(res))
+    print_result(res, args.json, lambda r, out: print(format_rollout_bench(r), file=out))
     return 0
 
 
 def _bench_sim(args: argparse.Namespace) -> int:
     from tools.bench import SimBenchConfig, bench_sim
 
-    res = bench_sim(
-        SimBenchConfig(
-            sim_seconds=args.seconds,
-            repeats=args.repeats,
-            seed=args.seed,
-            renderer=args.renderer,
-            scenario=args.scenario,
-        )
-    )
+    res = bench_sim(config_from_args(SimBenchConfig, args, sim_seconds=args.seconds))
     if args.json:
         print_json(res)
         return 0

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tools.cli_args import print_json
+from tools.cli_args import print_result
 
 __all__ = ["register_log"]
 
@@ -16,10 +16,7 @@ def _cmd_log_info(args: argparse.Namespace) -> int:
     from tools.logtool import format_info, log_info
 
     info = log_info(args.file)
-    if args.json:
-        print_json(info)
-    else:
-        print(format_info(info))
+    print_result(info, args.json, lambda i, out: print(format_info(i), file=out))
     return 0
 
 

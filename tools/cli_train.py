@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from tools.cli_args import config_from_args
+
 __all__ = ["register_training"]
 
 
@@ -87,10 +89,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from training.report.results import ReportConfig, write_report
 
     res = write_report(
-        ReportConfig(
-            run=args.run,
-            out=args.out,
-            figures_dir=args.figures_dir,
+        config_from_args(
+            ReportConfig,
+            args,
             trajectories=not args.no_trajectories,
             ablations=tuple(args.ablation),
         )
