@@ -5,8 +5,10 @@ collection and the companion all write them, and training reads them. Convention
 shared/reference/mcap_notes.md):
 
 * one file per flight and process; JSON messages with a jsonschema whose ``title`` is the schema
-  name (Foxglove plots them directly); camera frames as ``foxglove.RawImage`` mono8 (lossless,
-  base64 ``data`` in JSON encoding); ground truth pose also as ``foxglove.PoseInFrame``;
+  name (Foxglove plots them directly), generated from the contract's record of that schema
+  (:mod:`companion.contract.records`; ``mavlink.NAME`` from pymavlink's fields), never guessed
+  from a message; camera frames as ``foxglove.RawImage`` mono8 (lossless, base64 ``data`` in
+  JSON encoding); ground truth pose also as ``foxglove.PoseInFrame``;
 * log time = the file's epoch (wall time at the start) + sim time, in ns; every message also
   carries ``time_s`` (sim time);
 * small zstd chunks, flushed whenever 1 s of wall time or 1 s of sim time has passed since the

@@ -10,6 +10,9 @@ module                 what it fixes
 ``policy``             the one Policy protocol ``act(obs, groundtruth, state)`` with
                        explicit recurrent state, PolicyError, MissingGroundTruthError
 ``topics``             every flight-log topic name and schema name
+``records``            every flight-log message's fields (frozen dataclasses, from which
+                       the MCAP schema is generated), the ``/events`` kinds (EventKind);
+                       ``companion_records`` the companion's, ``record_base`` the base
 ``camera_packet``      the UDP camera frame format (header, chunks, CRC, assembler)
 ``signing``            MAVLink 2 signing key parsing and PX4's unsigned allow-list
 ``autopilots``         the autopilot profiles (PX4, ArduPilot) as one table: mode numbers

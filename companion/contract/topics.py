@@ -15,7 +15,8 @@ record means the same thing, so one reader serves all three:
 ``visland relabel`` writes ``/label/command`` into a sibling labels file. Schemas are JSON +
 jsonschema whose title is the schema name, Foxglove's where one fits (``foxglove.RawImage``,
 ``foxglove.PoseInFrame``); a MAVLink message ``NAME`` is logged as schema ``mavlink.NAME``.
-Topic strings are never retyped elsewhere: import them from here.
+Topic strings are never retyped elsewhere: import them from here. Each schema's fields are its
+record in :mod:`companion.contract.records` (``RECORDS``: schema name -> record).
 """
 
 from __future__ import annotations
