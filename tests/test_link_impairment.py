@@ -450,7 +450,7 @@ def test_twenty_real_time_landings_through_a_lossy_link(tmp_path, policy):
     """The acceptance run (opt-in, ~10 min each): the companion flies 20 real-time landings of
     the default scenario (75-100 m) through 10 % loss + 50 ms jitter, with the MPC expert (the
     companion's machinery under loss) and with the shipped vision model (its estimator under
-    late, lost and reordered observations: DESIGN "Every measurement at its own time"). At
+    late, lost and reordered observations: each measurement is used at its own time). At
     least 95 % must succeed, and the companion must have flown at least 95 % of them to
     touchdown without a failsafe (a failsafe lands in AUTO.LAND where it happens, so it cannot
     pass for a landing on the pad either). The same run: ``visland fly --policy POLICY

@@ -258,7 +258,7 @@ class MpcExpert:
         instead: the expert levels in the last few decimetres and accepts the drift that costs
         (tenths of a metre; the success radius is 1 m). In still air or light wind the tilt stays
         well inside the bound, which then never binds (nominal flights are unchanged bit for
-        bit). DESIGN.md, the MPC's Wind paragraph, has the measurements.
+        bit). docs/DESIGN.md's decisions log says why.
         """
         cfg = self.config
         hi = self._qp.max_tilt_rad

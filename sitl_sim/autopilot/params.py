@@ -70,7 +70,7 @@ ARDU_WRITABLE: dict[str, tuple[str | None, str, int]] = {
 }
 """The ``ardupilot`` profile's writable parameters (ArduCopter names and types). The precision
 land's PLND_XY_DIST_MAX, PLND_TIMEOUT and PLND_RET_MAX drive the reused PX4-style precision
-land as its PLD_HACC_RAD, PLD_BTOUT and PLD_MAX_SRCH (DESIGN, ArduPilot profile)."""
+land as its PLD_HACC_RAD, PLD_BTOUT and PLD_MAX_SRCH (sitl_sim/autopilot/ardupilot.py)."""
 
 
 def writable(profile: str = "px4") -> dict[str, tuple[str | None, str, int]]:
