@@ -7,7 +7,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from flights import Ports, Processes, free_ports
+from flights import LOW_INITIAL_STATE, Ports, Processes, free_ports
 
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.mavlink.config import SitlConfig
@@ -44,16 +44,8 @@ def scene():
         yield s
 
 
-LOW_SCENARIO = """
-[initial_state]
-roll_pitch_deg = [-1.5, 1.5]
-yaw_deg = [-180.0, 180.0]
-north_east_m = [-1.0, 1.0]
-altitude_m = [5.0, 6.0]
-vel_north_east_m_s = [-0.2, 0.2]
-vel_down_m_s = [0.0, 0.2]
-rate_rad_s = [0.0, 0.0]
-sampler = "uniform"
+LOW_SCENARIO = f"""
+[initial_state]{LOW_INITIAL_STATE}sampler = "uniform"
 [world]
 planet = "earth"
 """

@@ -30,6 +30,7 @@ from training.exec.fly import free_udp_port
 REPO = Path(__file__).resolve().parent.parent
 
 __all__ = [
+    "LOW_INITIAL_STATE",
     "Ports",
     "Processes",
     "SitlThread",
@@ -39,6 +40,19 @@ __all__ = [
     "sitl_command",
     "sitl_with_client",
 ]
+
+
+LOW_INITIAL_STATE = """
+roll_pitch_deg = [-1.5, 1.5]
+yaw_deg = [-180.0, 180.0]
+north_east_m = [-1.0, 1.0]
+altitude_m = [5.0, 6.0]
+vel_north_east_m_s = [-0.2, 0.2]
+vel_down_m_s = [0.0, 0.2]
+rate_rad_s = [0.0, 0.0]
+"""
+"""``[initial_state]`` keys of a short flight: 5-6 m above the pad, nearly level and still
+(a landing of a few simulated seconds)."""
 
 
 class Ports(NamedTuple):

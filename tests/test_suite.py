@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from flights import LOW_INITIAL_STATE  # low starts: each episode a few simulated seconds
 
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import load_scenario
@@ -16,16 +17,6 @@ from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.suite import load_suite, plot_suite, run_suite
 
-# Low starts keep each episode short (a few simulated seconds).
-LOW_INITIAL_STATE = """
-roll_pitch_deg = [-1.5, 1.5]
-yaw_deg = [-180.0, 180.0]
-north_east_m = [-1.0, 1.0]
-altitude_m = [5.0, 6.0]
-vel_north_east_m_s = [-0.2, 0.2]
-vel_down_m_s = [0.0, 0.2]
-rate_rad_s = [0.0, 0.0]
-"""
 LOW_WIND = """
 speed_m_s = [2.0, 4.0]
 direction_deg = [0.0, 360.0]
