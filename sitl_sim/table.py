@@ -38,6 +38,7 @@ __all__ = [
     "REQUIRED",
     "Key",
     "Section",
+    "check_number",
     "check_section",
     "choice",
     "choice_list",
@@ -348,6 +349,21 @@ def check_section(obj: Any, section: str | None = None) -> None:
         pair = isinstance(value, tuple) and key.kind in (_SPAN, _INT_SPAN)
         got = f"[{value[0]}, {value[1]}]" if pair else repr(value)
         raise ConfigError(f"{obj.source}: [{section}] {name} = {got}; expected {key.expected()}")
+
+
+def check_number(
+    name: str, value: Any, lo: float | None = None, hi: float | None = None, *, lo_open=False
+) -> None:
+    """Check one value of a record that is not a scenario section (an autopilot's parameter
+    table, an episode's drawn factors) by a :class:`Key`'s rules: a finite number within
+    ``[lo, hi]`` (``lo_open``: above ``lo``; None: unbounded).
+
+    Raises:
+        ConfigError: ``"<name> = <got>; expected a finite number <bounds>"``.
+    """
+    key = Key(_NUMBER, "1", "", lo=lo, hi=hi, lo_open=lo_open, noun="a finite number")
+    if not (_is_number(value) and key.in_range(value)):
+        raise ConfigError(f"{name} = {value!r}; expected {key.expected()}")
 
 
 def section_dict(obj: Any, *, drop_none: bool = False) -> dict[str, Any]:

@@ -11,10 +11,10 @@ it).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from companion.contract.autopilots import CopterMode
+from sitl_sim.table import check_number
 
 __all__ = [
     "GUID_OPTIONS_THRUST_AS_THRUST",
@@ -98,8 +98,7 @@ class ArduParams:
             ("PLND_TYPE", self.plnd_type, 0, 6),
         )
         for name, value, low, high in checks:
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ValueError(f"{name} = {value}; expected [{low}, {high}]")
+            check_number(name, value, low, high)
 
     @property
     def thrust_is_thrust(self) -> bool:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
+from sitl_sim.table import check_number
 
 __all__ = ["NavConfig", "NavEstimator", "rotation_from_euler"]
 
@@ -59,9 +60,7 @@ class NavConfig:
 
     def __post_init__(self) -> None:
         for name in ("initial_vel_sigma_m_s", "accel_noise_m_s2", "radar_noise_m"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"NavConfig.{name} = {value}; expected a finite value >= 0")
+            check_number(f"NavConfig.{name}", getattr(self, name), 0.0)
 
 
 class NavEstimator:

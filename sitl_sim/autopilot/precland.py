@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_sim.autopilot.nav_estimator import NavEstimator, rotation_from_euler
+from sitl_sim.table import check_number
 
 __all__ = [
     "LTE_TIMEOUT_S",
@@ -165,9 +166,7 @@ class LteParams:
         if self.mode not in (0, 1):
             raise ValueError(f"LTEST_MODE = {self.mode}; expected 0 (Moving) or 1 (Stationary)")
         for name in ("acc_unc", "meas_unc", "pos_unc_in", "vel_unc_in"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"LTEST_{name.upper()} = {value}; expected > 0")
+            check_number(f"LTEST_{name.upper()}", getattr(self, name), 0.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -197,8 +196,7 @@ class PldParams:
             ("PLD_MAX_SRCH", self.max_srch, 0, 100),
         )
         for name, value, low, high in checks:
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ValueError(f"{name} = {value}; expected [{low}, {high}]")
+            check_number(name, value, low, high)
         if self.max_srch != int(self.max_srch):
             raise ValueError(f"PLD_MAX_SRCH = {self.max_srch}; expected an integer")
 

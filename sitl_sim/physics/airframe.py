@@ -33,7 +33,6 @@ loop's bandwidth.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -41,7 +40,7 @@ import numpy as np
 
 from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Section, section_dict, section_keys, span
+from sitl_sim.table import Section, check_number, section_dict, section_keys, span
 
 __all__ = [
     "AIRFRAME_KEYS",
@@ -119,9 +118,7 @@ class AirframeScales:
 
     def __post_init__(self) -> None:
         for key in AIRFRAME_KEYS:
-            value = getattr(self, key)
-            if not (isinstance(value, float) and math.isfinite(value) and value > 0.0):
-                raise ValueError(f"AirframeScales.{key} = {value!r}; expected a finite float > 0")
+            check_number(f"AirframeScales.{key}", getattr(self, key), 0.0, lo_open=True)
 
     def apply(self, vehicle: VehicleConfig) -> VehicleConfig:
         """``vehicle`` (the vehicle file) with these factors applied: the episode's vehicle."""
