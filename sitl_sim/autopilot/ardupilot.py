@@ -271,26 +271,16 @@ class ArduCopter(Autopilot):
         if not math.isfinite(thrust):
             raise SetpointRejected(f"non-finite thrust {thrust}")
         ardu = self.params.ardu
+        thrust_norm = min(1.0, max(0.0, thrust))  # thrust: [-1, 1], then no reverse thrust
         climb: float | None = None
-        if ardu.thrust_is_thrust:
-            thrust_norm = min(1.0, max(0.0, thrust))  # [-1, 1], then no reverse thrust
-        else:
-            thrust_norm = min(1.0, max(0.0, thrust))
+        if not ardu.thrust_is_thrust:
             if thrust_norm > 0.5:
                 climb = (thrust_norm - 0.5) * 2.0 * ardu.wpnav_speed_up_cm_s / 100.0
             elif thrust_norm < 0.5:
                 climb = -(0.5 - thrust_norm) * 2.0 * ardu.wpnav_speed_dn_cm_s / 100.0
             else:
                 climb = 0.0
-        rates.setflags(write=False)
-        return Setpoint(
-            time_s=time_s,
-            thrust_norm=thrust_norm,
-            rate_frd_rad_s=rates,
-            attitude_quat_wxyz=attitude,
-            type_mask=mask,
-            climb_rate_up_m_s=climb,
-        )
+        return Setpoint(time_s, thrust_norm, rates, attitude, mask, climb_rate_up_m_s=climb)
 
     def on_setpoint(self, setpoint: Setpoint) -> None:
         self.setpoint = setpoint

@@ -166,7 +166,8 @@ class Setpoint:
         time_s: SITL sim time it was received.
         thrust_norm: collective thrust in [0, 1] of the total maximum thrust.
         rate_frd_rad_s: (3,) body-rate setpoint (rates branch) or feed-forward (attitude branch;
-            only the yaw component is used there).
+            only the yaw component is used there); made read-only here (the rate loop holds it
+            for many physics steps).
         attitude_quat_wxyz: (4,) attitude setpoint (NED -> FRD rotation as MAVLink's q), or None
             for the rates branch (type_mask 128).
         type_mask: the raw type_mask, kept for ATTITUDE_TARGET and the log.
@@ -180,6 +181,9 @@ class Setpoint:
     climb_rate_up_m_s: float | None = None
     """ArduCopter's climb-rate reading of ``thrust`` (GUID_OPTIONS bit 3 clear): the demanded
     climb rate, m/s up; ``thrust_norm`` is then the raw field. None: thrust is thrust."""
+
+    def __post_init__(self) -> None:
+        self.rate_frd_rad_s.setflags(write=False)
 
     @functools.cached_property
     def _rates_command(self) -> Command:
@@ -277,14 +281,7 @@ def setpoint_from_target(
             raise SetpointRejected(f"attitude quaternion {quat.tolist()} is not a rotation")
         attitude = quat / norm
         rates = np.array([0.0, 0.0, rates[2] if math.isfinite(rates[2]) else 0.0])
-    rates.setflags(write=False)
-    return Setpoint(
-        time_s=time_s,
-        thrust_norm=thrust_norm,
-        rate_frd_rad_s=rates,
-        attitude_quat_wxyz=attitude,
-        type_mask=int(type_mask),
-    )
+    return Setpoint(time_s, thrust_norm, rates, attitude, int(type_mask))
 
 
 class LandController(Protocol):
