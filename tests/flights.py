@@ -1,6 +1,7 @@
-"""Flights for the tests: the MAVLink SITL on a thread with a client beside it, the scripted
-privileged pilot that lands it, and the command lines that start the SITL and the companion as
-processes on loopback.
+"""Flights for the tests: the low start (:data:`LOW_INITIAL_STATE`), the MAVLink SITL on a
+thread with a client beside it (:func:`sitl_with_client`), the scripted privileged pilot that
+lands it (:func:`fly_cascade`), and the SITL and the companion as processes on loopback
+(:func:`sitl_command`, :func:`companion_command`, :class:`Processes`).
 
 Every SITL started here is stopped even when the test fails; every wait has a timeout.
 """
