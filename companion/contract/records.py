@@ -134,7 +134,7 @@ def _vec(rec: LogRecord, name: str, n: int) -> np.ndarray:
     value = getattr(rec, name)
     arr = np.asarray(value, dtype=float)
     if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise RecordError(f"{rec.SCHEMA}.{name}: expected {n} finite numbers, got {value!r}")
+        raise RecordError(f"{name}: expected {n} finite numbers, got {value!r} ({rec.SCHEMA})")
     return arr
 
 
