@@ -35,6 +35,7 @@ from typing import Any
 from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
 from companion.contract.companion_records import CompanionSummaryRecord
+from companion.contract.perf import LoopPerf
 from companion.files import read_toml
 from companion.flight import FlightContext, OffboardConfig
 from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
@@ -42,7 +43,7 @@ from companion.offboard import FlightController
 from companion.options import option, redacted_dict
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyConfig, SafetyMonitor
-from companion.states import FlightResult, TouchdownAction
+from companion.states import FlightResult, FlightState, TouchdownAction
 from companion.telemetry import TelemetryStore
 
 __all__ = [
@@ -311,6 +312,9 @@ class Companion:
         self.link_events: list[str] = []
         self._clock: Callable[[], float] = time.monotonic
         self._requested_streams = False
+        self.perf = LoopPerf()
+        """Wall time per part of the loop while a flight is in the air (the report's
+        ``perf``)."""
 
     # ------------------------------------------------------------------ plumbing
 
@@ -322,7 +326,9 @@ class Companion:
         self.store.update(msg, rx_s)
         flight = self.flight
         if flight is not None:
+            t = self.perf.now()
             self.flight_log.message(msg, rx_s)
+            self.perf.add_inner("log", t)
             flight.on_message(msg, rx_s)
 
     def _pump(self, timeout_s: float) -> None:
@@ -383,6 +389,7 @@ class Companion:
             self.safety,
             self._pump,
             self._clock,
+            self.perf,
         )
         if self.tracker is not None:
             from companion.landing_target import LandingTargetController
@@ -423,9 +430,11 @@ class Companion:
         cfg = self.cfg
         t0 = self._clock()
         index = 0
+        perf = self.perf
         try:
             self.flight = self._new_flight(index)
             while not self._stop.is_set():
+                t = perf.mark(self._in_air())
                 if cfg.max_wall_s is not None and self._clock() - t0 > cfg.max_wall_s:
                     self.stop(f"max_wall_s = {cfg.max_wall_s} reached")
                     break
@@ -435,14 +444,18 @@ class Companion:
                     select.select(fds, [], [], timeout)
                 except InterruptedError:
                     pass
+                t = perf.add("wait", t)
                 self.link.poll(self._on_message)
                 self._link_events()
+                t = perf.add("mavlink", t)
                 frames = self.camera.poll()
+                t = perf.add("camera", t)
                 flight = self.flight
                 if frames and flight is not None:
                     for frame in frames[:-1]:  # answer the newest; older ones are logged only
                         self.flight_log.frame(frame)
                     flight.on_frame(frames[-1])
+                    perf.add("other", t)  # frame sync, observation, safety: no part of PARTS
                 if flight is not None:
                     flight.on_tick()
                     if flight.done:
@@ -458,6 +471,7 @@ class Companion:
                 self._close_flight()
             self.camera.close()
             self.link.close()
+            perf.close()
         return {
             "flights": self.outcomes,
             "link_events": self.link_events,
@@ -465,7 +479,14 @@ class Companion:
             "camera": self.camera.counters() if hasattr(self.camera, "counters") else {},
             "stopped": self._stop_reason or None,
             "wall_s": self._clock() - t0,
+            "perf": perf.report(),
         }
+
+    def _in_air(self) -> bool:
+        """A flight flies (OFFBOARD confirmed, or landed and waiting for the disarm): the
+        window of :attr:`perf`."""
+        flight = self.flight
+        return flight is not None and flight.state in (FlightState.FLYING, FlightState.TOUCHDOWN)
 
     def _drain(self, seconds: float) -> None:
         """Keep the link alive briefly so the hand-back command is sent and acknowledged."""

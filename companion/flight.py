@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from companion.camera import ReceivedFrame
 from companion.contract.companion_records import CompanionCommandRecord, CompanionObservationRecord
+from companion.contract.perf import LoopPerf
 from companion.contract.records import EventKind
 from companion.link import mavlink
 from companion.states import Failsafe, FlightResult, FlightState, TouchdownAction
@@ -93,6 +94,8 @@ class FlightContext:
         safety: the safety monitor.
         pump: ``pump(timeout_s)`` receives MAVLink for up to ``timeout_s`` (frame sync).
         clock: the companion's monotonic clock.
+        perf: the process loop's counters (the flight times its policy steps, sends and log
+            writes into them).
     """
 
     cfg: OffboardConfig
@@ -102,6 +105,7 @@ class FlightContext:
     safety: SafetyMonitor
     pump: Callable[[float], None]
     clock: Callable[[], float]
+    perf: LoopPerf = field(default_factory=LoopPerf)
 
 
 @dataclass
@@ -177,6 +181,7 @@ class FlightMachine(ABC):
         self.log = log
         self._pump = ctx.pump
         self._clock = clock = ctx.clock
+        self.perf = ctx.perf
         self.outcome = FlightOutcome(index=index, log_path=str(log.path))
         self.state = FlightState.WAITING
         self._entered_s = clock()

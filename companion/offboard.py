@@ -125,7 +125,10 @@ class FlightController(FlightMachine):
         """Send (unless shadow); the hand-off time, or None when nothing was sent."""
         if self.cfg.shadow:
             return None
-        return self.link.send_setpoint(thrust, rates, stamp_ms)
+        t = self.perf.now()
+        handed = self.link.send_setpoint(thrust, rates, stamp_ms)
+        self.perf.add_inner("mavlink", t)
+        return handed
 
     # ------------------------------------------------------------------ gates
 
@@ -257,12 +260,17 @@ class FlightController(FlightMachine):
         self._last_frame_rx = frame.rx_s
         state = self.state
         answering = state in (FlightState.ENGAGING, FlightState.FLYING, FlightState.TOUCHDOWN)
+        perf = self.perf
+        perf.count("frames")
+        t = perf.now()
         if not answering:
             self.log.frame(frame)
+            perf.add_inner("log", t)
             return
         self.log.deferring = True
         try:
             self.log.frame(frame)  # queued: written after the answer, before its command record
+            perf.add_inner("log", t)
             if state is FlightState.FLYING and self._is_flight_frame(frame):
                 self._policy_step(frame)
             elif state is FlightState.TOUCHDOWN:
@@ -270,7 +278,9 @@ class FlightController(FlightMachine):
             elif self._mode_acked:  # ENGAGING after the ACK, or a frame from before the switch
                 self._answer(frame, self._hover or self.cfg.hover_thrust, "neutral")
         finally:
+            t = perf.now()
             self.log.flush_pending()
+            perf.add_inner("log", t)
 
     def _is_flight_frame(self, frame: ReceivedFrame) -> bool:
         if self.cfg.shadow:
@@ -311,7 +321,10 @@ class FlightController(FlightMachine):
         at = frame.time_s if self.camera_clock == "autopilot" else None
         obs = assemble_observation(frame, self.store, self._hover_thrust(now), at)
         gt = self.store.at("odometry", at) if self.runtime.privileged else None
+        t_policy = self.perf.now()
         result = self.runtime.step(obs, gt)
+        self.perf.add_inner("policy", t_policy)
+        self.perf.count("policy_steps")
         if result.command is None:
             self._failsafe(Failsafe(FailsafeReason.POLICY_ERROR, str(result.error)))
             return

@@ -10,12 +10,15 @@ from typing import Any
 
 from companion.contract.signing import SigningKeyError, signing_key_bytes
 from companion.options import add_arguments, option, redacted_dict, values_from_args
-from sitl_sim.autopilot.params import parse_param_overrides
+from sitl_sim.autopilot.ardupilot import ardupilot_params
+from sitl_sim.autopilot.params import parse_param_overrides, with_param
+from sitl_sim.autopilot.px4 import AutopilotParams
 from sitl_sim.mavlink.endpoint import SitlError
 
 __all__ = [
     "SitlConfig",
     "add_sitl_arguments",
+    "initial_params",
     "sitl_config_from_args",
 ]
 
@@ -166,3 +169,21 @@ def sitl_config_from_args(args: argparse.Namespace) -> SitlConfig:
     if values.get("log_dir") == "":
         values["log_dir"] = None
     return SitlConfig(**values)
+
+
+def initial_params(config: SitlConfig, hover_thrust_norm: float) -> AutopilotParams:
+    """The profile's parameters at their defaults, then ``config.param`` (``--param``).
+
+    Raises:
+        SitlError: a value the parameter rejects (names it).
+    """
+    if config.autopilot == "ardupilot":
+        params = ardupilot_params(hover_thrust_norm)
+    else:
+        params = AutopilotParams(mpc_thr_hover=hover_thrust_norm)
+    for name, value in parse_param_overrides(config.param, config.autopilot):
+        try:
+            params = with_param(params, name, value, config.autopilot)
+        except ValueError as exc:
+            raise SitlError(f"--param {name}={value:g}: {exc}") from None
+    return params

@@ -9,6 +9,7 @@ setpoint flown for the period after the frame), keyed by frame id like the in-pr
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -63,10 +64,16 @@ class FlightLog:
 
     Args:
         clock: the SITL clock every record is stamped with.
+        open_writer: ``open_writer(path, metadata=...)`` opens an episode's writer (the SITL
+            passes :meth:`sitl_sim.mavlink.log_queue.LogQueue.open_writer`: writes queued
+            until the loop waits).
     """
 
-    def __init__(self, clock: SimClock) -> None:
+    def __init__(
+        self, clock: SimClock, open_writer: Callable[..., FlightLogWriter] = FlightLogWriter
+    ) -> None:
         self._clock = clock
+        self._open_writer = open_writer
         self._writer: FlightLogWriter | None = None
 
     @property
@@ -75,7 +82,7 @@ class FlightLog:
 
     def open(self, path: Path, metadata: dict[str, Any]) -> None:
         """Start the episode's log (closes none: :meth:`close_with_result` ends the last)."""
-        self._writer = FlightLogWriter(path, metadata=metadata)
+        self._writer = self._open_writer(path, metadata=metadata)
 
     def close_with_result(self, record: EpisodeResultRecord) -> None:
         """Write the episode's result and close its log (no-op without one)."""

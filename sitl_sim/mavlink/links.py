@@ -8,6 +8,7 @@ offboard link, as every PX4 link sees the system's one message sequence.
 from __future__ import annotations
 
 import logging
+import math
 import select
 import socket
 import time
@@ -15,13 +16,15 @@ from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from companion.contract.signing import signing_key_bytes
+from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink.endpoint import Inbound, LinkStats, MavlinkEndpoint, RxError, SitlError
+from sitl_sim.mavlink.link_impairment import LinkConfig, LinkImpairment
 
 if TYPE_CHECKING:
     from sitl_sim.mavlink.config import SitlConfig
-    from sitl_sim.mavlink.link_impairment import LinkImpairment
+    from sitl_sim.scenario import Scenario
 
-__all__ = ["Links"]
+__all__ = ["Links", "link_impairment"]
 
 log = logging.getLogger("visland.sitl")
 
@@ -64,6 +67,7 @@ class Links:
         self.impairment = impairment
         self.all = [self.offboard] + ([self.gcs] if self.gcs is not None else [])
         """Every MAVLink link, the offboard one first."""
+        self._fds = [e.fileno() for e in self.all]
         self._camera_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._camera_addr = (config.camera_host, config.camera_port)
         self.camera_tx_errors = 0
@@ -116,7 +120,17 @@ class Links:
             if due is not None:
                 timeout_s = min(timeout_s, due - time.monotonic())
         if timeout_s > 0:
-            select.select([e.fileno() for e in self.all], [], [], timeout_s)
+            select.select(self._fds, [], [], timeout_s)
+
+    def readable(self) -> bool:
+        """A datagram is waiting on some link, or the impaired link has one due (never
+        blocks)."""
+        imp = self.impairment
+        if imp is not None:
+            due = imp.next_release_s()
+            if due is not None and due <= time.monotonic():
+                return True
+        return bool(select.select(self._fds, [], [], 0)[0])
 
     def release(self) -> None:
         """Send what the impaired link releases now (MAVLink and camera; received datagrams
@@ -152,3 +166,31 @@ class Links:
             self._camera_sock.sendto(datagram, self._camera_addr)
         except OSError:
             self.camera_tx_errors += 1
+
+
+def link_impairment(scenario: Scenario, config: SitlConfig) -> LinkImpairment | None:
+    """The scenario's ``[link]`` with the ``--link-*`` flags over it; None for a perfect link.
+
+    Raises:
+        ConfigError: an impaired link in lockstep (delays are wall-clock time; a held answer
+            would stop the lockstep clock instead of arriving late).
+    """
+    base = scenario.link or LinkConfig(source=scenario.source)
+    cut = config.link_cut_at_s
+    link = base.with_overrides(
+        loss_prob=config.link_loss_prob,
+        delay_ms=config.link_delay_ms,
+        jitter_ms=config.link_jitter_ms,
+        duplicate_prob=config.link_duplicate_prob,
+        reorder_prob=config.link_reorder_prob,
+        outage_s=None if cut is None else (cut, math.inf),
+    )
+    if not link.active:
+        return None
+    if config.lockstep:
+        raise ConfigError(
+            f"{scenario.source}: [link] (or --link-*) impairs a real-time link, but this SITL "
+            "runs in lockstep, where a delayed answer would stop the clock instead of arriving "
+            "late; run with --no-lockstep (visland fly --realtime), or drop the impairment"
+        )
+    return LinkImpairment(link, config.seed, time.monotonic)

@@ -18,10 +18,11 @@ SET_ATTITUDE_TARGET arrives that was received after the frame was sent and is st
 (``time_boot_ms``) at or after the frame's time (``lockstep_require_stamp``; turn it off for
 clients that stamp with their own clock, e.g. MAVSDK), or until ``lockstep_timeout_s`` of wall
 time passes (counted; the last setpoint holds, so a dead client meets COM_OF_LOSS_T after 10
-frames). Outside OFFBOARD nobody paces the loop: LAND and the wait for disarm run as fast as the
-machine allows, and the frozen HOLD phase runs at wall-clock speed (the companion's hand-shake
-happens in wall time). **Real time** (``lockstep=False``): the clock follows the wall clock ×
-``speed`` throughout; the last setpoint holds between messages.
+frames), or until the vehicle is disarmed (not counted). Outside OFFBOARD nobody paces the loop:
+LAND and the wait for disarm run as fast as the machine allows, and the frozen HOLD phase runs
+at wall-clock speed (the companion's hand-shake happens in wall time). **Real time**
+(``lockstep=False``): the clock follows the wall clock × ``speed`` throughout; the last setpoint
+holds between messages.
 
 **Episodes** (:mod:`sitl_sim.mavlink.episodes`) start in HOLD, armed, frozen; the flight starts
 at the first control period after the vehicle is armed in a mode other than HOLD; one MCAP
@@ -38,13 +39,16 @@ into another's attributes; what they share is :class:`~sitl_sim.mavlink.state.Fl
 * :class:`~sitl_sim.mavlink.handlers.Handlers`: commands, offboard setpoints, parameters
   (``SUBSCRIBES``, ``COMMANDS``);
 * :class:`~sitl_sim.mavlink.episodes.Episodes`: reset, flight start, scoring;
-* :class:`~sitl_sim.mavlink.flight_log.FlightLog`: the episode's MCAP log;
+* :class:`~sitl_sim.mavlink.flight_log.FlightLog`: the episode's MCAP log, its writes queued
+  by :class:`~sitl_sim.mavlink.log_queue.LogQueue` and run while the loop waits for the
+  companion's answer (same records, same order: off the frame's critical path);
 * :class:`~sitl_sim.mavlink.precland_loop.PreclandLoop`: AUTO.PRECLAND and LANDING_TARGET.
 
 :class:`MavlinkSitl` builds them and runs the loop (poll, tick, control period, the command
-flown, the camera frame); :mod:`sitl_sim.mavlink.config` holds :class:`SitlConfig` and its
-``--flags``, :mod:`sitl_sim.mavlink.clock` the sim clock, the lockstep frame wait and real-time
-pacing.
+flown, the camera frame), timing its parts in flight (:class:`~companion.contract.perf.LoopPerf`,
+logged at exit as one ``perf: {json}`` line, which ``visland bench sitl`` reads);
+:mod:`sitl_sim.mavlink.config` holds :class:`SitlConfig` and its ``--flags``,
+:mod:`sitl_sim.mavlink.clock` the sim clock, the lockstep frame wait and real-time pacing.
 """
 
 from __future__ import annotations
@@ -52,7 +56,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import signal
 import sys
 import threading
@@ -64,21 +67,26 @@ import numpy as np
 
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
+from companion.contract.perf import PERF_LINE_PREFIX, LoopPerf
 from companion.contract.records import EventKind
-from sitl_sim.autopilot.ardupilot import ardupilot_params, new_autopilot
+from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
-from sitl_sim.autopilot.params import parse_param_overrides, with_param
 from sitl_sim.autopilot.px4 import Autopilot, AutopilotParams, FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
-from sitl_sim.errors import ConfigError, SimError
+from sitl_sim.errors import SimError
 from sitl_sim.mavlink.clock import FrameWait, Pacer, SimClock
-from sitl_sim.mavlink.config import SitlConfig, add_sitl_arguments, sitl_config_from_args
+from sitl_sim.mavlink.config import (
+    SitlConfig,
+    add_sitl_arguments,
+    initial_params,
+    sitl_config_from_args,
+)
 from sitl_sim.mavlink.endpoint import LinkStats, MavlinkEndpoint, SitlError
 from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
 from sitl_sim.mavlink.flight_log import FlightLog
 from sitl_sim.mavlink.handlers import Handlers
-from sitl_sim.mavlink.link_impairment import LinkConfig, LinkImpairment
-from sitl_sim.mavlink.links import Links
+from sitl_sim.mavlink.links import Links, link_impairment
+from sitl_sim.mavlink.log_queue import LogQueue
 from sitl_sim.mavlink.precland_loop import PreclandLoop
 from sitl_sim.mavlink.publisher import Publisher
 from sitl_sim.mavlink.state import FlightState
@@ -125,13 +133,13 @@ class MavlinkSitl:
         if self.scenario.vehicle is not None:
             check_airframe_can_hover(self.scenario.vehicle, self.vehicle, sim_cfg.planet)
         factory = land_controller_factory or _default_land_controller
-        params = _initial_params(config, self.vehicle.hover_thrust_norm(sim_cfg.planet))
+        params = initial_params(config, self.vehicle.hover_thrust_norm(sim_cfg.planet))
         self.state = FlightState(
             autopilot=new_autopilot(config.autopilot, params, armed=config.start_armed),
             land_controller=factory(self.vehicle, sim_cfg.planet),
         )
         self.sampler = InitialStateSampler(self.scenario, config.seed)
-        self.link_impairment = _link_impairment(self.scenario, config)
+        self.link_impairment = link_impairment(self.scenario, config)
         """The impaired offboard + camera link (None: a perfect link)."""
         self._pacer = Pacer(self.clock.dt_s, config.speed)
         self.camera_frames_dropped = 0
@@ -142,7 +150,11 @@ class MavlinkSitl:
         except SitlError:
             self.sim.close()  # the pybullet client must not outlive a failed start
             raise
-        self.flight_log = FlightLog(self.clock)
+        self.perf = LoopPerf()
+        """Wall time per part of the loop while flying, with the sim seconds and frames flown
+        meanwhile (logged at exit as ``perf: {json}``)."""
+        self.log_queue = LogQueue(self.perf)
+        self.flight_log = FlightLog(self.clock, self.log_queue.open_writer)
         self.publisher = Publisher(
             config, self.links, self.flight_log, self.state, self.sim, sim_cfg, self.clock
         )
@@ -258,11 +270,12 @@ class MavlinkSitl:
         """Fly ``config.episodes`` episodes (or until :meth:`stop`); returns their results."""
         cfg = self.config
         wall0 = time.monotonic()
-        state = self.state
+        state, perf = self.state, self.perf
         try:
             self.episodes.start(cfg.first_episode)
             while not self._stop.is_set() and not self.episodes.done:
                 now = time.monotonic()
+                perf.mark(self._physics_running())
                 if cfg.max_wall_s is not None and now - wall0 > cfg.max_wall_s:
                     log.warning("max_wall_s = %.1f s reached: stopping", cfg.max_wall_s)
                     break
@@ -270,10 +283,13 @@ class MavlinkSitl:
                 self.poll()
                 wait = state.wait
                 if wait is not None:
-                    if wait.pending(now):
-                        self.links.sleep(min(wait.deadline_wall_s - now, 0.05))
+                    # disarmed (the companion's disarm after touchdown crossed the frame): the
+                    # frame has nobody to answer it and nothing to fly; the clock goes on
+                    armed = self.autopilot.armed
+                    if armed and wait.pending(now):
+                        self._idle(min(wait.deadline_wall_s - now, 0.05))
                         continue
-                    if not wait.answered:
+                    if armed and not wait.answered:
                         state.lockstep_timeouts += 1
                         self.precland.wait_timed_out()
                         if state.autopilot.runs_free_when_unanswered:
@@ -283,11 +299,13 @@ class MavlinkSitl:
                 paced = not self._physics_running() or not cfg.lockstep
                 delay = self._pacer.delay_s(now, self.clock.tick, paced)
                 if delay > 0:
-                    self.links.sleep(min(delay, 0.05))
+                    self._idle(min(delay, 0.05))
                     continue
                 self.tick_once()
         finally:
             self.episodes.finish(aborted=not self.episodes.done)
+            self.log_queue.drain()
+            perf.close()
             self.links.drain()
             self.close()
         return list(self.results)
@@ -309,30 +327,45 @@ class MavlinkSitl:
 
     def poll(self) -> None:
         """Read every link: log and act on what arrived, announce the autopilot's events."""
+        perf, flight_log = self.perf, self.flight_log
+        t = perf.now()
         for endpoint, accepted, errors in self.links.receive():
+            t = perf.add("mavlink", t)
             for err in errors:
-                self.flight_log.rx_error(err, endpoint.name)
+                flight_log.rx_error(err, endpoint.name)
             for inbound in accepted:
-                self.flight_log.inbound(inbound)
+                t = perf.add("mavlink", t)
+                flight_log.inbound(inbound)
+                t = perf.add("log", t)
                 self.handlers.dispatch(inbound, endpoint)
+            t = perf.add("mavlink", t)
         self.publisher.announce_events()
+        perf.add("mavlink", t)
         self._maybe_log_stats()
 
     def tick_once(self) -> None:
         """One physics step, the streams due, and at a control period its checks and frame."""
+        perf = self.perf
         running = self._physics_running()
         if running:
             cmd = self._current_command()
             if self.clock.phase % self._substeps == 0:
                 frame_id = self.state.frame_id - 1 if self._control_step() else None
+                t = perf.now()
                 self.flight_log.commands(self.sim.time_s, self.autopilot.mode_label, cmd, frame_id)
+                perf.add("log", t)
+            t = perf.now()
             self.sim.step_physics(cmd)
+            perf.add("physics", t)
+            perf.count("sim_s", self.clock.dt_s)
         self._update_link_cut()
         self.clock.tick += 1
         boundary = self.clock.phase % self._substeps == 0
         if boundary and not self._control_period():
             return  # the episode ended here; the next one starts at the next tick
+        t = perf.now()
         self.publisher.emit_streams()
+        perf.add("mavlink", t)
         if running:
             self.precland.tick()  # after the streams: it reads the readings they sent
         if boundary:
@@ -354,6 +387,16 @@ class MavlinkSitl:
                     frame_time_ms=stamp_us // 1000,
                     deadline_wall_s=time.monotonic() + self.config.lockstep_timeout_s,
                 )
+
+    def _idle(self, timeout_s: float) -> None:
+        """Nothing to simulate until a datagram arrives (the companion's answer) or
+        ``timeout_s`` passes: write the queued log records meanwhile, else block on the links."""
+        t = self.perf.now()
+        if self.log_queue.pending:
+            self.log_queue.drain(stop=self.links.readable)
+        else:
+            self.links.sleep(timeout_s)
+        self.perf.add("wait", t)
 
     def _physics_running(self) -> bool:
         return self.state.flying and self.autopilot.physics_running
@@ -445,8 +488,12 @@ class MavlinkSitl:
         episode's ``frame_drop_prob`` lost it (nothing is sent; its frame id is skipped, as a
         camera's sequence number would be). With ``camera_latency_ms`` the frame goes out now
         but shows, and is stamped with, the scene ``latency`` earlier (its exposure)."""
+        perf = self.perf
         gt = self.publisher.sample().truth
+        t = perf.now()
         frame = self.sim.capture_frame(gt)
+        t = perf.add("render", t)
+        perf.count("frames")
         frame_id = self.state.frame_id
         self.state.frame_id += 1
         stamp_us = None
@@ -454,6 +501,7 @@ class MavlinkSitl:
             exposure_tick = max(self.clock.tick - self.sim.camera_latency_steps, 0)
             stamp_us = exposure_tick * 1_000_000 // self.clock.rate_hz
             self.links.send_camera(encode_frame(frame.image, frame_id % 2**32, stamp_us))
+            t = perf.add("camera", t)
         else:
             self.camera_frames_dropped += 1
             self.flight_log.event(
@@ -469,53 +517,8 @@ class MavlinkSitl:
                 {"flying": self.state.flying, "mode": ap.mode_label, "armed": ap.armed},
                 observation if self._control_step() else None,
             )
+            perf.add("log", t)
         return stamp_us
-
-
-def _link_impairment(scenario: Scenario, config: SitlConfig) -> LinkImpairment | None:
-    """The scenario's ``[link]`` with the ``--link-*`` flags over it; None for a perfect link.
-
-    Raises:
-        ConfigError: an impaired link in lockstep (delays are wall-clock time; a held answer
-            would stop the lockstep clock instead of arriving late).
-    """
-    base = scenario.link or LinkConfig(source=scenario.source)
-    cut = config.link_cut_at_s
-    link = base.with_overrides(
-        loss_prob=config.link_loss_prob,
-        delay_ms=config.link_delay_ms,
-        jitter_ms=config.link_jitter_ms,
-        duplicate_prob=config.link_duplicate_prob,
-        reorder_prob=config.link_reorder_prob,
-        outage_s=None if cut is None else (cut, math.inf),
-    )
-    if not link.active:
-        return None
-    if config.lockstep:
-        raise ConfigError(
-            f"{scenario.source}: [link] (or --link-*) impairs a real-time link, but this SITL "
-            "runs in lockstep, where a delayed answer would stop the clock instead of arriving "
-            "late; run with --no-lockstep (visland fly --realtime), or drop the impairment"
-        )
-    return LinkImpairment(link, config.seed, time.monotonic)
-
-
-def _initial_params(config: SitlConfig, hover_thrust_norm: float) -> AutopilotParams:
-    """The profile's parameters at their defaults, then ``config.param`` (``--param``).
-
-    Raises:
-        SitlError: a value the parameter rejects (names it).
-    """
-    if config.autopilot == "ardupilot":
-        params = ardupilot_params(hover_thrust_norm)
-    else:
-        params = AutopilotParams(mpc_thr_hover=hover_thrust_norm)
-    for name, value in parse_param_overrides(config.param, config.autopilot):
-        try:
-            params = with_param(params, name, value, config.autopilot)
-        except ValueError as exc:
-            raise SitlError(f"--param {name}={value:g}: {exc}") from None
-    return params
 
 
 def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:
@@ -569,6 +572,7 @@ def run_sitl(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     log.info("summary: %s", json.dumps(summarize(results)))
+    log.info("%s%s", PERF_LINE_PREFIX, json.dumps(sitl.perf.report()))
     return 0 if len(results) == config.episodes else 1
 
 

@@ -1,0 +1,109 @@
+"""The SITL's flight-log writes, queued and written while the loop would otherwise wait.
+
+In lockstep the SITL sends a camera frame and then blocks until the companion answers it.
+Encoding the control period's ~25 records (JSON, zstd, MCAP) on the spot put them on every
+frame's critical path, although the loop then sat idle for as long as the companion computes.
+:class:`LogQueue` opens the episode's :class:`~companion.flightlog.FlightLogWriter` and hands
+:class:`~sitl_sim.mavlink.flight_log.FlightLog` a :class:`QueuedWriter` in its place: each write
+is queued with its arguments (the sim-time stamp is one of them: nothing is read again later)
+and run in order by :meth:`LogQueue.drain`, which the loop calls from the lockstep wait and the
+paced sleeps, stopping as soon as a datagram is waiting. The queue is written at once when it
+grows past ``max_pending`` (phases nobody waits in: LAND running free) and when the log closes.
+
+The file holds the same records in the same order as when each was written on the spot; only
+the wall time of the writes moves (and with it where the wall-clock chunk flushes fall, which
+never were reproducible in a SITL log).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from companion.contract.perf import LoopPerf
+from companion.flightlog import FlightLogWriter
+
+__all__ = ["LogQueue", "QueuedWriter"]
+
+
+class LogQueue:
+    """Flight-log writes waiting to be run (see the module docstring).
+
+    Args:
+        perf: where the writes' wall time is counted (part ``log``, inside whatever part
+            drains the queue).
+        max_pending: writes kept waiting at most; one more writes them all at once.
+    """
+
+    def __init__(self, perf: LoopPerf, max_pending: int = 1024) -> None:
+        if max_pending < 1:
+            raise ValueError(f"max_pending = {max_pending}; expected >= 1")
+        self._perf = perf
+        self._max_pending = max_pending
+        self._pending: deque[tuple[Callable[..., Any], tuple[Any, ...]]] = deque()
+
+    @property
+    def pending(self) -> int:
+        """Writes waiting."""
+        return len(self._pending)
+
+    def open_writer(self, path: Path, metadata: dict[str, Any]) -> QueuedWriter:
+        """Open the episode's log file now (its metadata written) and return the writer that
+        queues its records: the ``open_writer`` of
+        :class:`~sitl_sim.mavlink.flight_log.FlightLog`."""
+        return QueuedWriter(self, FlightLogWriter(path, metadata=metadata))
+
+    def put(self, write: Callable[..., Any], args: tuple[Any, ...]) -> None:
+        """Queue ``write(*args)``; past ``max_pending`` run every waiting write now."""
+        self._pending.append((write, args))
+        if len(self._pending) > self._max_pending:
+            self.drain()
+
+    def drain(self, stop: Callable[[], bool] | None = None) -> None:
+        """Run the waiting writes in order, until none is left or ``stop()`` says something
+        more urgent arrived (checked before each write)."""
+        pending, perf = self._pending, self._perf
+        t = perf.now()
+        try:
+            while pending and (stop is None or not stop()):
+                write, args = pending.popleft()
+                write(*args)
+        finally:
+            perf.add_inner("log", t)
+
+
+class QueuedWriter:
+    """The episode's writer as :class:`~sitl_sim.mavlink.flight_log.FlightLog` sees it: the
+    :class:`~companion.flightlog.FlightLogWriter` calls it makes, queued on ``queue``;
+    :meth:`close` writes what is waiting and closes the file at once."""
+
+    def __init__(self, queue: LogQueue, writer: FlightLogWriter) -> None:
+        self._queue = queue
+        self._writer = writer
+
+    @property
+    def path(self) -> Path:
+        return self._writer.path
+
+    def write(self, *args: Any) -> None:
+        """:meth:`FlightLogWriter.write`, queued."""
+        self._queue.put(self._writer.write, args)
+
+    def write_record(self, *args: Any) -> None:
+        """``FlightLogWriter.write_record`` (a typed record), queued."""
+        self._queue.put(self._writer.write_record, args)
+
+    def write_image(self, *args: Any) -> None:
+        """:meth:`FlightLogWriter.write_image`, queued."""
+        self._queue.put(self._writer.write_image, args)
+
+    def write_pose(self, *args: Any) -> None:
+        """:meth:`FlightLogWriter.write_pose`, queued."""
+        self._queue.put(self._writer.write_pose, args)
+
+    def close(self) -> None:
+        """Write every queued record (this log's and any before it), then close the file."""
+        self._queue.drain()
+        self._writer.close()
