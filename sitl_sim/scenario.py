@@ -75,15 +75,30 @@ class Scenario:
 
     SECTION: ClassVar[str] = "initial_state"
 
-    roll_pitch_deg: tuple[float, float] = _range("deg", "roll and pitch, each drawn uniformly")
-    yaw_deg: tuple[float, float] = _range("deg", "yaw, drawn uniformly")
-    north_east_m: tuple[float, float] = _range("m", "north and east of the pad (Sobol)")
-    altitude_m: tuple[float, float] = _range(
-        "m", "altitude above the pad (Sobol); starts in the air", lo=0.0, lo_open=True
+    roll_pitch_deg: tuple[float, float] = _range(
+        "deg", "roll and pitch, each drawn uniformly (beyond 90: upside down)", lo=-90.0, hi=90.0
     )
-    vel_north_east_m_s: tuple[float, float] = _range("m/s", "north and east velocity (Sobol)")
-    vel_down_m_s: tuple[float, float] = _range("m/s", "downward velocity (Sobol)")
-    rate_rad_s: tuple[float, float] = _range("rad/s", "each body rate, drawn uniformly")
+    yaw_deg: tuple[float, float] = _range("deg", "yaw, drawn uniformly", lo=-360.0, hi=360.0)
+    north_east_m: tuple[float, float] = _range(
+        "m", "north and east of the pad (Sobol)", lo=-500.0, hi=500.0
+    )
+    altitude_m: tuple[float, float] = _range(
+        "m",
+        "altitude above the pad (Sobol); starts in the air, within reach of a landing (the "
+        "radar sees 150 m, an episode lasts 90 s)",
+        lo=0.0,
+        lo_open=True,
+        hi=300.0,
+    )
+    vel_north_east_m_s: tuple[float, float] = _range(
+        "m/s", "north and east velocity (Sobol)", lo=-30.0, hi=30.0
+    )
+    vel_down_m_s: tuple[float, float] = _range(
+        "m/s", "downward velocity (Sobol)", lo=-30.0, hi=30.0
+    )
+    rate_rad_s: tuple[float, float] = _range(
+        "rad/s", "each body rate, drawn uniformly", lo=-20.0, hi=20.0
+    )
     sampler: str = choice(
         "sobol+uniform",
         _SAMPLERS,
@@ -143,7 +158,8 @@ def scenario_keys_markdown() -> str:
         "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, no "
         "sensor faults, a perfect link). Unknown keys, wrong types and values out of range "
         "are `ConfigError`s naming the file, `[section] key`, what was expected and what was "
-        "found. A `span` is `[lo, hi]`, drawn per episode (uniform).\n\n"
+        "found. A `span` is `[lo, hi]`, drawn per episode (uniform); a single number `x` "
+        "means `[x, x]`.\n\n"
     )
     classes = {"initial_state": Scenario, "world": WorldSection, **_OPTIONAL}
     return keys_markdown(((name, classes[name]) for name in SECTIONS), intro)

@@ -18,7 +18,8 @@ same way (:class:`Section`'s ``__post_init__``). Rules, the same for every secti
 * an unknown key, a value of the wrong type and a value out of range are each a
   :class:`~sitl_sim.errors.ConfigError` ``"<where>: [section] key = <got>; expected <what>"``.
 
-Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode), :func:`integer_span`,
+Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode; a single number ``x`` in
+the file means ``[x, x]``), :func:`integer_span` (likewise),
 :func:`number`, :func:`probability`, :func:`integer`, :func:`choice` (a string among choices)
 and :func:`choice_list` (a non-empty list of them). :func:`keys_markdown` makes the table of
 keys; ``python -m sitl_sim.scenario --markdown`` prints the scenario's (``docs/scenario_keys.md``).
@@ -120,6 +121,8 @@ class Key:
             return value if _is_int(value) else None
         if self.kind in (_SPAN, _INT_SPAN):
             ok = _is_int if self.kind == _INT_SPAN else _is_number
+            if ok(value):  # a scalar x is the span [x, x] (a fixed value, every episode)
+                value = [value, value]
             if not (isinstance(value, list) and len(value) == 2 and all(map(ok, value))):
                 return None
             cast = int if self.kind == _INT_SPAN else float
@@ -133,9 +136,9 @@ class Key:
         """What a value of this key looks like (the "expected" of a wrong type)."""
         a, b = self.ends
         if self.kind == _SPAN:
-            return f"[{a}, {b}] (two numbers)"
+            return f"[{a}, {b}] (two numbers), or one number x for [x, x]"
         if self.kind == _INT_SPAN:
-            return f"[{a}, {b}] (two integers)"
+            return f"[{a}, {b}] (two integers), or one integer x for [x, x]"
         return self.expected()
 
     # ------------------------------------------------------------------ checking

@@ -111,11 +111,35 @@ def test_malformed_toml_names_the_file(tmp_path):
         ("altitude_m = [75.0, 100.0]", 'altitude_m = "high"', r"expected \[lo, hi\]"),
         ('sampler = "sobol+uniform"', 'sampler = "halton"', "sampler = 'halton'"),
         ("yaw_deg = [-180.0, 180.0]\n", "", "missing key 'yaw_deg'"),
+        (  # physical bounds: a start the radar cannot see nor the episode reach down from
+            "altitude_m = [75.0, 100.0]",
+            "altitude_m = [2000.0, 2000.0]",
+            r"scenario\.toml: \[initial_state\] altitude_m = \[2000\.0, 2000\.0\]; expected "
+            r"finite \[lo, hi\] with 0 < lo <= hi <= 300 \(m\)",
+        ),
+        (
+            "roll_pitch_deg = [-1.5, 1.5]",
+            "roll_pitch_deg = [-120.0, 1.5]",
+            r"\[initial_state\] roll_pitch_deg = \[-120\.0, 1\.5\]; expected .*-90 <= lo",
+        ),
     ],
 )
 def test_bad_scenarios(tmp_path, old, new, match):
     with pytest.raises(ConfigError, match=match):
         load_scenario(_edit(tmp_path, "scenario.toml", old, new))
+
+
+def test_a_scalar_is_a_fixed_span(tmp_path):
+    """``key = x`` means ``[x, x]`` for every span key (a fixed value every episode)."""
+    path = _edit(tmp_path, "scenario.toml", "altitude_m = [75.0, 100.0]", "altitude_m = 80")
+    path.write_text(path.read_text() + "\n[wind]\nspeed_m_s = 5.0\ndirection_deg = 90\n")
+    sc = load_scenario(path)
+    assert sc.altitude_m == (80.0, 80.0) and sc.wind.speed_m_s == (5.0, 5.0)
+    assert sc.wind.direction_deg == (90.0, 90.0)
+    assert -InitialStateSampler(sc, 3).sample(0).pos_ned_m[2] == 80.0
+    path.write_text(path.read_text().replace("speed_m_s = 5.0", "speed_m_s = 200.0"))
+    with pytest.raises(ConfigError, match=r"\[wind\] speed_m_s = \[200\.0, 200\.0\]"):
+        load_scenario(path)
 
 
 def test_sampler_is_deterministic_and_within_ranges():

@@ -60,7 +60,7 @@ def _scenario_file(tmp_path: Path, wind: str) -> Path:
             "speed_m_s = [3.0, 8.0]",
             "speed_m_s = [8.0, 3.0]",
             r"scenario\.toml: \[wind\] speed_m_s = \[8\.0, 3\.0\]; expected finite \[lo, hi\] with"
-            r" 0 <= lo <= hi \(m/s\)",
+            r" 0 <= lo <= hi <= 50 \(m/s\)",
         ),
         (
             "direction_deg = [0.0, 360.0]",
@@ -82,13 +82,30 @@ def _scenario_file(tmp_path: Path, wind: str) -> Path:
             "speed_m_s = [3.0, 8.0]",
             "speed_m_s = [-1.0, 8.0]",
             r"scenario\.toml: \[wind\] speed_m_s = \[-1\.0, 8\.0\]; expected finite \[lo, hi\] "
-            r"with 0 <= lo <= hi \(m/s\)",
+            r"with 0 <= lo <= hi <= 50 \(m/s\)",
         ),
         (
             "gust_m_s = [1.0, 3.0]",
             "gust_m_s = [-0.5, 3.0]",
             r"scenario\.toml: \[wind\] gust_m_s = \[-0\.5, 3\.0\]; expected finite \[lo, hi\] "
-            r"with 0 <= lo <= hi \(m/s\)",
+            r"with 0 <= lo <= hi <= 30 \(m/s\)",
+        ),
+        (  # physical bounds: a hurricane is 50 m/s, a gust 30, a direction one turn either way
+            "speed_m_s = [3.0, 8.0]",
+            "speed_m_s = [200.0, 300.0]",
+            r"scenario\.toml: \[wind\] speed_m_s = \[200\.0, 300\.0\]; expected finite "
+            r"\[lo, hi\] with 0 <= lo <= hi <= 50 \(m/s\)",
+        ),
+        (
+            "gust_m_s = [1.0, 3.0]",
+            "gust_m_s = [1.0, 80.0]",
+            r"scenario\.toml: \[wind\] gust_m_s = \[1\.0, 80\.0\]; expected .* <= 30 \(m/s\)",
+        ),
+        (
+            "direction_deg = [0.0, 360.0]",
+            "direction_deg = [0, 720]",
+            r"scenario\.toml: \[wind\] direction_deg = \[0\.0, 720\.0\]; expected finite "
+            r"\[lo, hi\] with -360 <= lo <= hi <= 360 \(deg\)",
         ),
         (
             "speed_m_s = [3.0, 8.0]",

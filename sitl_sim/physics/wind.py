@@ -95,7 +95,7 @@ class WindConfig(Section):
     (each key's unit, default and range: its declaration, :mod:`sitl_sim.table`).
 
     Attributes:
-        speed_m_s: mean horizontal wind speed range, m/s (``0 <= lo <= hi``).
+        speed_m_s: mean horizontal wind speed range, m/s (``0 <= lo <= hi <= 50``).
         direction_deg: range of the direction the wind blows FROM, deg (0 = north, 90 = east).
         turbulence: ``"none"``, ``"light"``, ``"moderate"`` or ``"severe"`` (Dryden).
         gust_m_s: 1-cosine gust amplitude range, m/s, or None for no gusts.
@@ -105,16 +105,26 @@ class WindConfig(Section):
     SECTION: ClassVar[str] = "wind"
 
     speed_m_s: tuple[float, float] = span(
-        unit="m/s", lo=0.0, doc="mean horizontal wind speed, drawn per episode"
+        unit="m/s",
+        lo=0.0,
+        hi=50.0,
+        doc="mean horizontal wind speed, drawn per episode (50 m/s: a category-3 hurricane)",
     )
     direction_deg: tuple[float, float] = span(
-        unit="deg", doc="where the mean wind blows FROM (0 = north, 90 = east), drawn per episode"
+        unit="deg",
+        lo=-360.0,
+        hi=360.0,
+        doc="where the mean wind blows FROM (0 = north, 90 = east), drawn per episode",
     )
     turbulence: str = choice(
         "none", TURBULENCE_W20_M_S, doc="Dryden turbulence level (MIL-F-8785C, low altitude)"
     )
     gust_m_s: tuple[float, float] | None = span(
-        None, unit="m/s", lo=0.0, doc="1-cosine gust amplitude, drawn per gust (absent: no gusts)"
+        None,
+        unit="m/s",
+        lo=0.0,
+        hi=30.0,
+        doc="1-cosine gust amplitude, drawn per gust (absent: no gusts)",
     )
 
 
