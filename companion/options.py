@@ -29,12 +29,25 @@ def redacted_dict(config: Any, secrets: tuple[str, ...] = ("signing_key",)) -> d
 
 
 def option(
-    default: Any, help: str, arg_type: type | None = None, choices: tuple[Any, ...] | None = None
+    default: Any,
+    help: str,
+    arg_type: type | None = None,
+    choices: tuple[Any, ...] | None = None,
+    *,
+    repeatable: bool = False,
 ) -> Any:
     """A dataclass field that is also a command-line flag (``arg_type`` where the default's
-    type does not say it, e.g. ``None`` defaults)."""
+    type does not say it, e.g. ``None`` defaults). ``repeatable``: a string flag that may be
+    given several times, its values joined by commas into the field (``--param A=1 --param
+    B=2`` is ``"A=1,B=2"``, as ``--param A=1,B=2``)."""
     return dataclasses.field(
-        default=default, metadata={"help": help, "arg_type": arg_type, "choices": choices}
+        default=default,
+        metadata={
+            "help": help,
+            "arg_type": arg_type,
+            "choices": choices,
+            "repeatable": repeatable,
+        },
     )
 
 
@@ -42,22 +55,42 @@ def _arg_type(f: dataclasses.Field) -> type:
     return f.metadata.get("arg_type") or type(f.default)
 
 
+def _help(f: dataclasses.Field, default: Any) -> str:
+    """The field's help with its default said once: a help that names its own default
+    (``"(default: centre)"``) keeps it; none (``None``) is not worth saying."""
+    text = f.metadata["help"]
+    if f.metadata.get("repeatable"):
+        text += "; repeatable, each NAME=VALUE or NAME=VALUE,NAME=VALUE"
+    if "default" in text or default is None:
+        return text
+    return f"{text} (default: {default})"
+
+
 def add_arguments(
-    parser: argparse.ArgumentParser, cls: type, *, unset_is_none: bool = False
+    parser: argparse.ArgumentParser,
+    cls: type,
+    *,
+    unset_is_none: bool = False,
+    defaults: dict[str, Any] | None = None,
 ) -> None:
     """One ``--flag`` per field of the dataclass ``cls``; its help says the default.
 
     ``unset_is_none``: a flag not given parses as ``None`` (so a config file may fill it in)
-    instead of the field's default.
+    instead of the field's default. ``defaults``: the command's own default of some fields
+    (``visland sitl``'s seed is the evaluation seed), said in their help.
     """
+    defaults = defaults or {}
     for f in dataclasses.fields(cls):
         flag = "--" + f.name.replace("_", "-")
-        help_text = f"{f.metadata['help']} (default: {f.default})"
-        default = None if unset_is_none else f.default
+        shown = defaults.get(f.name, f.default)
+        help_text = _help(f, shown)
+        default = None if unset_is_none else shown
         if isinstance(f.default, bool):
             parser.add_argument(
                 flag, action=argparse.BooleanOptionalAction, default=default, help=help_text
             )
+        elif f.metadata.get("repeatable"):
+            parser.add_argument(flag, action="append", type=str, default=None, help=help_text)
         else:
             parser.add_argument(
                 flag,
@@ -72,6 +105,9 @@ def values_from_args(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The parsed value of each field of ``cls`` that was given (``None``: not given, when the
     flags were added with ``unset_is_none``)."""
     values = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(cls)}
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("repeatable") and values[f.name] is not None:
+            values[f.name] = ",".join(values[f.name])  # a list of the flag's values
     return {k: v for k, v in values.items() if v is not None}
 
 

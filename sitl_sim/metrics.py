@@ -100,13 +100,17 @@ def _stats(values: list[float]) -> dict[str, float]:
 def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
     """min/max/mean/std of landing error, touchdown speed, tilt, time; success rate.
 
-    Timeouts count as failures; their (non-)touchdown speed is excluded from the speed stats,
-    and ``timeouts`` says how many there were so nothing is hidden.
+    Timeouts count as failures; a flight that never touched down has no landing error (its
+    distance at the timeout is in its own row) nor touchdown speed, so the landing-error and
+    speed stats cover the ``landed`` episodes only, and ``timeouts`` says how many were left
+    out so nothing is hidden (all timed out: the stats are NaN, null in JSON).
     """
     n = len(results)
+    landed = [r for r in results if r.landed]
     return {
         "episodes": n,
-        "landing_error_m": _stats([r.landing_error_m for r in results]),
+        "landed": len(landed),
+        "landing_error_m": _stats([r.landing_error_m for r in landed]),
         "touchdown_speed_m_s": _stats([r.touchdown_speed_m_s for r in results]),
         "touchdown_vertical_speed_m_s": _stats([r.touchdown_vertical_speed_m_s for r in results]),
         "tilt_deg": _stats([r.tilt_deg for r in results]),

@@ -164,5 +164,8 @@ def test_metric_definitions_on_hand_made_episodes():
     assert timeout.landing_error_m == 5.0 and math.isnan(timeout.touchdown_speed_m_s)
     s = summarize([good, far, hard, tilted, timeout])
     assert s["episodes"] == 5 and s["timeouts"] == 1 and s["success_rate"] == pytest.approx(0.2)
-    assert s["landing_error_m"]["max"] == 5.0 and s["landing_error_m"]["min"] == 0.0
+    assert s["landed"] == 4  # the timeout never touched down: no landing error in the stats
+    assert s["landing_error_m"]["max"] == pytest.approx(1.2) and s["landing_error_m"]["min"] == 0.0
+    none = summarize([timeout])
+    assert none["landed"] == 0 and math.isnan(none["landing_error_m"]["mean"])
     assert s["touchdown_speed_m_s"]["max"] == pytest.approx(1.5)  # the timeout has no speed

@@ -181,7 +181,10 @@ def test_link_section_parses_with_defaults_and_is_recorded_with_the_scenario():
         ({"jitter_ms": math.nan}, r"bad\.toml: \[link\] jitter_ms = nan"),
         ({"reorder_prob": 0.1}, r"reorder_prob = 0\.1 needs delay_ms or jitter_ms > 0"),
         ({"outage_s": [5.0, 2.0]}, r"outage_s = \[5\.0, 2\.0\]; expected \[start, end\]"),
-        ({"outage_s": 3.0}, r"outage_s = 3\.0; expected \[start, end\]"),
+        (
+            {"outage_s": 3.0},
+            r"outage_s = \[3\.0, 3\.0\]; expected \[start, end\] with 0 <= start < ",
+        ),
         ({"loss": 0.1}, r"bad\.toml: \[link\] unknown key\(s\) \['loss'\]; expected \['loss_prob'"),
     ],
 )
@@ -234,8 +237,19 @@ def test_sitl_link_flags_are_checked_and_an_impaired_link_refuses_lockstep(tmp_p
 def test_fly_link_flags_need_real_time(capsys):
     from tools.cli import main
 
-    assert main(["fly", "--link-loss", "0.1", "--link-jitter-ms", "50", "--episodes", "1"]) == 2
+    argv = ["fly", "--link-loss-prob", "0.1", "--link-jitter-ms", "50", "--episodes", "1"]
+    assert main(argv) == 2
     assert "--link-* impair a real-time link; add --realtime" in capsys.readouterr().err
+
+
+def test_fly_old_link_loss_spelling_still_works_and_warns(capsys):
+    """``--link-loss`` (fly's old name of ``--link-loss-prob``) is a hidden alias that warns."""
+    from tools.cli import main
+
+    assert main(["fly", "--link-loss", "0.1", "--episodes", "1"]) == 2  # reached the check
+    err = capsys.readouterr().err
+    assert "--link-loss is deprecated; use --link-loss-prob" in err
+    assert "--link-* impair a real-time link" in err
 
 
 # --------------------------------------------------------------------------- the companion side
@@ -454,7 +468,7 @@ def test_twenty_real_time_landings_through_a_lossy_link(tmp_path, policy):
     least 95 % must succeed, and the companion must have flown at least 95 % of them to
     touchdown without a failsafe (a failsafe lands in AUTO.LAND where it happens, so it cannot
     pass for a landing on the pad either). The same run: ``visland fly --policy POLICY
-    --episodes 20 --realtime --link-loss 0.1 --link-jitter-ms 50 --json``."""
+    --episodes 20 --realtime --link-loss-prob 0.1 --link-jitter-ms 50 --json``."""
     import json
 
     from training.exec.fly import FlyConfig, fly

@@ -17,18 +17,59 @@ The flags and output several commands share are in :mod:`tools.cli_args`.
 
 Exit codes: 0 done; 1 the work failed (a process, a backend, a failed episode where the command
 says so); 2 an error a user can cause (bad config, bad file, bad value, a missing extra), which
-ends with one line on stderr naming the problem, never a bare traceback; 130 interrupted.
+ends with one line on stderr naming the problem, never a bare traceback; 130 interrupted. A
+reader that closes the pipe early (``visland log info F | head``) ends the command quietly.
+
+Every option's help says its default once (:class:`tools.cli_args.HelpFormatter`, set on every
+subcommand here); ``visland --version`` names the package version and the checkout's commit.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-__all__ = ["main"]
+__all__ = ["main", "version_line"]
+
+
+def version_line() -> str:
+    """``visland <version>``, plus ``(git <commit>)`` when this code runs from a checkout."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from training.provenance import REPO, git_commit
+
+    try:
+        line = f"visland {version('visland')}"
+    except PackageNotFoundError:
+        line = "visland (not installed)"
+    if (REPO / ".git").exists():
+        line += f" (git {git_commit()})"
+    return line
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the line of :func:`version_line`, worked out only when asked for."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(version_line())
+        parser.exit()
+
+
+def _with_formatter(parser: argparse.ArgumentParser, formatter: type) -> None:
+    """``formatter`` for ``parser`` and every subcommand under it."""
+    parser.formatter_class = formatter
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                _with_formatter(child, formatter)
 
 
 def _parser() -> argparse.ArgumentParser:
+    from tools.cli_args import HelpFormatter
     from tools.cli_bench import register_bench
     from tools.cli_eval import register_eval
     from tools.cli_log import register_log
@@ -40,6 +81,11 @@ def _parser() -> argparse.ArgumentParser:
         prog="visland",
         description="Vision-based drone landing: simulator, companion, imitation learning.",
     )
+    p.add_argument(
+        "--version",
+        action=_VersionAction,
+        help="print the package version and git commit, then exit",
+    )
     sub = p.add_subparsers(dest="command", required=True)
     for register in (
         register_sim,
@@ -50,6 +96,7 @@ def _parser() -> argparse.ArgumentParser:
         register_export,
     ):
         register(sub)
+    _with_formatter(p, HelpFormatter)
     return p
 
 
@@ -89,7 +136,15 @@ def missing_extra(exc: ImportError) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return _run(args)
+        code = _run(args)
+        sys.stdout.flush()  # a pipe's buffer is written here, not at exit: a closed one raises
+        return code
+    except BrokenPipeError:
+        # The reader left (``| head``): stop quietly. stdout points at /dev/null so that the
+        # interpreter's own flush at exit does not raise again (Python docs, "Note on SIGPIPE").
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except ImportError as exc:
         line = missing_extra(exc)
         if line is None:

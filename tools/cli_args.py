@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 __all__ = [
+    "HelpFormatter",
+    "add_deprecated_alias",
     "add_episode_arguments",
     "add_parallel_arguments",
     "config_from_args",
@@ -19,6 +21,50 @@ __all__ = [
     "print_result",
     "scenario_arg",
 ]
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help says its default once: argparse's "(default: X)" where the help does
+    not already name its default, and nothing for a flag (off) or an unset (None) default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or action.default in (None, False) or action.nargs == 0:
+            return text
+        return super()._get_help_string(action)
+
+
+class _DeprecatedAlias(argparse.Action):
+    """A hidden old spelling of a flag: it still works (same ``dest``), and warns on stderr
+    with the new spelling."""
+
+    def __init__(self, option_strings, dest, new: str, append: bool = False, **kwargs) -> None:
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
+        self.new = new
+        self.append = append
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(
+            f"{parser.prog}: warning: {option_string} is deprecated; use {self.new}",
+            file=sys.stderr,
+        )
+        if self.append:
+            values = [*(getattr(namespace, self.dest, None) or []), values]
+        setattr(namespace, self.dest, values)
+
+
+def add_deprecated_alias(
+    p: argparse.ArgumentParser | Any,
+    old: str,
+    new: str,
+    dest: str,
+    *,
+    type: Callable[[str], Any] = str,
+    append: bool = False,
+) -> None:
+    """``old`` as a hidden, warning alias of the flag ``new`` (whose value lands in ``dest``;
+    ``append``: a repeatable flag)."""
+    p.add_argument(old, dest=dest, type=type, new=new, append=append, action=_DeprecatedAlias)
 
 
 def print_json(obj: Any) -> None:

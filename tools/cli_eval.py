@@ -91,11 +91,35 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
     return 0
 
 
+def _blind_vision_policy(args: argparse.Namespace) -> str | None:
+    """Why ``--no-camera`` cannot fly ``--policy`` (a vision policy would fly on black frames,
+    blind, and report it as its score), or None when it can."""
+    if not args.no_camera:
+        return None
+    from training.exec.fly import policy_is_privileged
+
+    if policy_is_privileged(args.policy):
+        return None
+    return (
+        f"--no-camera skips rendering, but {args.policy!r} is a vision policy (camera, radar, "
+        "IMU): it would fly blind on black frames. Drop --no-camera, or fly a privileged "
+        "policy (expert, cascade, a privileged checkpoint) without the camera"
+    )
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from tools.cli_sim import cmd_fly
     from training.evaluate import EvalConfig, evaluate, format_table
     from training.exec.choose import backend_from_args
 
+    blind = _blind_vision_policy(args)
+    if blind is not None:
+        print(f"visland eval: error: {blind}", file=sys.stderr)
+        return 2
+    if args.scenario is not None:  # a bad file stops here, before anything flies
+        from sitl_sim.scenario import load_scenario
+
+        load_scenario(args.scenario)
     if args.suite is not None:
         return _cmd_eval_suite(args)
     if args.plot is not None or args.markdown is not None:
@@ -124,8 +148,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print(
-            f"{summary['flown_now']} flown now, {summary['already_complete']} already complete; "
-            f"logs in {summary['flights_dir']}"
+            f"{summary['flown_now']} flown now, {summary['already_complete']} already complete "
+            f"(seed {summary['seed']}, scenario {summary['scenario']}); logs in "
+            f"{summary['flights_dir']}"
         )
         if summary["flown_now"]:
             format_table({**summary, "episodes": summary["flown_now"]}, sys.stdout)
@@ -240,7 +265,14 @@ def register_eval(sub: argparse._SubParsersAction) -> None:
     _register_eval(sub)
 
     c = sub.add_parser("collect", help="fly the expert and write one MCAP log per episode")
-    add_episode_arguments(c, episodes=300, seed=0)
+    add_episode_arguments(
+        c,
+        episodes=300,
+        seed=0,
+        episodes_help="expert flights to record (default 300)",
+        seed_help=f"collection seed (default 0: a training seed, disjoint from the evaluation "
+        f"seed {EVAL_SEED})",
+    )
     c.add_argument("--out", type=Path, required=True, help="run folder (logs in OUT/flights)")
     c.add_argument("--json", action="store_true", help="print one JSON object")
     add_parallel_arguments(c, "parallel processes")

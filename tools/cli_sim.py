@@ -11,46 +11,46 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-from tools.cli_args import add_episode_arguments, config_from_args, print_json, scenario_arg
+from tools.cli_args import (
+    add_deprecated_alias,
+    add_episode_arguments,
+    config_from_args,
+    print_json,
+    scenario_arg,
+)
 from training.seeds import EVAL_SEED
 
 __all__ = ["cmd_fly", "register_sim"]
 
 
 class _LinkFlag(NamedTuple):
-    """One ``visland fly`` flag that impairs the link, and the SITL's flag that does it
-    (``sitl_sim.mavlink.config``)."""
+    """One ``visland fly`` flag that impairs the link: the SITL's flag of the same name
+    (``sitl_sim.mavlink.config``), and its old ``fly`` spelling, if it had another."""
 
     dest: str
-    sitl_flag: str
     metavar: str
     help: str
+    deprecated: str | None = None
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.dest.replace("_", "-")
 
 
 _LINK_FLAGS = (
-    _LinkFlag("link_loss", "--link-loss-prob", "P", "loss probability"),
-    _LinkFlag("link_delay_ms", "--link-delay-ms", "D", "fixed one-way delay, ms"),
+    _LinkFlag("link_loss_prob", "P", "loss probability", "--link-loss"),
+    _LinkFlag("link_delay_ms", "D", "fixed one-way delay, ms"),
+    _LinkFlag("link_jitter_ms", "J", "extra delay uniform in [0, J] ms (each stream in order)"),
+    _LinkFlag("link_duplicate_prob", "P", "duplicate probability", "--link-duplicate"),
     _LinkFlag(
-        "link_jitter_ms",
-        "--link-jitter-ms",
-        "J",
-        "extra delay uniform in [0, J] ms (each stream stays in order)",
-    ),
-    _LinkFlag("link_duplicate", "--link-duplicate-prob", "P", "duplicate probability"),
-    _LinkFlag(
-        "link_reorder",
-        "--link-reorder-prob",
+        "link_reorder_prob",
         "P",
         "probability a datagram jumps the queue (needs a delay)",
+        "--link-reorder",
     ),
-    _LinkFlag(
-        "link_cut_at_s",
-        "--link-cut-at-s",
-        "T",
-        "the link dies for good T s into each flight (failsafe test)",
-    ),
+    _LinkFlag("link_cut_at_s", "T", "the link dies for good T s into each flight (failsafe test)"),
 )
-"""``visland fly``'s impaired-link flags (``--link-loss`` ...), in ``--help`` order."""
+"""``visland fly``'s impaired-link flags, named as ``visland sitl``'s, in ``--help`` order."""
 
 
 def _link_sitl_args(args: argparse.Namespace) -> tuple[str, ...]:
@@ -59,7 +59,7 @@ def _link_sitl_args(args: argparse.Namespace) -> tuple[str, ...]:
     for flag in _LINK_FLAGS:
         value = getattr(args, flag.dest, None)
         if value is not None:
-            out += [flag.sitl_flag, repr(float(value))]
+            out += [flag.flag, repr(float(value))]
     return tuple(out)
 
 
@@ -86,7 +86,15 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
     from sitl_sim.mavlink.sitl import run_sitl
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    return run_sitl(sitl_config_from_args(args))
+    cfg = sitl_config_from_args(args)
+    logging.getLogger("visland.sitl").info(
+        "scenario %s, seed %d, episodes %d..%d",
+        cfg.scenario or "configs/scenario.toml",
+        cfg.seed,
+        cfg.first_episode,
+        cfg.first_episode + cfg.episodes - 1,
+    )
+    return run_sitl(cfg)
 
 
 def _cmd_companion(args: argparse.Namespace) -> int:
@@ -97,6 +105,21 @@ def _cmd_companion(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     return run_from_args(args, resolve_policy, "visland companion")
+
+
+def _register_install_service(companion: argparse.ArgumentParser) -> None:
+    """``visland companion install-service``: :mod:`companion.install_service`."""
+    from companion.install_service import __doc__ as doc
+    from companion.install_service import add_arguments, run_from_args
+
+    sub = companion.add_subparsers(dest="companion_command", metavar="install-service")
+    ins = sub.add_parser(
+        "install-service",
+        help="set this board up to run the companion as a systemd service (docs/deploy.md)",
+        description=doc.split("\n\n")[0],
+    )
+    add_arguments(ins)
+    ins.set_defaults(func=run_from_args)
 
 
 def cmd_fly(args: argparse.Namespace) -> int:
@@ -130,7 +153,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
         progress=not args.json,
         sitl_args=link_args,
         autopilot=getattr(args, "autopilot", "px4"),
-        sitl_params=tuple(getattr(args, "sitl_param", None) or ()),
+        sitl_params=tuple(getattr(args, "param", None) or ()),
     )
     # eval --transport mavlink --workers N = fly --instances N
     instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
@@ -274,32 +297,42 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
         "(offboard) or PLND_ENABLED=1,PLND_TYPE=1 (landing-target) on the SITL first",
     )
     fl.add_argument(
-        "--sitl-param",
+        "--param",
         action="append",
         metavar="NAME=VALUE",
-        help="a SITL parameter set at start, after the profile's setup (repeatable), e.g. "
-        "GUID_OPTIONS=0 to see the companion refuse",
+        help="a SITL parameter set at start, after the profile's setup, as `visland sitl "
+        "--param` (repeatable, each NAME=VALUE or NAME=VALUE,NAME=VALUE), e.g. GUID_OPTIONS=0 "
+        "to see the companion refuse",
     )
-    add_episode_arguments(fl, episodes=20, seed=EVAL_SEED, seed_help="disjoint from training seeds")
+    add_deprecated_alias(fl, "--sitl-param", "--param", "param", append=True)
+    add_episode_arguments(
+        fl,
+        episodes=20,
+        seed=EVAL_SEED,
+        episodes_help="episodes (default 20)",
+        seed_help=f"scenario seed (default {EVAL_SEED}, the evaluation seed, disjoint from "
+        "training)",
+    )
     fl.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
     link = fl.add_argument_group(
         "impaired link (--realtime only; over the scenario's [link]; seeded by --seed)"
     )
     for flag in _LINK_FLAGS:
-        link.add_argument(
-            "--" + flag.dest.replace("_", "-"),
-            type=float,
-            default=None,
-            metavar=flag.metavar,
-            help=flag.help,
-        )
+        link.add_argument(flag.flag, type=float, default=None, metavar=flag.metavar, help=flag.help)
+        if flag.deprecated:
+            add_deprecated_alias(link, flag.deprecated, flag.flag, flag.dest, type=float)
     fl.add_argument(
         "--instances",
         type=int,
         default=1,
         help="SITL + companion pairs side by side, each on its own ports (default 1)",
     )
-    fl.add_argument("--out", type=Path, default=None, help="run folder for both processes' logs")
+    fl.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="run folder for both processes' logs (default: a new temporary folder)",
+    )
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     add_backend_arguments(fl)
     fl.set_defaults(func=cmd_fly)
@@ -316,7 +349,7 @@ def register_sim(sub: argparse._SubParsersAction) -> None:
     st = sub.add_parser(
         "sitl", help="the MAVLink 2 SITL: a PX4-like autopilot over UDP (lockstep or real time)"
     )
-    add_sitl_arguments(st)
+    add_sitl_arguments(st, seed=EVAL_SEED)
     st.set_defaults(func=_cmd_sitl)
     cp = sub.add_parser(
         "companion",
@@ -324,4 +357,5 @@ def register_sim(sub: argparse._SubParsersAction) -> None:
     )
     add_companion_arguments(cp)
     cp.set_defaults(func=_cmd_companion)
+    _register_install_service(cp)
     _register_fly(sub)

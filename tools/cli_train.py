@@ -116,15 +116,20 @@ def register_training(sub: argparse._SubParsersAction) -> None:
         "pipeline",
         help="collect -> BC -> DAgger -> perception -> vision DAgger -> eval (resumable)",
     )
-    pp.add_argument("--profile", choices=sorted(PROFILES), default="quick")
+    pp.add_argument(
+        "--profile",
+        choices=sorted(PROFILES),
+        default="quick",
+        help="training profile: budgets, seeds, estimator settings (training.profiles)",
+    )
     pp.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
     pp.add_argument(
         "--scenario", default=None, help="scenario TOML (default configs/scenario.toml)"
     )
     pp.add_argument("--rollouts", choices=ROLLOUT_TRANSPORTS, default=None, help=rollouts_help)
     pp.add_argument("--stages", default=None, help=f"comma list (default all: {','.join(STAGES)})")
-    pp.add_argument("--no-progress", action="store_true")
-    pp.add_argument("--json", action="store_true")
+    pp.add_argument("--no-progress", action="store_true", help="no progress bars")
+    pp.add_argument("--json", action="store_true", help="print one JSON object")
     pp.add_argument(
         "--from",
         dest="start_from",
@@ -141,11 +146,20 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     tr = sub.add_parser("train", help="run one training stage of a run folder (see pipeline)")
     tr.add_argument("stage", choices=STAGES)
     tr.add_argument("--run", type=Path, required=True, help="run folder")
-    tr.add_argument("--profile", choices=sorted(PROFILES), default="quick")
-    tr.add_argument("--scenario", default=None)
+    tr.add_argument(
+        "--profile",
+        choices=sorted(PROFILES),
+        default="quick",
+        help="training profile: budgets, seeds, estimator settings (training.profiles)",
+    )
+    tr.add_argument(
+        "--scenario",
+        default=None,
+        help="scenario TOML (default configs/scenario.toml); the run's own (checked on resume)",
+    )
     tr.add_argument("--rollouts", choices=ROLLOUT_TRANSPORTS, default=None, help=rollouts_help)
-    tr.add_argument("--no-progress", action="store_true")
-    tr.add_argument("--json", action="store_true")
+    tr.add_argument("--no-progress", action="store_true", help="no progress bars")
+    tr.add_argument("--json", action="store_true", help="print one JSON object")
     tr.add_argument(
         "--redo",
         action="store_true",
@@ -156,7 +170,9 @@ def register_training(sub: argparse._SubParsersAction) -> None:
 
     sh = sub.add_parser("ship", help="copy a run's vision policy to models/ with its model card")
     sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
-    sh.add_argument("--out", type=Path, default=Path("models"))
+    sh.add_argument(
+        "--out", type=Path, default=Path("models"), help="folder of the shipped model and card"
+    )
     sh.set_defaults(func=_cmd_ship)
 
     rp = sub.add_parser(

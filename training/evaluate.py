@@ -8,6 +8,7 @@ touchdown_speed_m_s {...}, success_rate and per_episode rows.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -134,6 +135,7 @@ def collect(cfg: CollectConfig) -> dict[str, Any]:
     summary = {
         "policy": cfg.policy,
         "seed": cfg.seed,
+        "scenario": _scenario_name(cfg.scenario),
         "episodes": cfg.episodes,
         "flown_now": len(todo),
         "already_complete": len(done),
@@ -151,20 +153,30 @@ def collect(cfg: CollectConfig) -> dict[str, Any]:
 def format_table(report: dict[str, Any], out: TextIO) -> None:
     """A human summary of an eval/collect report."""
 
-    def row(name: str, key: str, unit: str) -> None:
+    n = report.get("episodes") or 0
+    timeouts = report.get("timeouts", 0)
+    landed = report.get("landed", n - timeouts)
+
+    def row(name: str, key: str, unit: str, landed_only: bool = False) -> None:
         s = report.get(key) or {}
         if not s:
             return
+        if s["mean"] is None or math.isnan(s["mean"]):  # nothing touched down: no statistic
+            why = f"all {n} episodes timed out" if landed_only and n else "no value"
+            out.write(f"  {name:<22} n/a ({why})\n")
+            return
+        over = f" (over {landed} landed; {timeouts} timed out)" if landed_only and timeouts else ""
         out.write(
             f"  {name:<22} min {s['min']:8.3f}  max {s['max']:8.3f}  mean {s['mean']:8.3f}"
-            f"  std {s['std']:8.3f} {unit}\n"
+            f"  std {s['std']:8.3f} {unit}{over}\n"
         )
 
-    n = report.get("episodes")
-    out.write(f"{report.get('policy')}: {n} episodes, seed {report.get('seed')}\n")
-    row("landing error", "landing_error_m", "m")
-    row("touchdown speed", "touchdown_speed_m_s", "m/s")
-    row("tilt at touchdown", "tilt_deg", "deg")
+    scenario = report.get("scenario")
+    where = f", scenario {scenario}" if scenario else ""
+    out.write(f"{report.get('policy')}: {n} episodes, seed {report.get('seed')}{where}\n")
+    row("landing error", "landing_error_m", "m", landed_only=True)
+    row("touchdown speed", "touchdown_speed_m_s", "m/s", landed_only=True)
+    row("tilt at touchdown", "tilt_deg", "deg", landed_only=True)
     row("time to touchdown", "time_s", "s")
     out.write(
         f"  success rate {100 * report['success_rate']:.1f} %   timeouts {report['timeouts']}"

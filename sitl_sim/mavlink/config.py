@@ -54,7 +54,11 @@ class SitlConfig:
     first_episode: int = option(
         0, "index of the first episode (parallel SITLs split one seed's episodes)"
     )
-    seed: int = option(0, "episode i starts at InitialStateSampler(scenario, seed).sample(i)")
+    seed: int = option(
+        0,
+        "episode i starts at InitialStateSampler(scenario, seed).sample(i) (`visland sitl`: "
+        "the evaluation seed, training.seeds.EVAL_SEED, as eval, fly and demo)",
+    )
     scenario: str | None = option(None, "scenario TOML (default configs/scenario.toml)", str)
     sim_config: str | None = option(None, "simulation TOML (default configs/sim.toml)", str)
     vehicle_config: str | None = option(None, "vehicle TOML (default configs/vehicle.toml)", str)
@@ -105,9 +109,10 @@ class SitlConfig:
     )
     param: str | None = option(
         None,
-        "parameters set at start, NAME=VALUE[,NAME=VALUE...] of the profile's writable ones "
-        "(as a parameter file loaded at boot), e.g. GUID_OPTIONS=8",
+        "a parameter set at start, NAME=VALUE of the profile's writable ones (as a parameter "
+        "file loaded at boot), e.g. GUID_OPTIONS=8",
         str,
+        repeatable=True,
     )
 
     def __post_init__(self) -> None:
@@ -159,9 +164,10 @@ class SitlConfig:
         return redacted_dict(self)
 
 
-def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
-    """One ``--flag`` per :class:`SitlConfig` field, its help from the field's doc."""
-    add_arguments(parser, SitlConfig)
+def add_sitl_arguments(parser: argparse.ArgumentParser, **defaults: Any) -> None:
+    """One ``--flag`` per :class:`SitlConfig` field, its help from the field's doc;
+    ``defaults``: the command's own default of some fields (e.g. ``seed``)."""
+    add_arguments(parser, SitlConfig, defaults=defaults)
 
 
 def sitl_config_from_args(args: argparse.Namespace) -> SitlConfig:

@@ -12,13 +12,15 @@ The colour render is converted to mono8 with the ITU-R BT.601 luma weights.
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import math
-from typing import TYPE_CHECKING, Protocol
+import os
+import sys
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
-import pybullet as pb
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.errors import SimError
@@ -29,6 +31,34 @@ if TYPE_CHECKING:
     from sitl_sim.render.visual import CameraEffects
 
 __all__ = ["Camera", "PadGeometry", "Renderer", "Scene", "make_renderer", "ned_to_scene"]
+
+
+def _import_pybullet() -> Any:
+    """``pybullet``, without the "pybullet build time: ..." line its C module ``printf``s at
+    import (into every command's output, a JSON document on stdout included): file descriptors
+    1 and 2 point at /dev/null while it loads, and C's stdio buffer is flushed there before
+    they are given back (a pipe's buffer would otherwise reach the real stdout at exit)."""
+    if "pybullet" in sys.modules:
+        return sys.modules["pybullet"]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        import pybullet
+
+        ctypes.CDLL(None).fflush(None)
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, devnull):
+            os.close(fd)
+    return pybullet
+
+
+pb = _import_pybullet()
 
 _NED_TO_SCENE = np.diag([1.0, -1.0, -1.0])
 

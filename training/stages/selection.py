@@ -3,6 +3,7 @@ the best as ``checkpoints/<name>.pt``."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -65,14 +66,15 @@ def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
     """Fly the validation episodes; score = mean error + 10 m per failed episode."""
     p = run.profile
     rep = evaluate(run, checkpoint, p.validation_episodes, p.validation_seed, camera, False)
-    mean = rep["landing_error_m"]["mean"]
-    score = (mean if mean is not None else 100.0) + 10.0 * (1.0 - rep["success_rate"])
+    mean = rep["landing_error_m"]["mean"]  # over the landed episodes; NaN: none landed
+    landed = mean is not None and math.isfinite(mean)
+    score = (mean if landed else 100.0) + 10.0 * (1.0 - rep["success_rate"])
     per_world = "".join(
         f"; {name} {100 * w['success_rate']:.0f} %" for name, w in rep.get("worlds", {}).items()
     )
     run.say(
         f"validation {Path(checkpoint).name}: score {score:.3f} (mean error "
-        f"{mean if mean is not None else float('nan'):.3f} m, success "
+        f"{mean if landed else float('nan'):.3f} m, success "
         f"{100 * rep['success_rate']:.0f} %{per_world})"
     )
     return ValidationScore(
