@@ -11,6 +11,8 @@ starts 5-6 m above the pad with rendering off, so the file runs in about ten sec
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -25,7 +27,13 @@ from sitl_sim.env import LandingEnv
 from sitl_sim.mavlink.config import SitlConfig
 from sitl_sim.mavlink.sitl import MavlinkSitl
 from tools.cli import main
-from tools.log_plots import default_plot_path, plot_flight, plot_log
+from tools.log_plots import (
+    _label_groups,
+    default_plot_path,
+    plot_flight,
+    plot_log,
+    time_axis_label,
+)
 from tools.logtool import log_info
 from tools.sitl_client import SitlClient
 from training.exec.fly import FlyConfig, fly, free_udp_port
@@ -205,6 +213,30 @@ def test_cli_log_info_json_and_plot(logs, tmp_path, capsys):
     assert main(["log", "plot", str(logs["companion"]), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert out.is_file() and "missing position" in text
+
+
+def test_log_info_into_a_closed_pipe_ends_quietly(logs):
+    """``visland log info F | head``: no BrokenPipeError traceback when the reader leaves."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tools.cli", "log", "info", str(logs["sitl"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 0 and "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_log_plot_leaves_out_empty_panels_and_names_its_clock(logs, tmp_path):
+    companion = plot_flight(logs["companion"], tmp_path / "companion.png")
+    assert companion.drawn == ("altitude", "attitude", "command")  # no position: no panel
+    assert companion.clock == time_axis_label("companion") and "wall time" in companion.clock
+    sitl = plot_flight(logs["sitl"], tmp_path / "sitl.png")
+    assert sitl.drawn == ("position", "altitude", "attitude", "command")
+    assert sitl.clock == "sim time (s)"
+    # the first second's arming, mode and state changes share one label, not a smear
+    events = [(0.0, "armed"), (0.02, "mode OFFBOARD"), (0.05, "state flying"), (30.0, "landed")]
+    assert _label_groups(events, 30.0) == [(0.0, "armed (+2)"), (30.0, "landed")]
 
 
 @pytest.mark.parametrize("content", [b"", b"not an mcap file\n", b"\x89MCAP0\r"])

@@ -3,7 +3,9 @@ overlaid around the pad.
 
 Each panel draws from the source :func:`tools.logtool.plot_sources` picks (ground truth before
 measurements, the pilot's command before the autopilot's) and names it in its title; a panel
-with no source says what is missing. matplotlib runs headless (Agg).
+with no source is left out and the figure's footnote says what was missing. Time axes name
+their clock (sim time for the SITL and rollouts, the companion's wall clock); clustered event
+labels share one. matplotlib runs headless (Agg).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ __all__ = [
     "plot_flight",
     "plot_flights",
     "plot_log",
+    "time_axis_label",
 ]
 
 _MARKED_EVENTS = (
@@ -111,26 +114,49 @@ def default_plot_path(path: str | Path) -> Path:
     return path.with_name(name + ".png")
 
 
-def _missing(ax, text: str) -> None:
-    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, wrap=True)
-    ax.set_xticks([])
-    ax.set_yticks([])
+_LABEL_GAP = 0.04
+"""Events closer than this share of the time axis share one label (the arming, mode and state
+changes of a flight's first second would otherwise print over each other)."""
+
+
+def _label_groups(events: list[tuple[float, str]], span_s: float) -> list[tuple[float, str]]:
+    """One ``(time, label)`` per cluster of events: the first's text, ``(+N)`` for the rest."""
+    groups: list[list[tuple[float, str]]] = []
+    for t, text in sorted(events, key=lambda e: e[0]):
+        if groups and t - groups[-1][0][0] < _LABEL_GAP * span_s:
+            groups[-1].append((t, text))
+        else:
+            groups.append([(t, text)])
+    return [(g[0][0], g[0][1] if len(g) == 1 else f"{g[0][1]} (+{len(g) - 1})") for g in groups]
 
 
 def _mark_events(ax, events: list[tuple[float, str]], label: bool = False) -> None:
-    for t, text in events:
+    for t, _ in events:
         ax.axvline(t, color="0.6", linestyle=":", linewidth=0.8)
-        if label:
-            ax.text(
-                t,
-                0.98,
-                f" {text}",
-                transform=ax.get_xaxis_transform(),
-                rotation=90,
-                va="top",
-                fontsize=6,
-                color="0.4",
-            )
+    if not label or not events:
+        return
+    lo, hi = ax.get_xlim()
+    for t, text in _label_groups(events, max(hi - lo, 1e-9)):
+        ax.text(
+            t,
+            0.98,
+            f" {text[:48]}",
+            transform=ax.get_xaxis_transform(),
+            rotation=90,
+            va="top",
+            fontsize=6,
+            color="0.4",
+        )
+
+
+def time_axis_label(kind: str) -> str:
+    """Which clock a log's ``time_s`` is on: the SITL and rollouts stamp sim time; the
+    companion its own monotonic (wall) clock since the log was opened."""
+    if kind == "companion":
+        return "wall time since log start (s, companion clock)"
+    if kind in ("sitl", "rollout"):
+        return "sim time (s)"
+    return "time_s (s)"
 
 
 def _title(log: FlightLog, kind: str) -> str:
@@ -160,6 +186,8 @@ class PlotReport:
         missing: one line per empty panel, naming the topics it looked for.
         truncated: the log was cut (crash); the plot shows its readable prefix.
         error: why reading stopped early, if it did.
+        drawn: the panels drawn, in order (a panel without data is left out).
+        clock: the time axes' label (which clock ``time_s`` is on).
     """
 
     out: Path
@@ -168,6 +196,8 @@ class PlotReport:
     missing: list[str]
     truncated: bool
     error: str | None
+    drawn: tuple[str, ...] = ()
+    clock: str = ""
 
 
 def plot_log(path: str | Path, out: str | Path | None = None) -> Path:
@@ -198,41 +228,47 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
     events = _events(log)
     out_path = Path(out) if out is not None else default_plot_path(path)
 
-    fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
-    (ax_top, ax_alt), (ax_att, ax_cmd) = axes
+    clock = time_axis_label(kind)
+    panels = [
+        (panel, draw, title, xlabel, ylabel)
+        for panel, draw, title, xlabel, ylabel in (
+            ("position", _draw_top, "top view", "east (m)", "north (m)"),
+            ("altitude", _draw_altitude, "altitude", clock, "m"),
+            ("attitude", _draw_attitude, "attitude", clock, "deg"),
+            ("command", _draw_commands, "commands", clock, None),
+        )
+        if src.sources[panel] is not None  # a panel without data is left out, not drawn empty
+    ]
+    rows, cols = (1, max(1, len(panels))) if len(panels) <= 2 else (2, 2)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.5 * cols, 4.5 * rows + 0.5), squeeze=False)
     try:
-        for ax, panel, draw, title, missing, xlabel, ylabel in (
-            (ax_top, "position", _draw_top, "top view", "no position", "east (m)", "north (m)"),
-            (
-                ax_alt,
-                "altitude",
-                _draw_altitude,
-                "altitude",
-                "no altitude or range",
-                "time (s)",
-                "m",
-            ),
-            (ax_att, "attitude", _draw_attitude, "attitude", "no attitude", "time (s)", "deg"),
-            (ax_cmd, "command", _draw_commands, "commands", "no commands", "time (s)", None),
-        ):
-            # each panel draws its source, or says which topics it looked for
+        flat = list(axes.flat)
+        for ax, (panel, draw, title, xlabel, ylabel) in zip(flat, panels, strict=False):
             topic = src.sources[panel]
-            if topic is None:
-                _missing(ax, f"{missing}\n" + _missing_line(src, panel))
-            else:
-                draw(ax, log, topic, events)
-            ax.set_title(f"{title} ({topic or 'missing'})", fontsize=10)
+            draw(ax, log, topic, events)
+            ax.set_title(f"{title} ({topic})", fontsize=10)
             ax.set_xlabel(xlabel)
             if ylabel is not None:
                 ax.set_ylabel(ylabel)
+        for ax in flat[len(panels) :]:
+            ax.remove()
+        if not panels:
+            fig.text(0.5, 0.5, "nothing to plot", ha="center", va="center")
+        if src.missing:  # what was looked for and not found, said once below the panels
+            fig.text(
+                0.01, 0.005, "not in this log: " + "; ".join(src.missing), fontsize=7, va="bottom"
+            )
 
         fig.suptitle(_title(log, kind), fontsize=11)
-        fig.tight_layout()
+        fig.tight_layout(rect=(0, 0.02, 1, 1))
         out_path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out_path, dpi=100)
     finally:
         plt.close(fig)
-    return PlotReport(out_path, kind, src.sources, src.missing, log.truncated, log.error)
+    drawn = tuple(panel for panel, *_ in panels)
+    return PlotReport(
+        out_path, kind, src.sources, src.missing, log.truncated, log.error, drawn, clock
+    )
 
 
 def _draw_top(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
@@ -447,7 +483,7 @@ def plot_flights(
         ax_zoom.grid(alpha=0.3)
 
         ax_alt.set_title("altitude since the flight started", fontsize=10)
-        ax_alt.set_xlabel("time since flight start (s)")
+        ax_alt.set_xlabel("sim time since flight start (s)")
         ax_alt.set_ylabel("altitude above ground (m)")
         ax_alt.grid(alpha=0.3)
         if ax_alt.get_legend_handles_labels()[0]:
