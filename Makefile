@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo readme test test-slow lint bench clean
+.PHONY: setup demo readme test test-slow lint bench wheel clean
 
 $(STAMP): pyproject.toml Makefile
 	$(PY) -m venv $(VENV)
@@ -41,5 +41,11 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/visland bench sim
 
+# The board's package (docs/deploy.md): dist/visland-*.whl with the companion's hardware config
+# template and the shipped model in it; install it with '<wheel>[companion]'.
+wheel: $(STAMP)
+	rm -rf dist build
+	$(BIN)/python -m pip wheel --no-deps --no-build-isolation -q -w dist .
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build dist *.egg-info
