@@ -6,13 +6,12 @@ the state machine (:mod:`companion.offboard`). One MCAP log per flight
 (:mod:`companion.record`). SIGINT/SIGTERM hand control back (LAND or HOLD, ``on_exit``) and close
 the log; the process then prints a JSON report on stdout.
 
-Configuration: :class:`CompanionConfig` — defaults, then a TOML file (``--config``, table
-``[companion]``, e.g. ``configs/companion.toml``), then command-line flags. The flight and safety
-settings' defaults are those of :class:`~companion.flight.OffboardConfig` and
-:class:`~companion.safety.SafetyConfig` (typed there, once); :meth:`CompanionConfig.offboard_config`
-and :meth:`CompanionConfig.safety_config` build them.
+Configuration: :class:`~companion.config.CompanionConfig` (:mod:`companion.config`) — the
+hardware template's defaults, then a TOML file (``--config``, table ``[companion]``; without it
+the template installed with the package), then command-line flags.
 ``--replay LOG`` runs a recorded log through the policy instead (shadow, no link) and reports
-how far the recomputed commands are from the recorded ones.
+how far the recomputed commands are from the recorded ones; ``--check`` runs the bench check
+(:mod:`companion.check`: camera, detection, link, parameters; nothing sent).
 """
 
 from __future__ import annotations
@@ -21,29 +20,33 @@ import argparse
 import dataclasses
 import json
 import logging
-import math
 import select
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from companion import options
-from companion.camera import CameraError, check_intrinsics, open_camera
+from companion.camera import CameraError
+from companion.config import (
+    CompanionConfig,
+    CompanionError,
+    add_arguments,
+    config_from_args,
+    load_toml,
+    open_configured_camera,
+    open_configured_link,
+)
 from companion.contract.companion_records import CompanionSummaryRecord
 from companion.contract.perf import LoopPerf
-from companion.files import read_toml
-from companion.flight import FlightContext, OffboardConfig
-from companion.link import PROFILES, LinkError, MavlinkLink, mavlink
+from companion.flight import FlightContext
+from companion.link import LinkError, mavlink
 from companion.offboard import FlightController
-from companion.options import option, redacted_dict
 from companion.runtime import PolicyRuntime
-from companion.safety import SafetyConfig, SafetyMonitor
-from companion.states import FlightResult, FlightState, TouchdownAction
+from companion.safety import SafetyMonitor
+from companion.states import FlightResult, FlightState
 from companion.telemetry import TelemetryStore
 
 __all__ = [
@@ -51,6 +54,7 @@ __all__ = [
     "CompanionError",
     "add_arguments",
     "config_from_args",
+    "load_toml",
     "main",
     "run",
     "run_from_args",
@@ -59,207 +63,11 @@ __all__ = [
 log = logging.getLogger("visland.companion")
 
 
-class CompanionError(ValueError):
-    """A configuration or start-up error (names the file/field and the expected value)."""
-
-
-_FLIGHT = {f.name: f.default for f in dataclasses.fields(OffboardConfig)}
-"""OffboardConfig's defaults: the flight fields below take theirs from here."""
-_SAFETY = {f.name: f.default for f in dataclasses.fields(SafetyConfig)}
-"""SafetyConfig's defaults (seconds, per-axis tuple): the safety fields below convert them."""
-
-
-@dataclass(frozen=True)
-class CompanionConfig:
-    """Everything ``visland companion`` takes; each field is a ``--flag`` and a TOML key."""
-
-    connect: str = option(
-        "udpin:127.0.0.1:14540",
-        "MAVLink connection: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyX or "
-        "serial:/dev/ttyX:BAUD",
-    )
-    baud: int = option(921_600, "serial baud rate")
-    autopilot: str = option("px4", "autopilot profile", choices=tuple(PROFILES))
-    camera: str = option(
-        "udp:127.0.0.1:5600", "camera: udp:HOST:PORT (SITL), opencv:DEVICE|FILE|PIPELINE, mcap:LOG"
-    )
-    camera_fx_px: float | None = option(None, "real camera: focal length fx in pixels", float)
-    camera_hfov_deg: float | None = option(
-        None, "real camera: horizontal FOV (no intrinsics)", float
-    )
-    camera_cx_px: float | None = option(
-        None, "real camera: principal point cx (default: centre)", float
-    )
-    camera_cy_px: float | None = option(
-        None, "real camera: principal point cy (default: centre)", float
-    )
-    camera_rotate_deg: int = option(0, "real camera: rotation (CCW) so image top = body forward")
-    camera_rate_hz: float = option(
-        10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
-    )
-    mode: str = option(
-        "offboard",
-        "offboard: fly the policy's commands (SET_ATTITUDE_TARGET); landing-target: run only "
-        "its camera pad estimator, stream LANDING_TARGET and let the autopilot's precision "
-        "land (PX4 AUTO.PRECLAND, ArduPilot LAND + PLND) fly",
-        choices=("offboard", "landing-target"),
-    )
-    target_timeout_s: float = option(
-        1.0, "landing-target mode: stop sending this long after the pad was last seen"
-    )
-    policy: str = option("", "policy checkpoint (visland companion also takes expert | cascade)")
-    runtime: str = option(
-        "auto",
-        "learned policy backend: onnx (ONNX Runtime on the visland export-onnx graphs beside "
-        "the checkpoint; no torch needed), torch, or auto (onnx when onnxruntime is installed "
-        "and the export is there, else torch)",
-        choices=("auto", "torch", "onnx"),
-    )
-    torch_threads: int = option(1, "intra-op threads for the policy (torch or ONNX Runtime)")
-    shadow: bool = option(
-        _FLIGHT["shadow"], "compute and log every command; send no setpoint, no mode change"
-    )
-    arm: bool = option(
-        _FLIGHT["arm"], "arm when disarmed (SITL demo only; on hardware the pilot arms)"
-    )
-    flights: int = option(1, "flights to fly before exiting (0: until stopped)")
-    signing_key: str | None = option(
-        None, "MAVLink 2 signing key: 64 hex digits or a passphrase", str
-    )
-    sysid: int = option(0, "our MAVLink system id (0: the autopilot's)")
-    max_age_ms: float = option(
-        _SAFETY["max_age_s"] * 1000.0, "failsafe when camera or telemetry is older than this"
-    )
-    near_ground_m: float = option(_SAFETY["near_ground_m"], "below this, no valid range = failsafe")
-    thrust_min: float = option(_SAFETY["thrust_min"], "thrust clamp, low")
-    thrust_max: float = option(_SAFETY["thrust_max"], "thrust clamp, high")
-    max_rate_rp_rad_s: float = option(_SAFETY["max_rate_rad_s"][0], "roll/pitch rate clamp")
-    max_rate_yaw_rad_s: float = option(_SAFETY["max_rate_rad_s"][2], "yaw rate clamp")
-    prestream_s: float = option(
-        _FLIGHT["prestream_s"], "neutral setpoints streamed before requesting OFFBOARD"
-    )
-    engage_min_range_m: float = option(
-        _FLIGHT["engage_min_range_m"], "engage only above this radar range"
-    )
-    touchdown_range_m: float = option(
-        _FLIGHT["touchdown_range_m"], "radar range at or below which the vehicle is down"
-    )
-    on_touchdown: str = option(
-        _FLIGHT["on_touchdown"].value,
-        "after touchdown",
-        str,
-        choices=tuple(action.value for action in TouchdownAction),
-    )
-    on_exit: str = option("land", "mode requested on SIGINT/SIGTERM", choices=("land", "hold"))
-    hover_thrust: float = option(
-        _FLIGHT["hover_thrust"], "neutral thrust if the autopilot does not report it"
-    )
-    link_timeout_s: float = option(3.0, "no autopilot HEARTBEAT this long = link lost")
-    log_dir: str | None = option(
-        "runs/companion/flights", "folder for one MCAP log per flight", str
-    )
-    max_wall_s: float | None = option(None, "exit after this many seconds (safety net)", float)
-
-    def __post_init__(self) -> None:
-        if self.flights < 0:
-            raise CompanionError(f"flights = {self.flights}; expected >= 0")
-        if not (math.isfinite(self.max_age_ms) and self.max_age_ms > 0):
-            raise CompanionError(f"max_age_ms = {self.max_age_ms}; expected > 0")
-        if self.camera_rotate_deg % 90:
-            raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
-        if self.camera.startswith("opencv:"):
-            try:
-                check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
-            except CameraError as exc:
-                raise CompanionError(f"camera {self.camera!r}: {exc}") from None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, with the signing key redacted."""
-        return redacted_dict(self)
-
-    def safety_config(self) -> SafetyConfig:
-        """The safety monitor's limits (milliseconds to seconds, per-axis rate clamp).
-
-        Raises:
-            companion.safety.SafetyError: a limit out of range.
-        """
-        return SafetyConfig(
-            max_age_s=self.max_age_ms / 1000.0,
-            near_ground_m=self.near_ground_m,
-            thrust_min=self.thrust_min,
-            thrust_max=self.thrust_max,
-            max_rate_rad_s=(
-                self.max_rate_rp_rad_s,
-                self.max_rate_rp_rad_s,
-                self.max_rate_yaw_rad_s,
-            ),
-        )
-
-    def offboard_config(self) -> OffboardConfig:
-        """The state machine's settings (those not set here keep OffboardConfig's defaults).
-
-        Raises:
-            ValueError: a setting out of range.
-        """
-        return OffboardConfig(
-            shadow=self.shadow,
-            arm=self.arm,
-            prestream_s=self.prestream_s,
-            engage_min_range_m=self.engage_min_range_m,
-            touchdown_range_m=self.touchdown_range_m,
-            on_touchdown=self.on_touchdown,  # OffboardConfig makes it a TouchdownAction
-            hover_thrust=self.hover_thrust,
-        )
-
-
-def load_toml(path: str | Path) -> dict[str, Any]:
-    """The ``[companion]`` table of a TOML file, checked against the config's fields.
-
-    Raises:
-        CompanionError: the file is missing or not TOML, or the table is missing or wrong.
-    """
-    data = read_toml(path, CompanionError)
-    table = data.get("companion")
-    if not isinstance(table, dict):
-        raise CompanionError(f"{path}: expected a [companion] table")
-    return options.check_table(table, CompanionConfig, f"{path}: [companion]", CompanionError)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--config``, ``--replay`` and one ``--flag`` per :class:`CompanionConfig` field."""
-    parser.add_argument("--config", type=Path, default=None, help="TOML file ([companion] table)")
-    parser.add_argument(
-        "--replay", type=Path, default=None, help="replay a companion log in shadow mode"
-    )
-    parser.add_argument("--json", action="store_true", help="(accepted; the report is JSON)")
-    options.add_arguments(parser, CompanionConfig, unset_is_none=True)  # None: not given
-
-
-def config_from_args(args: argparse.Namespace) -> CompanionConfig:
-    values: dict[str, Any] = {}
-    if args.config is not None:
-        values.update(load_toml(args.config))
-    values.update(options.values_from_args(args, CompanionConfig))
-    if values.get("log_dir") == "":
-        values["log_dir"] = None
-    return CompanionConfig(**values)
-
-
 # --------------------------------------------------------------------------- the process
 
 
 def _open_camera(cfg: CompanionConfig):
-    opts: dict[str, Any] = {}
-    if cfg.camera.startswith("opencv:"):
-        opts = {
-            "fx_px": cfg.camera_fx_px,
-            "hfov_deg": cfg.camera_hfov_deg,
-            "cx_px": cfg.camera_cx_px,
-            "cy_px": cfg.camera_cy_px,
-            "rotate_deg": cfg.camera_rotate_deg,
-            "rate_hz": cfg.camera_rate_hz,
-        }
-    return open_camera(cfg.camera, **opts)
+    return open_configured_camera(cfg)
 
 
 class Companion:
@@ -267,8 +75,6 @@ class Companion:
     signal handler or another thread."""
 
     def __init__(self, cfg: CompanionConfig, policy: Any, policy_name: str) -> None:
-        from companion.contract.signing import signing_key_bytes
-
         self.cfg = cfg
         self.runtime = PolicyRuntime(policy, policy_name)
         if self.runtime.privileged:
@@ -293,14 +99,7 @@ class Companion:
         self.store = TelemetryStore()
         self.camera = _open_camera(cfg)
         try:
-            self.link = MavlinkLink(
-                cfg.connect,
-                baud=cfg.baud,
-                profile=PROFILES[cfg.autopilot],
-                sysid=cfg.sysid or None,
-                signing_key=signing_key_bytes(cfg.signing_key) if cfg.signing_key else None,
-                link_timeout_s=cfg.link_timeout_s,
-            )
+            self.link = open_configured_link(cfg)
         except Exception:
             self.camera.close()
             raise
@@ -327,7 +126,11 @@ class Companion:
         flight = self.flight
         if flight is not None:
             t = self.perf.now()
-            self.flight_log.message(msg, rx_s)
+            flight_log = self.flight_log
+            # queued (receipt order and stamps kept): written when the loop is about to idle,
+            # or after a frame's answer; never between a frame and its answer
+            flight_log.deferring = True
+            flight_log.message(msg, rx_s)
             self.perf.add_inner("log", t)
             flight.on_message(msg, rx_s)
 
@@ -438,6 +241,9 @@ class Companion:
                 if cfg.max_wall_s is not None and self._clock() - t0 > cfg.max_wall_s:
                     self.stop(f"max_wall_s = {cfg.max_wall_s} reached")
                     break
+                if self.flight_log is not None:
+                    self.flight_log.flush_pending()  # before idling: what the last pass queued
+                    t = perf.add("log", t)
                 fds = [fd for fd in (self.link.fileno(), self.camera.fileno()) if fd is not None]
                 timeout = 0.01 if self.camera.fileno() is None else 0.02
                 try:
@@ -538,11 +344,17 @@ def run_from_args(
             policy = resolve_policy(cfg.policy, cfg)
         if args.replay is not None:
             report = replay(args.replay, policy, cfg.policy)
+        elif getattr(args, "check", False):
+            from companion.check import run_check
+
+            report = run_check(cfg, policy, cfg.policy, sys.stdout)
         else:
             report = run(cfg, policy, cfg.policy)
     except (ValueError, OSError, LinkError, CameraError) as exc:  # one clear line
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    if getattr(args, "check", False):
+        return 0 if report["ok"] else 1  # its lines were printed as it went
     print(json.dumps(report, indent=2, default=_json_default))
     if args.replay is not None:
         return 0 if not report["errors"] else 1

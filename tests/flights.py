@@ -185,13 +185,17 @@ def companion_command(
     policy: str = "expert",
     max_wall_s: int = 90,
 ) -> list[str]:
-    """``python -m training.companion_process`` flying ``policy``, listening for the SITL on
+    """``python -m training.companion_process`` flying ``policy`` with the simulator's flight
+    settings (:func:`training.companion_process.sim_companion_args`), listening for the SITL on
     ``remote_port`` and its camera on ``camera_port``, logging to ``log_dir``, ending after
     ``max_wall_s`` of wall time at most; then ``extra``."""
+    from training.companion_process import sim_companion_args
+
     return [
         sys.executable,
         "-m",
         "training.companion_process",
+        *sim_companion_args(),
         "--policy",
         policy,
         "--connect",

@@ -246,12 +246,17 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
     with pytest.raises(CompanionError, match="expected one of"):
         load_toml(bad)
     assert CompanionConfig(**load_toml(REPO / "configs" / "companion.toml")).autopilot == "px4"
-    # the flight and safety defaults are OffboardConfig's and SafetyConfig's (typed once)
-    assert CompanionConfig().offboard_config() == OffboardConfig()
-    assert CompanionConfig().safety_config() == SafetyConfig()
+    # the defaults are the hardware template's (tests/test_companion_deploy.py); the flight
+    # settings it does not set are OffboardConfig's (typed once)
+    assert CompanionConfig().offboard_config() == OffboardConfig(
+        shadow=True, engage_min_range_m=5.0
+    )
+    assert CompanionConfig().safety_config() == SafetyConfig(
+        thrust_max=0.9, max_rate_rad_s=(2, 2, 1)
+    )
     tight = CompanionConfig(max_age_ms=120.0, max_rate_yaw_rad_s=0.5, on_touchdown="hand_back")
     assert tight.safety_config().max_age_s == 0.12
-    assert tight.safety_config().max_rate_rad_s == (3.5, 3.5, 0.5)
+    assert tight.safety_config().max_rate_rad_s == (2.0, 2.0, 0.5)
     with pytest.raises(ValueError, match="on_touchdown = 'land'; expected disarm or hand_back"):
         CompanionConfig(on_touchdown="land").offboard_config()
 

@@ -146,7 +146,7 @@ def test_lens_and_source_errors_name_the_value_and_the_fix(video, tmp_path):
     with pytest.raises(CompanionError, match="exactly one of camera_fx_px"):
         CompanionConfig(camera="opencv:0", camera_fx_px=500.0, camera_hfov_deg=62.2)
     with pytest.raises(CompanionError, match="exactly one of camera_fx_px"):
-        CompanionConfig(camera="opencv:0")
+        CompanionConfig(camera="opencv:0", camera_hfov_deg=None)
     with pytest.raises(CameraError, match="does not exist"):
         OpenCvCameraSource(str(tmp_path / "missing.avi"), hfov_deg=HFOV_DEG)
     junk = tmp_path / "junk.avi"

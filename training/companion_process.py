@@ -14,7 +14,32 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-__all__ = ["main", "resolve_policy"]
+__all__ = ["main", "resolve_policy", "sim_companion_args"]
+
+
+def sim_companion_args() -> tuple[str, ...]:
+    """The flags every simulator launch of the companion gives (``visland fly``, ``visland
+    demo``, DAgger's rollouts, the tests): the companion's defaults are the hardware
+    template's (shadow, engage above 5 m, thrust ≤ 0.9, rates ≤ 2 / 1 rad/s), while a SITL
+    flight flies with :class:`~companion.flight.OffboardConfig`'s and
+    :class:`~companion.safety.SafetyConfig`'s own defaults — the settings of the in-process
+    rollouts and of the SITL's own rate limits — so they are passed here, explicitly."""
+    from companion.flight import OffboardConfig
+    from companion.safety import SafetyConfig
+
+    flight, safety = OffboardConfig(), SafetyConfig()
+    rate_rp, _, rate_yaw = safety.max_rate_rad_s
+    return (
+        "--shadow" if flight.shadow else "--no-shadow",
+        "--no-bench",
+        *("--engage-min-range-m", repr(flight.engage_min_range_m)),
+        *("--thrust-min", repr(safety.thrust_min)),
+        *("--thrust-max", repr(safety.thrust_max)),
+        *("--max-rate-rp-rad-s", repr(rate_rp)),
+        *("--max-rate-yaw-rad-s", repr(rate_yaw)),
+        *("--max-age-ms", repr(safety.max_age_s * 1000.0)),
+        *("--near-ground-m", repr(safety.near_ground_m)),
+    )
 
 
 def resolve_policy(name: str, cfg: Any = None) -> Any:

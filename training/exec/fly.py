@@ -32,6 +32,7 @@ from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult, summarize
+from training.companion_process import sim_companion_args
 from training.exec.transport import Transport
 from training.provenance import REPO, SHIPPED_MODEL
 from training.seeds import EVAL_SEED
@@ -82,6 +83,9 @@ class FlyConfig:
     """The command that starts the companion, before its flags (default: this Python,
     ``-m training.companion_process``); e.g. another install's ``python -I .../visland
     companion``, to fly a board's environment against this SITL."""
+    companion_cwd: str | None = None
+    """The companion's working directory (None: the repository); e.g. a folder outside it, to
+    show that an installed companion finds its model and config through its package."""
     progress: bool = True
     env: dict[str, str] = field(default_factory=dict)
     ports: tuple[int, int, int] | None = None
@@ -253,6 +257,7 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     ]
     comp_cmd = [
         *(cfg.companion_command or (sys.executable, "-m", "training.companion_process")),
+        *sim_companion_args(),  # the simulator's flight settings over the hardware defaults
         "--policy",
         cfg.policy,
         "--connect",
@@ -277,7 +282,9 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     try:
         with sitl_log.open("w") as s_err, comp_log.open("w") as c_err, comp_out.open("w") as c_out:
             # The companion first: its port is bound before the SITL's first HEARTBEAT.
-            comp = subprocess.Popen(comp_cmd, cwd=REPO, stdout=c_out, stderr=c_err, env=env)
+            comp = subprocess.Popen(
+                comp_cmd, cwd=cfg.companion_cwd or REPO, stdout=c_out, stderr=c_err, env=env
+            )
             sitl = subprocess.Popen(
                 sitl_cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=s_err, env=env
             )
