@@ -40,6 +40,9 @@ class OffboardConfig:
 
     Attributes:
         shadow: compute and log, never send a setpoint or a mode change.
+        bench: shadow on the bench (props off, on the ground; needs ``shadow``): the flight
+            starts on the first fresh frame, disarmed and at any range, and goes on through
+            touchdown-like readings and would-be failsafes (logged as events) until stopped.
         arm: arm the vehicle when it is disarmed (SITL demos only; on hardware the pilot arms).
         prestream_s: neutral setpoints streamed before OFFBOARD is requested (PX4 needs > 2 Hz
             before the switch; 1 s at 20 Hz).
@@ -56,6 +59,7 @@ class OffboardConfig:
     """
 
     shadow: bool = False
+    bench: bool = False
     arm: bool = False
     prestream_s: float = 1.0
     prestream_rate_hz: float = 20.0
@@ -74,6 +78,8 @@ class OffboardConfig:
             raise ValueError(
                 f"on_touchdown = {self.on_touchdown!r}; expected disarm or hand_back"
             ) from None
+        if self.bench and not self.shadow:
+            raise ValueError("bench = true needs shadow = true (the bench never sends)")
         if not self.prestream_s >= 1.0:
             raise ValueError(f"prestream_s = {self.prestream_s}; expected >= 1.0 (PX4 rule)")
         if not 2.0 < self.prestream_rate_hz <= 100.0:
@@ -220,6 +226,8 @@ class FlightMachine(ABC):
             return f"waiting for fresh {worst}"
         if self._last_frame_rx is None or now - self._last_frame_rx > max_age_s:
             return "waiting for camera frames"
+        if self.cfg.bench:  # on the ground, at any range: the radar may read nothing valid
+            return None
         rng = self.store.range
         if rng is None or not rng.valid or rng.range_m < self.cfg.engage_min_range_m:
             return f"range {None if rng is None else rng.range_m} below engage_min_range_m"

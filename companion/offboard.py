@@ -12,7 +12,10 @@
 
 In *shadow* mode WAITING goes straight to FLYING and nothing is ever sent: every command the
 policy computes is logged as it would have been sent. It arms only when told to (``arm``, a
-SITL demo); on hardware the pilot arms.
+SITL demo); on hardware the pilot arms. Shadow waits for the vehicle to be armed and above
+``engage_min_range_m``; *bench* shadow (``bench``, props off on the ground) starts on the first
+fresh frame, disarmed and at any range, and logs would-be failsafes and touchdowns as events
+without ending the flight.
 
 **Which frames are flight frames.** Setpoints answering a frame carry the frame's own time
 stamp (``time_boot_ms``); a SITL frame (autopilot clock) stamped at or before the moment the
@@ -81,6 +84,8 @@ class FlightController(FlightMachine):
         self._touchdown = TouchdownDetector(ctx.cfg.touchdown_range_m)
         self._flight_start_rx = math.inf
         self._hover: float | None = None
+        self._bench_failsafe: FailsafeReason | None = None
+        """The bench's last would-be failsafe (each new reason is logged once)."""
 
     # ------------------------------------------------------------------ helpers
 
@@ -155,8 +160,8 @@ class FlightController(FlightMachine):
                     link.arm(True)
                     self._event(EventKind.ARM, "arming (--arm)")
                 return "disarmed (the pilot arms; --arm for SITL demos)"
-        elif not hb.armed:
-            return "disarmed"
+        elif not hb.armed and not self.cfg.bench:
+            return "disarmed (shadow; --bench logs disarmed, on the ground)"
         names = ("attitude", "imu", "range") + (("odometry",) if self.runtime.privileged else ())
         reason = self._inputs_gate(now, names)
         if reason is not None:
@@ -217,7 +222,7 @@ class FlightController(FlightMachine):
                     FlightResult.HANDED_BACK,
                     f"mode changed to {profile.mode_name(mode)} (not by us)",
                 )
-        elif state is FlightState.FLYING and self.cfg.shadow and not armed:
+        elif state is FlightState.FLYING and self.cfg.shadow and not armed and not self.cfg.bench:
             self._finish(FlightResult.SHADOW, "disarmed")
         elif state is FlightState.TOUCHDOWN:
             if not armed:
@@ -315,7 +320,8 @@ class FlightController(FlightMachine):
         failsafe = self.safety.check(now, self.store, frame.rx_s, self.runtime.privileged)
         if failsafe is not None:
             self._failsafe(failsafe)
-            return
+            if not self.cfg.bench:  # the bench logs what the policy computes regardless
+                return
         # an autopilot-clock frame (SITL) gets the readings stamped at its time, however late
         # it arrived after them (jitter); a companion-clock camera, the newest
         at = frame.time_s if self.camera_clock == "autopilot" else None
@@ -371,7 +377,7 @@ class FlightController(FlightMachine):
                 sync_ms=(now - t_in) * 1e3,
             ),
         )
-        if self._touchdown.update(self.store, self._flight_start_rx):
+        if self._touchdown.update(self.store, self._flight_start_rx) and not self.cfg.bench:
             self._on_touchdown()
 
     def _on_touchdown(self) -> None:
@@ -386,6 +392,11 @@ class FlightController(FlightMachine):
 
     def _failsafe(self, failsafe: Failsafe) -> None:
         self.outcome.failsafe = failsafe
+        if self.cfg.bench:  # logged once per reason; the bench keeps computing
+            if failsafe.reason is not self._bench_failsafe:
+                self._bench_failsafe = failsafe.reason
+                self._event(EventKind.FAILSAFE_SHADOW, f"would request LAND: {failsafe}")
+            return
         if self.cfg.shadow:
             self._event(EventKind.FAILSAFE_SHADOW, f"would request LAND: {failsafe}")
             self._finish(FlightResult.SHADOW, f"failsafe (shadow): {failsafe}")

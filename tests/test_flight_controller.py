@@ -155,6 +155,7 @@ class Rig:
         self,
         *,
         shadow: bool = False,
+        bench: bool = False,
         on_touchdown: str = "disarm",
         camera_clock: str = "autopilot",
         max_age_s: float = 0.3,
@@ -168,7 +169,7 @@ class Rig:
         self.pumped: list[float] = []
         self.frame_id = 0
         ctx = FlightContext(
-            OffboardConfig(shadow=shadow, on_touchdown=on_touchdown),
+            OffboardConfig(shadow=shadow, bench=bench, on_touchdown=on_touchdown),
             self.link,  # type: ignore[arg-type]
             self.store,
             camera_clock,
@@ -529,6 +530,33 @@ def test_shadow_flies_the_policy_sends_nothing_and_a_would_be_failsafe_ends_it()
     assert out.result is FlightResult.SHADOW and out.failsafe.reason is FailsafeReason.CAMERA_STALE
     assert out.reason == "failsafe (shadow): camera_stale: newest frame 301 ms old (> 300)"
     assert "failsafe_shadow" in rig.log.kinds() and rig.link.modes == []
+
+
+def test_shadow_waits_for_arming_and_range_the_bench_logs_disarmed_on_the_ground():
+    """Plain shadow logs nothing on the bench (disarmed, radar below engage_min_range_m);
+    bench shadow computes and logs from the first fresh frame, and a would-be failsafe is an
+    event (once per reason), not the end of it."""
+    shadow = Rig(shadow=True)
+    shadow.heartbeat(POSCTL, armed=False)
+    for _ in range(4):
+        shadow.step(range_m=0.1)
+    assert shadow.state is FlightState.WAITING and shadow.log.commands == []
+    rig = Rig(shadow=True, bench=True)
+    rig.heartbeat(POSCTL, armed=False)
+    for _ in range(4):
+        rig.step(range_m=0.1)
+    assert rig.state is FlightState.FLYING  # from the first tick: the frames after it answered
+    assert len(rig.log.commands) == 3 and all(not c.sent for c in rig.log.commands)
+    last_rx = rig.clock()
+    for k in range(3):  # no camera for 0.3 s and more: a would-be failsafe, logged once
+        rig.at(last_rx + 0.301 + k * DT)
+    assert rig.state is FlightState.FLYING and rig.log.kinds().count("failsafe_shadow") == 1
+    for _ in range(10):  # 0.15 m on the ground with a quiet gyro: no touchdown end either
+        rig.step(range_m=0.15)
+    assert rig.state is FlightState.FLYING and len(rig.log.commands) == 13
+    assert rig.link.setpoints == [] and rig.link.modes == [] and rig.link.arms == []
+    with pytest.raises(ValueError, match="bench = true needs shadow = true"):
+        OffboardConfig(bench=True)
 
 
 def test_hand_back_on_exit_requests_the_mode_only_when_in_control():
