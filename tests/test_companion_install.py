@@ -1,10 +1,13 @@
-"""The companion installs on a board by itself: ``pip install 'visland[companion]'`` in a fresh
-venv gives a working ``visland companion`` with no torch, pybullet, cvxpy or scipy, and it flies
-the shipped model (ONNX Runtime, the graphs in ``models/``) against the SITL of the full venv.
+"""The companion installs on a board by itself: the wheel ``make wheel`` builds, installed as
+``'<wheel>[companion]'`` in a fresh venv, gives a working ``visland companion`` with no torch,
+pybullet, cvxpy or scipy, carrying the shipped model (checkpoint + ONNX graphs) and the hardware
+config template as package data; run from a folder outside the checkout it flies that model
+(ONNX Runtime) against the SITL of the full venv.
 
-The wheel is built from a copy of the tracked files (no stale ``build/`` leftovers), without
-build isolation (setuptools is in the dev venv); the fresh venv's dependencies come from the
-package index pip is configured with (the only network this test uses besides loopback).
+The wheel is built by ``make wheel`` in a copy of the tracked files (a fresh clone's: no stale
+``build/`` leftovers), with this venv's pip and setuptools; the fresh venv's dependencies come
+from the package index pip is configured with (the only network this test uses besides
+loopback). The wheel's contents are checked without installing it.
 """
 
 from __future__ import annotations
@@ -15,15 +18,18 @@ import shutil
 import subprocess
 import sys
 import venv
+import zipfile
 from pathlib import Path
 
 import pytest
 
+from companion.packaged import MODEL_FILES, TEMPLATE
 from training.exec.fly import FlyConfig, fly
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "models" / "visland_vision.pt"
-_PIP_WHEEL = (sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q")
+MAKE_WHEEL = ("make", "wheel", f"BIN={Path(sys.executable).parent}", "-o", ".venv/.installed")
+"""``make wheel`` with this venv's tools (``-o``: the copy has no venv of its own to set up)."""
 _PIP_INSTALL = ("-m", "pip", "install", "-q", "--retries", "5", "--disable-pip-version-check")
 ABSENT = ("torch", "pybullet", "cvxpy", "scipy", "gymnasium", "matplotlib")
 
@@ -48,16 +54,29 @@ def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def board_venv(tmp_path_factory) -> Path:
-    """A fresh venv with ``visland[companion]`` installed from a freshly built wheel."""
-    root = tmp_path_factory.mktemp("install")
-    src, dist, env_dir = root / "src", root / "dist", root / "venv"
+def wheel(tmp_path_factory) -> Path:
+    """The wheel ``make wheel`` builds from a fresh clone's files."""
+    src = tmp_path_factory.mktemp("build") / "src"
     _tracked_copy(src)
-    _run(
-        [*_PIP_WHEEL, "-w", str(dist), str(src)],
-        timeout=300,
-    )
-    (wheel,) = dist.glob("visland-*.whl")
+    _run(["make", "-C", str(src), *MAKE_WHEEL[1:]], timeout=300)
+    (built,) = (src / "dist").glob("visland-*.whl")
+    return built
+
+
+def test_the_wheel_carries_the_shipped_model_and_the_hardware_template(wheel):
+    with zipfile.ZipFile(wheel) as whl:
+        names = set(whl.namelist())
+        for name in (*MODEL_FILES, TEMPLATE):
+            member = f"companion/assets/{name}"
+            assert member in names, f"{wheel.name}: no {member}"
+            assert whl.read(member) == (REPO / "companion" / "assets" / name).read_bytes()
+    assert {n.split("/")[0] for n in names} >= {"companion", "tools", "training"}
+
+
+@pytest.fixture(scope="module")
+def board_venv(wheel, tmp_path_factory) -> Path:
+    """A fresh venv with ``visland[companion]`` installed from the freshly built wheel."""
+    env_dir = tmp_path_factory.mktemp("install") / "venv"
     venv.EnvBuilder(with_pip=True).create(env_dir)
     _run(
         [str(env_dir / "bin" / "python"), *_PIP_INSTALL, f"{wheel}[companion]"],
@@ -94,23 +113,30 @@ def test_companion_extra_installs_without_torch_sim_or_solvers(board_venv):
     assert "needs the 'sim' extra" in res.stderr and "pip install 'visland[sim]'" in res.stderr
 
 
-def test_board_install_flies_the_shipped_model_against_the_sitl(board_venv, tmp_path):
-    """One lockstep landing: the SITL in this (full) venv, the companion from the board venv on
-    ONNX Runtime (``--runtime auto`` picks it: the export is beside the shipped checkpoint)."""
+def test_board_install_flies_its_packaged_model_against_the_sitl(board_venv, tmp_path):
+    """One lockstep landing: the SITL in this (full) venv, the companion from the board venv,
+    run in a folder outside the checkout, on the model its package carries, on ONNX Runtime
+    (``--runtime auto`` picks it: the export is beside the checkpoint)."""
     py, visland = board_venv / "bin" / "python", board_venv / "bin" / "visland"
+    probe = "import companion.packaged as p; print(p.shipped_policy()); print(p.template())"
+    model, config = map(Path, _run([str(py), "-I", "-c", probe]).stdout.split())
+    assert model.is_relative_to(board_venv) and config.parent == model.parent
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
     report = fly(
         FlyConfig(
-            policy=str(SHIPPED),
+            policy=str(model),
             episodes=1,
             out=str(tmp_path / "fly"),
             companion_command=(str(py), "-I", str(visland), "companion"),
+            companion_cwd=str(elsewhere),
             progress=False,
         )
     )
     assert report["episodes"] == 1 and report["success_rate"] == 1.0, report
     assert report["per_episode"][0]["landing_error_m"] < 0.5
     log = (tmp_path / "fly" / "companion.log").read_text()
-    assert "runtime onnx (auto)" in log, log[-2000:]
+    assert f"policy {model}: runtime onnx (auto)" in log, log[-2000:]
 
 
 def test_board_install_benches_the_onnx_policy_without_torch(board_venv):
