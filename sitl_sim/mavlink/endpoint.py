@@ -11,7 +11,10 @@ pymavlink ``MAVLink`` object is used only as a codec (mavlink_notes.md section 1
   *before* comparing the signature (a forged frame could then block the real stream). Allowed
   unsigned, as PX4: HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE, COLLISION;
 * outgoing frames go to the configured remote plus every peer that sent a valid frame (PX4's
-  SITL does the same), at most ``max_peers``;
+  SITL does the same), at most ``max_peers``; with :attr:`MavlinkEndpoint.batching` they are
+  packed into one datagram until :meth:`MavlinkEndpoint.flush` (the SITL's loop flushes once
+  per physics step), as routers pack frames into MTU-sized datagrams: one ``sendto`` and one
+  wake-up of the receiver per step instead of one per message;
 * nothing received ever raises: malformed input is counted in :class:`LinkStats` and returned
   as :class:`RxError` records for the flight log;
 * with a :class:`~sitl_sim.mavlink.link_impairment.LinkImpairment` (a scenario's ``[link]``) every
@@ -56,6 +59,9 @@ _RCVBUF_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAM_BYTES = 4096
 """Larger datagrams are dropped unparsed: a MAVLink 2 frame is at most 280 bytes and routers
 pack frames into MTU-sized (1500-byte) datagrams; only junk is bigger."""
+_BATCH_BYTES = 1472
+"""A batch is sent before it would outgrow this: a 1500-byte Ethernet MTU less the IPv4 and UDP
+headers (a datagram any MAVLink peer on a LAN receives unfragmented)."""
 
 
 class SitlError(SimError):
@@ -191,6 +197,10 @@ class MavlinkEndpoint:
         self.sysid = sysid
         self.compid = compid
         self._impairment: LinkImpairment | None = None
+        self.batching = False
+        """Pack outgoing frames into one datagram until :meth:`flush` (not through an impaired
+        link, whose loss and delay act per frame)."""
+        self._batch = bytearray()
 
     def set_impairment(self, impairment: LinkImpairment | None) -> None:
         """Send and receive through ``impairment``'s ``mavlink_tx`` / ``mavlink_rx`` streams
@@ -253,7 +263,19 @@ class MavlinkEndpoint:
         if imp is not None:
             imp.streams["mavlink_tx"].offer(buf, imp.clock(), imp.cut)
             return
+        if self.batching:
+            if len(self._batch) + len(buf) > _BATCH_BYTES:
+                self.flush()
+            self._batch += buf
+            return
         self._sendto_all(buf)
+
+    def flush(self) -> None:
+        """Send the batched frames as one datagram (no-op when none wait)."""
+        if self._batch:
+            buf = bytes(self._batch)
+            self._batch.clear()
+            self._sendto_all(buf)
 
     def release(self) -> None:
         """Send the impaired link's datagrams whose release time has come (no-op without one)."""

@@ -302,8 +302,10 @@ class MavlinkSitl:
                     self._idle(min(delay, 0.05))
                     continue
                 self.tick_once()
+                self.links.flush()
         finally:
             self.episodes.finish(aborted=not self.episodes.done)
+            self.links.flush()
             self.log_queue.drain()
             perf.close()
             self.links.drain()
@@ -340,6 +342,7 @@ class MavlinkSitl:
                 self.handlers.dispatch(inbound, endpoint)
             t = perf.add("mavlink", t)
         self.publisher.announce_events()
+        self.links.flush()
         perf.add("mavlink", t)
         self._maybe_log_stats()
 
@@ -500,6 +503,7 @@ class MavlinkSitl:
         if frame.delivered:
             exposure_tick = max(self.clock.tick - self.sim.camera_latency_steps, 0)
             stamp_us = exposure_tick * 1_000_000 // self.clock.rate_hz
+            self.links.flush()  # the telemetry stamped at the frame's time goes first
             self.links.send_camera(encode_frame(frame.image, frame_id % 2**32, stamp_us))
             t = perf.add("camera", t)
         else:
