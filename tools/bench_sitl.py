@@ -1,75 +1,81 @@
-"""``bench sitl``: what the MAVLink/camera path costs on top of the simulator.
+"""``visland bench sitl``: how fast a SITL + companion pair flies in lockstep, and where the
+wall time of both processes goes.
 
-In one run, on the same initial state and with the same pilot (the privileged CascadeLander):
+In one run:
 
-1. **in-process**: :class:`~sitl_sim.simulator.Simulator` stepped directly (physics, sensors,
-   camera render at 10 Hz) — the floor;
-2. **SITL over UDP**: ``python -m sitl_sim.mavlink`` as its own process in lockstep, and a
-   scripted pymavlink client here that reads every camera frame and the ground truth (ODOMETRY)
-   and answers with SET_ATTITUDE_TARGET.
+1. **the pair**: ``visland fly`` (:func:`training.exec.fly.fly`): the SITL
+   (``python -m sitl_sim.mavlink``) and the real companion process flying the shipped model (or
+   ``expert``, or any checkpoint) over UDP in lockstep, camera rendered for a vision policy.
+   Each process times the parts of its own loop while a flight is in the air
+   (:class:`~companion.contract.perf.LoopPerf`: the SITL logs its report at exit, the companion
+   puts it in its JSON report); read back here;
+2. **the floor**: the same simulator in process (:class:`~sitl_sim.simulator.Simulator`:
+   physics, sensors, camera at 10 Hz), flown by the privileged CascadeLander for as many control
+   periods as the pair flew, on episode 0's initial state.
 
-Printed: the SITL's lockstep real-time factor (flight sim seconds per wall second, take-over to
-disarm), wall time per 10 Hz frame for both, and the difference = the per-frame overhead of the
-MAVLink/camera/log path (telemetry streams at 50 Hz, their encoding, the flight log, UDP, the
-client's decoding). Also the SITL process's own CPU time per frame over the same frames (Linux
-``/proc``): unlike wall time it hardly moves when other work shares the machine, so it is the
-figure to compare before/after a change.
+Reported: ``realtime_factor`` = flight sim seconds per wall second of the SITL's flight window
+(take-over to episode end; the HOLD hand-shake before it runs at wall-clock speed by design and
+is left out), the same end to end (``fly``'s wall time: process start, hand-shakes), and
+``realtime_factor_cpu`` = sim seconds per CPU second of both processes in their windows (what
+the pair would reach with nothing overlapping on an idle machine; unlike wall time it hardly
+moves when other work shares the machine: the figure to compare before/after a change). Per
+process: the share of the window's wall time in ``physics``, ``render``, ``policy``,
+``encode_decode`` (MAVLink, camera packets and flight-log writing; also split as ``mavlink``,
+``camera``, ``log``), ``wait`` (blocked on the other process) and ``other``, and milliseconds
+per frame of each. ``vs_in_process`` = the pair's real-time factor over the floor's.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from expert.cascade import CascadeLander
-from sitl_sim.config import load_sim, load_vehicle
-from sitl_sim.scenario import InitialStateSampler, load_scenario
-from sitl_sim.simulator import Simulator
-from tools.sitl_client import ClientTimeout, SitlClient
-from training.exec.fly import free_udp_port
-from training.provenance import REPO
+from companion.contract.perf import parse_perf_line
+from training.provenance import SHIPPED_MODEL
 
-__all__ = ["SitlBenchConfig", "bench_sitl"]
+__all__ = ["SitlBenchConfig", "bench_sitl", "format_sitl_bench"]
+
+_ENCODE_DECODE = ("mavlink", "camera", "log")
 
 
 @dataclass(frozen=True)
 class SitlBenchConfig:
+    policy: str = str(SHIPPED_MODEL)
+    """What the companion flies: a checkpoint, ``expert`` (the MPC) or ``cascade``."""
+    runtime: str = "auto"
+    """The companion's policy backend for a checkpoint: ``auto`` (as ``visland fly`` and the
+    demo: ONNX Runtime where the export is beside the checkpoint), ``torch`` or ``onnx``."""
+    episodes: int = 2
+    """Flights of the pair (consecutive episodes of ``seed``)."""
     seed: int = 0
-    """Episode 0 of this seed is flown (configs/scenario.toml unless ``scenario``)."""
     scenario: str | None = None
-    render: bool = True
-    """Render the camera in both runs."""
-    log_dir: str | None = None
-    """Flight-log folder for the SITL run (None: a temporary folder; logging stays on)."""
-    timeout_s: float = 300.0
-    """Wall-clock limit for the SITL run."""
+    """Scenario TOML (default configs/scenario.toml)."""
+    render: bool | None = None
+    """Render the camera (None: as ``visland fly`` does, only for a vision policy)."""
+    out: str | None = None
+    """Run folder for both processes' logs (None: a temporary folder, removed after)."""
 
 
-def _cpu_s(pid: int) -> float | None:
-    """User + system CPU seconds of process ``pid`` so far (None where /proc is missing)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def _in_process(cfg: SitlBenchConfig, frames: int, render: bool) -> float:
+    """Wall seconds per control period of the bare simulator, flown by the privileged
+    CascadeLander on episode 0's initial state (the floor of the pair's cost)."""
+    from expert.cascade import CascadeLander
+    from sitl_sim.config import load_sim, load_vehicle
+    from sitl_sim.scenario import InitialStateSampler, load_scenario
+    from sitl_sim.simulator import Simulator
 
-
-def _in_process(cfg: SitlBenchConfig, frames: int) -> float:
-    """Wall seconds per control period of the bare simulator, flown by the same pilot."""
-    vehicle, sim_cfg = load_vehicle(), load_sim()
+    vehicle = load_vehicle()
     scenario = load_scenario(cfg.scenario)
-    sim_cfg = sim_cfg.with_planet(scenario.world)
-    initial = InitialStateSampler(scenario, cfg.seed).sample(0)
-    sim = Simulator(vehicle, sim_cfg, render=cfg.render)
+    sim_cfg = load_sim().with_planet(scenario.world)
+    sim = Simulator(vehicle, sim_cfg, render=render)
     pilot = CascadeLander(vehicle, sim_cfg.planet)
     try:
-        sim.reset(initial, cfg.seed)
+        sim.reset(InitialStateSampler(scenario, cfg.seed).sample(0), cfg.seed)
         t0 = time.perf_counter()
         for k in range(frames):
             gt = sim.ground_truth()
@@ -80,115 +86,127 @@ def _in_process(cfg: SitlBenchConfig, frames: int) -> float:
         sim.close()
 
 
-def _over_udp(cfg: SitlBenchConfig, log_dir: str) -> dict[str, Any]:
-    mav_port, remote_port, cam_port = free_udp_port(), free_udp_port(), free_udp_port()
-    cmd = [
-        sys.executable, "-m", "sitl_sim.mavlink",
-        "--mavlink-port", str(mav_port), "--remote-port", str(remote_port),
-        "--camera-port", str(cam_port), "--gcs-port", str(free_udp_port()),
-        "--gcs-remote-port", str(free_udp_port()), "--seed", str(cfg.seed), "--groundtruth",
-        "--log-dir", log_dir, "--max-wall-s", str(cfg.timeout_s),
-        "--render" if cfg.render else "--no-render",
-    ]  # fmt: skip
-    if cfg.scenario:
-        cmd += ["--scenario", cfg.scenario]
-    vehicle, sim_cfg = load_vehicle(), load_sim()
-    scenario = load_scenario(cfg.scenario)
-    pilot = CascadeLander(vehicle, scenario.world)
-    hover = vehicle.hover_thrust_norm(scenario.world)
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        with SitlClient(("127.0.0.1", mav_port), remote_port, cam_port) as client:
-            client.wait_for("HEARTBEAT", 60.0)
-            n, flight_frames, t_first, t_last, us_first, us_last = 0, 0, 0.0, 0.0, 0, 0
-            cpu_first = cpu_last = None
-            deadline = time.monotonic() + cfg.timeout_s
-            while time.monotonic() < deadline:
-                try:
-                    frame = client.next_frame(0.5)
-                except ClientTimeout:
-                    if proc.poll() is not None:
-                        break
-                    continue
-                if n < 3:  # pre-stream, then OFFBOARD (the frozen HOLD phase is not timed)
-                    client.setpoint(hover, (0.0, 0.0, 0.0), frame.time_us // 1000)
-                    if n == 2 and client.set_offboard() != 0:
-                        raise RuntimeError("SITL refused OFFBOARD")
-                    n += 1
-                    continue
-                gt = client.truth_at(frame.time_us)
-                if flight_frames == 0:
-                    t_first, us_first = time.perf_counter(), frame.time_us
-                    cpu_first = _cpu_s(proc.pid)
-                client.command(
-                    pilot.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz),
-                    frame.time_us // 1000,
-                )
-                t_last, us_last = time.perf_counter(), frame.time_us
-                cpu_last = _cpu_s(proc.pid)
-                flight_frames += 1
-                n += 1
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-    if proc.returncode != 0 or flight_frames < 10:
-        raise RuntimeError(
-            f"SITL run failed (rc {proc.returncode}, {flight_frames} frames): "
-            f"{proc.stderr.read().decode()[-2000:] if proc.stderr else ''}"
-        )
-    wall = t_last - t_first
-    sim_s = (us_last - us_first) * 1e-6
+def _process(report: dict[str, Any], frames: int) -> dict[str, Any]:
+    """One process's :meth:`LoopPerf.report`, with the shares the bench prints and each
+    part's milliseconds per frame."""
+    shares = report["shares"]
+    parts = report["parts_s"]
+    per_frame = 1e3 / frames if frames else 0.0
     return {
-        "frames": flight_frames - 1,
-        "sim_s": sim_s,
-        "wall_s": wall,
-        "s_per_frame": wall / (flight_frames - 1),
-        "cpu_s_per_frame": (
-            (cpu_last - cpu_first) / (flight_frames - 1)
-            if cpu_first is not None and cpu_last is not None
-            else None
-        ),
-        "control_period_s": sim_cfg.control_dt_s,
+        "window_wall_s": report["window_wall_s"],
+        "window_cpu_s": report["window_cpu_s"],
+        "cpu_ms_per_frame": report["window_cpu_s"] * per_frame,
+        "shares": {
+            "physics": shares["physics"],
+            "render": shares["render"],
+            "policy": shares["policy"],
+            "encode_decode": sum(shares[k] for k in _ENCODE_DECODE),
+            "wait": shares["wait"],
+            "other": shares["other"],
+        },
+        "parts_shares": shares,
+        "parts_ms_per_frame": {k: v * per_frame for k, v in parts.items()},
+        "counts": report["counts"],
     }
+
+
+def _fly(cfg: SitlBenchConfig, out: Path) -> dict[str, Any]:
+    from training.exec.fly import FlyConfig, FlyError, fly
+
+    is_file = Path(cfg.policy).is_file()
+    report = fly(
+        FlyConfig(
+            policy=cfg.policy,
+            episodes=cfg.episodes,
+            seed=cfg.seed,
+            scenario=cfg.scenario,
+            render=cfg.render,
+            progress=False,
+            out=str(out),
+            companion_args=("--runtime", cfg.runtime) if is_file else (),
+        )
+    )
+    sitl = parse_perf_line((out / "sitl.log").read_text(errors="replace"))
+    try:
+        companion = json.loads((out / "companion.json").read_text()).get("perf")
+    except (OSError, ValueError):
+        companion = None
+    if sitl is None or companion is None:
+        missing = "the SITL's perf line" if sitl is None else "the companion's perf report"
+        raise FlyError(f"{out}: {missing} is missing (a process stopped before its exit?)")
+    return {"fly": report, "sitl": sitl, "companion": companion}
 
 
 def bench_sitl(cfg: SitlBenchConfig | None = None) -> dict[str, Any]:
-    """Run both measurements and print/return the figures (see the module docstring)."""
-    cfg = cfg or SitlBenchConfig()
-    if cfg.log_dir is None:
-        import tempfile
+    """Fly the pair, then time the in-process floor; returns the figures (module docstring).
 
+    Raises:
+        FlyError: a process failed, or did not report its counters.
+    """
+    cfg = cfg or SitlBenchConfig()
+    if cfg.episodes < 1:
+        raise ValueError(f"episodes = {cfg.episodes}; expected >= 1")
+    if cfg.out is None:
         with tempfile.TemporaryDirectory(prefix="visland_bench_sitl_") as tmp:
-            udp = _over_udp(cfg, tmp)
+            run = _fly(cfg, Path(tmp))
     else:
-        udp = _over_udp(cfg, cfg.log_dir)
-    bare = _in_process(cfg, udp["frames"])
-    result = {
+        run = _fly(cfg, Path(cfg.out))
+    sitl, companion, report = run["sitl"], run["companion"], run["fly"]
+    frames = int(sitl["counts"].get("frames", 0))
+    sim_s = sitl["counts"].get("sim_s", 0.0)
+    wall = sitl["window_wall_s"]
+    cpu = sitl["window_cpu_s"] + companion["window_cpu_s"]
+    from sitl_sim.config import load_sim
+    from training.exec.fly import policy_is_privileged
+
+    render = cfg.render if cfg.render is not None else not policy_is_privileged(cfg.policy)
+
+    control_dt = load_sim().control_dt_s
+    floor = _in_process(cfg, max(frames, 10), render)
+    rtf = sim_s / wall if wall > 0 else 0.0
+    floor_rtf = control_dt / floor
+    return {
         "config": asdict(cfg),
-        "frames": udp["frames"],
-        "flight_sim_s": udp["sim_s"],
-        "sitl_lockstep_realtime_factor": udp["sim_s"] / udp["wall_s"],
-        "sitl_ms_per_frame": 1e3 * udp["s_per_frame"],
-        "in_process_ms_per_frame": 1e3 * bare,
-        "in_process_realtime_factor": udp["control_period_s"] / bare,
-        "overhead_ms_per_frame": 1e3 * (udp["s_per_frame"] - bare),
-        "sitl_cpu_ms_per_frame": (
-            1e3 * udp["cpu_s_per_frame"] if udp["cpu_s_per_frame"] is not None else None
-        ),
+        "render": render,
+        "success_rate": report["success_rate"],
+        "flight_sim_s": sim_s,
+        "frames": frames,
+        "realtime_factor": rtf,
+        "ms_per_frame": 1e3 * wall / frames if frames else 0.0,
+        "realtime_factor_cpu": sim_s / cpu if cpu > 0 else 0.0,
+        "realtime_factor_end_to_end": sim_s / report["wall_s"],
+        "sitl": _process(sitl, frames),
+        "companion": _process(companion, frames),
+        "in_process": {
+            "ms_per_frame": 1e3 * floor,
+            "realtime_factor": floor_rtf,
+            "pilot": "CascadeLander (privileged, in process)",
+        },
+        "vs_in_process": rtf / floor_rtf,
     }
-    print(
-        f"SITL lockstep over UDP: {result['sitl_lockstep_realtime_factor']:.1f}x real time "
-        f"({result['sitl_ms_per_frame']:.2f} ms per 10 Hz frame, {result['frames']} frames); "
-        f"in-process simulator: {result['in_process_ms_per_frame']:.2f} ms per frame "
-        f"({result['in_process_realtime_factor']:.1f}x); MAVLink/camera/log overhead "
-        f"{result['overhead_ms_per_frame']:.2f} ms per frame; SITL process CPU "
-        f"{result['sitl_cpu_ms_per_frame'] or float('nan'):.2f} ms per frame",
-        file=sys.stderr,
-    )
-    return result
+
+
+def format_sitl_bench(res: dict[str, Any]) -> str:
+    """The human-readable lines of a :func:`bench_sitl` result."""
+    cfg = res["config"]
+    lines = [
+        f"SITL + companion in lockstep ({cfg['policy']}, {cfg['episodes']} episodes, "
+        f"{res['flight_sim_s']:.1f} s of flight, {res['frames']} frames): "
+        f"{res['realtime_factor']:.1f}x real time ({res['ms_per_frame']:.2f} ms per frame); "
+        f"{res['realtime_factor_cpu']:.1f}x on CPU time; "
+        f"{res['realtime_factor_end_to_end']:.1f}x end to end",
+        f"in-process simulator, same run: {res['in_process']['ms_per_frame']:.2f} ms per frame "
+        f"({res['in_process']['realtime_factor']:.1f}x) -> the pair at "
+        f"{100 * res['vs_in_process']:.0f} % of it",
+    ]
+    for name in ("sitl", "companion"):
+        p = res[name]
+        shares = ", ".join(f"{k} {100 * v:.0f} %" for k, v in p["shares"].items())
+        lines.append(f"{name}: {shares}; CPU {p['cpu_ms_per_frame']:.2f} ms per frame")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
-    print(json.dumps(bench_sitl(), indent=2))
+    result = bench_sitl()
+    print(format_sitl_bench(result), file=sys.stderr)
+    print(json.dumps(result, indent=2))

@@ -1,7 +1,8 @@
-"""``visland bench sim|mpc|policy|companion|rollouts``: the benchmarks that print the project's
-speed figures, one function each. Thin shells over :func:`tools.bench.bench_sim`,
+"""``visland bench sim|mpc|policy|companion|sitl|rollouts``: the benchmarks that print the
+project's speed figures, one function each. Thin shells over :func:`tools.bench.bench_sim`,
 :func:`expert.bench.bench_mpc`, :func:`training.bench_policy.bench_policy`,
-:func:`tools.bench_companion.bench_companion` and :func:`tools.bench_rollouts.bench_rollouts`."""
+:func:`tools.bench_companion.bench_companion`, :func:`tools.bench_sitl.bench_sitl` and
+:func:`tools.bench_rollouts.bench_rollouts`."""
 
 from __future__ import annotations
 
@@ -31,7 +32,10 @@ def _bench_policy(args: argparse.Namespace) -> int:
     from training.provenance import SHIPPED_MODEL
 
     res = bench_policy(
-        args.checkpoint or str(SHIPPED_MODEL), steps=300, seed=args.seed, runtime=args.runtime
+        args.checkpoint or str(SHIPPED_MODEL),
+        steps=300,
+        seed=args.seed,
+        runtime=args.runtime or "torch",
     )
     if args.json:
         print_json(res)
@@ -71,7 +75,7 @@ def _bench_companion(args: argparse.Namespace) -> int:
             policy=args.checkpoint or str(SHIPPED_MODEL),
             episodes=args.episodes or 3,
             seed=args.seed,
-            runtime=args.runtime,
+            runtime=args.runtime or "torch",
         )
     except FlyError as exc:
         print(f"visland bench companion: failed: {exc}", file=sys.stderr)
@@ -129,11 +133,34 @@ def _bench_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_sitl(args: argparse.Namespace) -> int:
+    from tools.bench_sitl import SitlBenchConfig, bench_sitl, format_sitl_bench
+    from training.exec.fly import FlyError
+    from training.provenance import SHIPPED_MODEL
+
+    try:
+        res = bench_sitl(
+            SitlBenchConfig(
+                policy=args.checkpoint or str(SHIPPED_MODEL),
+                runtime=args.runtime or "auto",
+                episodes=args.episodes or 2,
+                seed=args.seed,
+                scenario=args.scenario,
+            )
+        )
+    except FlyError as exc:
+        print(f"visland bench sitl: failed: {exc}", file=sys.stderr)
+        return 1
+    print_result(res, args.json, lambda r, out: print(format_sitl_bench(r), file=out))
+    return 0
+
+
 _BENCHES: dict[str, Callable[[argparse.Namespace], int]] = {
     "sim": _bench_sim,
     "mpc": _bench_mpc,
     "policy": _bench_policy,
     "companion": _bench_companion,
+    "sitl": _bench_sitl,
     "rollouts": _bench_rollouts,
 }
 """``visland bench WHAT`` -> the function that runs and prints it (the choices, in order)."""
@@ -154,28 +181,33 @@ def register_bench(sub: argparse._SubParsersAction) -> None:
         "net; "
         "companion: frame receipt -> setpoint latency of the real companion process (SITL "
         "flights), and torch vs ONNX Runtime policy step on the same frames; "
+        "sitl: real-time factor of a SITL + companion pair in lockstep and where both "
+        "processes' wall time goes, beside the in-process simulator in the same run; "
         "rollouts: episodes per minute on the local backend vs Ray, and the projection of a "
         "training profile on a cluster",
     )
     b.add_argument(
         "--checkpoint",
         default=None,
-        help="bench policy: checkpoint to time; bench companion: checkpoint to fly (default, "
-        "both: models/visland_vision.pt)",
+        help="bench policy: checkpoint to time; bench companion: checkpoint to fly; bench sitl: "
+        "what the companion flies, a checkpoint or expert (default, all: "
+        "models/visland_vision.pt)",
     )
     b.add_argument(
         "--runtime",
-        choices=["torch", "onnx"],
-        default="torch",
-        help="bench companion: the companion's policy backend; bench policy: onnx times the "
-        "checkpoint on ONNX Runtime too (exported to a temporary copy), beside torch",
+        choices=["auto", "torch", "onnx"],
+        default=None,
+        help="bench companion (default torch) and sitl (default auto, as the demo: onnx where "
+        "the export is beside the checkpoint): the companion's policy backend; bench policy: "
+        "onnx times the checkpoint on ONNX Runtime too (exported to a temporary copy), beside "
+        "torch",
     )
     b.add_argument(
         "--episodes",
         type=int,
         default=None,
-        help="bench companion: flights (default 3); bench rollouts: episodes of each kind per "
-        "backend (default 12)",
+        help="bench companion: flights (default 3); bench sitl: flights (default 2); bench "
+        "rollouts: episodes of each kind per backend (default 12)",
     )
     b.add_argument(
         "--ray",
@@ -200,7 +232,7 @@ def register_bench(sub: argparse._SubParsersAction) -> None:
         "too, as the baseline)",
     )
     b.add_argument(
-        "--scenario", default=None, help="bench sim: scenario file (default: the nominal one)"
+        "--scenario", default=None, help="bench sim, sitl: scenario file (default: the nominal one)"
     )
     b.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per repeat")
     b.add_argument("--repeats", type=int, default=3, help="repeats (median reported)")

@@ -18,6 +18,9 @@ module                 what it fixes
 ``autopilots``         the autopilot profiles (PX4, ArduPilot) as one table: mode numbers
                        (enums), parameters, arming rules; the companion's link and the
                        SITL's autopilots both read it
+``perf``               LoopPerf: the wall time per part of a process's loop in flight
+                       (physics, render, policy, mavlink, camera, log, wait) that the
+                       SITL and the companion report and ``visland bench sitl`` reads
 =====================  ===============================================================
 
 It depends on numpy and the standard library (``signing`` and ``autopilots`` on pymavlink's
