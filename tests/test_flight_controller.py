@@ -21,6 +21,7 @@ from helpers import NO_RETURN_CM, FakeMsg, attitude_msg, imu_msg, range_msg
 
 from companion.camera import ReceivedFrame
 from companion.contract import Command
+from companion.contract.companion_records import CompanionCommandRecord, CompanionObservationRecord
 from companion.flight import FlightContext, OffboardConfig
 from companion.link import PX4, mavlink
 from companion.offboard import FlightController
@@ -97,8 +98,8 @@ class FakeRecorder:
         self.deferring = False
         self.events: list[tuple[float, str, str, dict[str, Any]]] = []
         self.frames: list[int] = []
-        self.commands: list[dict[str, Any]] = []
-        self.observations: list[dict[str, Any]] = []
+        self.commands: list[CompanionCommandRecord] = []
+        self.observations: list[CompanionObservationRecord] = []
         self.deferred_writes = 0
 
     def _deferred(self) -> None:
@@ -108,13 +109,13 @@ class FakeRecorder:
         self._deferred()
         self.frames.append(frame.frame_id)
 
-    def observation(self, t: float, body: dict[str, Any]) -> None:
+    def observation(self, t: float, record: CompanionObservationRecord) -> None:
         self._deferred()
-        self.observations.append(body)
+        self.observations.append(record)
 
-    def command(self, t: float, body: dict[str, Any]) -> None:
+    def command(self, t: float, record: CompanionCommandRecord) -> None:
         self._deferred()
-        self.commands.append(body)
+        self.commands.append(record)
 
     def event(self, t: float, kind: str, text: str, **extra: Any) -> None:
         self.events.append((t, kind, text, extra))
@@ -315,7 +316,7 @@ def test_waits_for_its_inputs_prestreams_one_second_then_engages_and_flies():
     sent = len(rig.link.setpoints)
     same_time = rig.frame()  # rendered before the switch: the neutral answer
     assert len(rig.link.setpoints) == sent + 1 and rig.link.setpoints[-1][1] == HOVER
-    assert rig.log.commands[-1]["kind"] == "neutral"
+    assert rig.log.commands[-1].kind == "neutral"
     rig.heartbeat(OFFBOARD)
     assert rig.state is FlightState.FLYING and "flight_start" in rig.log.kinds()
     rig.step()
@@ -323,8 +324,8 @@ def test_waits_for_its_inputs_prestreams_one_second_then_engages_and_flies():
     assert (thrust, rates) == (POLICY_THRUST, POLICY_RATES)
     assert stamp == rig.ap_ms > round(same_time.time_s * 1000)  # the frame's own time stamp
     cmd = rig.log.commands[-1]
-    assert cmd["policy"] and cmd["kind"] == "policy" and cmd["sent"]
-    assert rig.fc.outcome.policy_commands == 1 and rig.log.observations[-1]["range_m"] == 5.0
+    assert cmd.policy and cmd.kind == "policy" and cmd.sent
+    assert rig.fc.outcome.policy_commands == 1 and rig.log.observations[-1].range_m == 5.0
     assert rig.pumped == []  # the telemetry of the frame's time was there: no wait
     assert rig.log.deferring is False and rig.log.deferred_writes >= 3
 
@@ -477,7 +478,7 @@ def test_touchdown_disarms_then_the_flight_has_landed():
     assert rig.state is FlightState.TOUCHDOWN and rig.link.arms == [False]
     rig.step()  # frames on the ground are answered with zero thrust
     assert rig.link.setpoints[-1][1:3] == (0.0, [0.0, 0.0, 0.0])
-    assert rig.log.commands[-1]["kind"] == "touchdown"
+    assert rig.log.commands[-1].kind == "touchdown"
     rig.heartbeat(OFFBOARD, armed=False)
     assert rig.fc.outcome.result is FlightResult.LANDED
     assert rig.fc.outcome.reason == "disarmed on the ground"
@@ -520,7 +521,7 @@ def test_shadow_flies_the_policy_sends_nothing_and_a_would_be_failsafe_ends_it()
         rig.step()
     assert rig.link.setpoints == [] and rig.link.modes == [] and rig.link.arms == []
     assert len(rig.log.commands) == 5
-    assert all(c["kind"] == "shadow" and not c["sent"] for c in rig.log.commands)
+    assert all(c.kind == "shadow" and not c.sent for c in rig.log.commands)
     assert rig.fc.outcome.policy_commands == 5
     last_rx = rig.clock()
     rig.at(last_rx + 0.299)
