@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -71,6 +71,7 @@ class EpisodeSetup:
     land_controller_factory: Callable[[VehicleConfig, Any], LandController]
 
 
+@dataclass(eq=False, repr=False)
 class Episodes:
     """Starts, ends and scores the episodes; owns the flight log's opening and closing.
 
@@ -86,34 +87,28 @@ class Episodes:
         flight_log: the episode's log.
     """
 
-    def __init__(
-        self,
-        setup: EpisodeSetup,
-        sim: Simulator,
-        clock: SimClock,
-        state: FlightState,
-        links: Links,
-        publisher: Publisher,
-        handlers: Handlers,
-        precland: PreclandLoop,
-        flight_log: FlightLog,
-    ) -> None:
-        self.setup = setup
-        self.config = setup.config
-        self.sim = sim
-        self.clock = clock
-        self.state = state
-        self.links = links
-        self.publisher = publisher
-        self.handlers = handlers
-        self.precland = precland
-        self.flight_log = flight_log
-        self.results: list[EpisodeResult] = []
-        """The episodes flown to their end (an aborted one is not a result)."""
-        self.current: Episode | None = None
-        self.done = False
-        """Every episode asked for has been flown."""
-        self._land_controller_vehicle = setup.vehicle
+    setup: EpisodeSetup
+    sim: Simulator
+    clock: SimClock
+    state: FlightState
+    links: Links
+    publisher: Publisher
+    handlers: Handlers
+    precland: PreclandLoop
+    flight_log: FlightLog
+    results: list[EpisodeResult] = field(init=False, default_factory=list)
+    """The episodes flown to their end (an aborted one is not a result)."""
+    current: Episode | None = field(init=False, default=None)
+    done: bool = field(init=False, default=False)
+    """Every episode asked for has been flown."""
+    _land_controller_vehicle: VehicleConfig = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._land_controller_vehicle = self.setup.vehicle
+
+    @property
+    def config(self) -> SitlConfig:
+        return self.setup.config
 
     # ------------------------------------------------------------------ lifecycle
 

@@ -10,6 +10,7 @@ setpoint flown for the period after the frame), keyed by frame id like the in-pr
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -59,6 +60,7 @@ def _jsonable_msg(msg: Any) -> dict[str, Any]:
     return d
 
 
+@dataclass(eq=False, repr=False)
 class FlightLog:
     """The open episode's flight log (nothing is written while none is open).
 
@@ -69,12 +71,9 @@ class FlightLog:
             until the loop waits).
     """
 
-    def __init__(
-        self, clock: SimClock, open_writer: Callable[..., FlightLogWriter] = FlightLogWriter
-    ) -> None:
-        self._clock = clock
-        self._open_writer = open_writer
-        self._writer: FlightLogWriter | None = None
+    clock: SimClock
+    open_writer: Callable[..., FlightLogWriter] = FlightLogWriter
+    _writer: FlightLogWriter | None = field(init=False, default=None)
 
     @property
     def active(self) -> bool:
@@ -82,22 +81,22 @@ class FlightLog:
 
     def open(self, path: Path, metadata: dict[str, Any]) -> None:
         """Start the episode's log (closes none: :meth:`close_with_result` ends the last)."""
-        self._writer = self._open_writer(path, metadata=metadata)
+        self._writer = self.open_writer(path, metadata=metadata)
 
     def close_with_result(self, record: EpisodeResultRecord) -> None:
         """Write the episode's result and close its log (no-op without one)."""
         writer, self._writer = self._writer, None
         if writer is not None:
-            writer.write_record(TOPIC_RESULT, self._clock.time_s, record)
+            writer.write_record(TOPIC_RESULT, self.clock.time_s, record)
             writer.close()
 
     def write(self, topic: str, schema: str, body: dict[str, Any]) -> None:
         if self._writer is not None:
-            self._writer.write(topic, schema, self._clock.time_s, body)
+            self._writer.write(topic, schema, self.clock.time_s, body)
 
     def write_record(self, topic: str, record: LogRecord) -> None:
         if self._writer is not None:
-            self._writer.write_record(topic, self._clock.time_s, record)
+            self._writer.write_record(topic, self.clock.time_s, record)
 
     def event(self, kind: EventKind, text: str) -> None:
         if self._writer is not None:
@@ -183,7 +182,7 @@ class FlightLog:
         writer = self._writer
         if writer is None:
             return
-        now = self._clock.time_s
+        now = self.clock.time_s
         writer.write_image(now, frame.image, frame_id)
         writer.write_pose(now, gt.pos_ned_m, gt.quat_wxyz)
         self.write_record(  # the in-process path's record, with the flight status

@@ -11,6 +11,7 @@ import math
 import struct
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -81,6 +82,7 @@ def _thrust_body(msg: Any) -> tuple[float, float, float] | None:
     return struct.unpack("<3f", payload[39:51])
 
 
+@dataclass(eq=False, repr=False)
 class Handlers:
     """The ``handle_<message>`` and ``command_<command>`` methods, and the parameter protocol.
 
@@ -96,35 +98,25 @@ class Handlers:
         clock: the SITL clock.
     """
 
-    def __init__(
-        self,
-        config: SitlConfig,
-        links: Links,
-        publisher: Publisher,
-        flight_log: FlightLog,
-        state: FlightState,
-        precland: PreclandLoop,
-        sim: Simulator,
-        clock: SimClock,
-    ) -> None:
-        self.config = config
-        self.links = links
-        self.publisher = publisher
-        self.flight_log = flight_log
-        self.state = state
-        self.precland = precland
-        self.sim = sim
-        self.clock = clock
-        self.ignored_messages: Counter[str] = Counter()
-        """Messages received that this autopilot does not act on, by name."""
-        self._handlers: dict[str, Callable[[Any, Inbound], None]] = {
-            name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES
-        }
-        self._commands: dict[int, CommandHandler] = {
-            command: getattr(self, method) for command, method in COMMANDS.items()
-        }
-        self._rx_stats: LinkStats = links.offboard.stats
-        """The counters of the link being read (rejections are counted there)."""
+    config: SitlConfig
+    links: Links
+    publisher: Publisher
+    flight_log: FlightLog
+    state: FlightState
+    precland: PreclandLoop
+    sim: Simulator
+    clock: SimClock
+    ignored_messages: Counter[str] = field(init=False, default_factory=Counter)
+    """Messages received that this autopilot does not act on, by name."""
+    _handlers: dict[str, Callable[[Any, Inbound], None]] = field(init=False)
+    _commands: dict[int, CommandHandler] = field(init=False)
+    _rx_stats: LinkStats = field(init=False)
+    """The counters of the link being read (rejections are counted there)."""
+
+    def __post_init__(self) -> None:
+        self._handlers = {name: getattr(self, f"handle_{name.lower()}") for name in SUBSCRIBES}
+        self._commands = {command: getattr(self, method) for command, method in COMMANDS.items()}
+        self._rx_stats = self.links.offboard.stats
 
     def dispatch(self, inbound: Inbound, endpoint: MavlinkEndpoint) -> None:
         """Act on a message ``endpoint`` received (or count it as ignored)."""

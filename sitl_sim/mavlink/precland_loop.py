@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -72,6 +73,7 @@ _NAV_SEED_KEY = 0x9C1A
 """Spawn key of the estimator's initial-error generator (apart from the simulator's streams)."""
 
 
+@dataclass(eq=False, repr=False)
 class PreclandLoop:
     """AUTO.PRECLAND's estimators, state machine and LANDING_TARGET handling.
 
@@ -86,37 +88,29 @@ class PreclandLoop:
         offboard_link: the name of the link that paces lockstep.
     """
 
-    def __init__(
-        self,
-        config: SitlConfig,
-        state: FlightState,
-        publisher: Publisher,
-        flight_log: FlightLog,
-        sim: Simulator,
-        clock: SimClock,
-        substeps: int,
-        offboard_link: str,
-    ) -> None:
-        self.config = config
-        self.state = state
-        self.publisher = publisher
-        self.flight_log = flight_log
-        self.sim = sim
-        self.clock = clock
-        self._substeps = substeps
-        self._offboard_link = offboard_link
-        self.nav_config = NavConfig()
-        self.nav: NavEstimator | None = None
-        self.lte: LandingTargetEstimator | None = None
-        self.land: PrecisionLand | None = None
-        """The precision land's state machine (None: not in AUTO.PRECLAND, or no radar fix)."""
-        self.landing_targets: Counter[str] = Counter()
-        """LANDING_TARGET counters this episode: received, accepted, gated, rejected, idle."""
-        self.paced = False
-        """A client answers frames in AUTO.PRECLAND (lockstep waits for it)."""
-        self._episode_index = 0
-        self._unsupported_frames: set[int] = set()
-        self._nav_every = max(1, round(clock.rate_hz / NAV_RATE_HZ))
+    config: SitlConfig
+    state: FlightState
+    publisher: Publisher
+    flight_log: FlightLog
+    sim: Simulator
+    clock: SimClock
+    substeps: int
+    offboard_link: str
+    nav_config: NavConfig = field(init=False, default_factory=NavConfig)
+    nav: NavEstimator | None = field(init=False, default=None)
+    lte: LandingTargetEstimator | None = field(init=False, default=None)
+    land: PrecisionLand | None = field(init=False, default=None)
+    """The precision land's state machine (None: not in AUTO.PRECLAND, or no radar fix)."""
+    landing_targets: Counter[str] = field(init=False, default_factory=Counter)
+    """LANDING_TARGET counters this episode: received, accepted, gated, rejected, idle."""
+    paced: bool = field(init=False, default=False)
+    """A client answers frames in AUTO.PRECLAND (lockstep waits for it)."""
+    _episode_index: int = field(init=False, default=0)
+    _unsupported_frames: set[int] = field(init=False, default_factory=set)
+    _nav_every: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._nav_every = max(1, round(self.clock.rate_hz / NAV_RATE_HZ))
 
     def start_episode(self, index: int) -> None:
         """A new episode: no estimate, not paced, counters at zero."""
@@ -152,7 +146,7 @@ class PreclandLoop:
         att = sample.attitude.attitude_rad
         nav.predict(dt, att, sample.imu.accel_frd_m_s2)
         lte.predict(dt, nav.accel_ned_m_s2, self.clock.time_s)
-        if self.clock.phase % self._substeps == 0:
+        if self.clock.phase % self.substeps == 0:
             nav.fuse_range(sample.range_m, att)
 
     def _start(self) -> bool:
@@ -278,7 +272,7 @@ class PreclandLoop:
             self._answer_frame(int(msg.time_boot_ms), inbound)
 
     def _answer_frame(self, stamp_ms: int, inbound: Inbound) -> None:
-        if inbound.link != self._offboard_link:
+        if inbound.link != self.offboard_link:
             return  # lockstep is paced by the offboard link alone
         self.paced = True
         wait = self.state.wait

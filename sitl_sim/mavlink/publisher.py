@@ -10,7 +10,7 @@ import functools
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -144,6 +144,7 @@ class TickSample:
         return self._sim.radar.read(gt.pos_ned_m, gt.quat_wxyz)
 
 
+@dataclass(eq=False, repr=False)
 class Publisher:
     """Builds and sends the SITL's messages.
 
@@ -157,41 +158,34 @@ class Publisher:
         clock: the SITL clock (message stamps, the stream schedule).
     """
 
-    def __init__(
-        self,
-        config: SitlConfig,
-        links: Links,
-        flight_log: FlightLog,
-        state: FlightState,
-        sim: Simulator,
-        sim_cfg: SimConfig,
-        clock: SimClock,
-    ) -> None:
-        self.config = config
-        self.links = links
-        self.flight_log = flight_log
-        self.state = state
-        self.sim = sim
-        self.sim_cfg = sim_cfg
-        self.clock = clock
-        self.streams: dict[int, Stream] = {}
-        """The periodic messages by message id, at their current SET_MESSAGE_INTERVAL."""
-        for name, default in _stream_table(config):
+    config: SitlConfig
+    links: Links
+    flight_log: FlightLog
+    state: FlightState
+    sim: Simulator
+    sim_cfg: SimConfig
+    clock: SimClock
+    streams: dict[int, Stream] = field(init=False, default_factory=dict)
+    """The periodic messages by message id, at their current SET_MESSAGE_INTERVAL."""
+    builders: dict[int, Callable[[], Any]] = field(init=False)
+    """What MAV_CMD_REQUEST_MESSAGE can ask for, by message id."""
+    _sample: TickSample | None = field(init=False, default=None)
+    _sample_tick: int = field(init=False, default=-1)
+    _streamed: dict[str, tuple[float, Any]] = field(init=False, default_factory=dict)
+    """The latest attitude / IMU / range reading sent (flight time, reading): the
+    observation a client has at the next frame, logged as ``/observation``."""
+
+    def __post_init__(self) -> None:
+        for name, default in _stream_table(self.config):
             msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
             stream = Stream(name, msg_id, default)
-            stream.set_interval(default, clock.rate_hz)
+            stream.set_interval(default, self.clock.rate_hz)
             self.streams[msg_id] = stream
         names = [s.name for s in self.streams.values()] + list(ON_REQUEST)
-        self.builders: dict[int, Callable[[], Any]] = {
+        self.builders = {
             getattr(mavlink, f"MAVLINK_MSG_ID_{name}"): getattr(self, f"build_{name.lower()}")
             for name in names
         }
-        """What MAV_CMD_REQUEST_MESSAGE can ask for, by message id."""
-        self._sample: TickSample | None = None
-        self._sample_tick = -1
-        self._streamed: dict[str, tuple[float, Any]] = {}
-        """The latest attitude / IMU / range reading sent (flight time, reading): the
-        observation a client has at the next frame, logged as ``/observation``."""
 
     # ------------------------------------------------------------------ sending
 

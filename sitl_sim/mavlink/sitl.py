@@ -132,7 +132,9 @@ class MavlinkSitl:
         self._substeps = sim_cfg.substeps
         if self.scenario.vehicle is not None:
             check_airframe_can_hover(self.scenario.vehicle, self.vehicle, sim_cfg.planet)
-        factory = land_controller_factory or _default_land_controller
+        # AUTO.LAND flies the SITL's own cascade lander on ground truth (the law that
+        # expert.cascade.CascadeLander wraps as a Policy) unless land_controller_factory is given
+        factory = land_controller_factory or CascadeLandController
         params = initial_params(config, self.vehicle.hover_thrust_norm(sim_cfg.planet))
         self.state = FlightState(
             autopilot=new_autopilot(config.autopilot, params, armed=config.start_armed),
@@ -154,29 +156,35 @@ class MavlinkSitl:
         """Wall time per part of the loop while flying, with the sim seconds and frames flown
         meanwhile (logged at exit as ``perf: {json}``)."""
         self.log_queue = LogQueue(self.perf)
-        self.flight_log = FlightLog(self.clock, self.log_queue.open_writer)
+        self.flight_log = FlightLog(clock=self.clock, open_writer=self.log_queue.open_writer)
         self.publisher = Publisher(
-            config, self.links, self.flight_log, self.state, self.sim, sim_cfg, self.clock
+            config=config,
+            links=self.links,
+            flight_log=self.flight_log,
+            state=self.state,
+            sim=self.sim,
+            sim_cfg=sim_cfg,
+            clock=self.clock,
         )
         self.precland = PreclandLoop(
-            config,
-            self.state,
-            self.publisher,
-            self.flight_log,
-            self.sim,
-            self.clock,
-            self._substeps,
-            self.links.offboard.name,
+            config=config,
+            state=self.state,
+            publisher=self.publisher,
+            flight_log=self.flight_log,
+            sim=self.sim,
+            clock=self.clock,
+            substeps=self._substeps,
+            offboard_link=self.links.offboard.name,
         )
         self.handlers = Handlers(
-            config,
-            self.links,
-            self.publisher,
-            self.flight_log,
-            self.state,
-            self.precland,
-            self.sim,
-            self.clock,
+            config=config,
+            links=self.links,
+            publisher=self.publisher,
+            flight_log=self.flight_log,
+            state=self.state,
+            precland=self.precland,
+            sim=self.sim,
+            clock=self.clock,
         )
         setup = EpisodeSetup(
             config=config,
@@ -188,15 +196,15 @@ class MavlinkSitl:
             land_controller_factory=factory,
         )
         self.episodes = Episodes(
-            setup,
-            self.sim,
-            self.clock,
-            self.state,
-            self.links,
-            self.publisher,
-            self.handlers,
-            self.precland,
-            self.flight_log,
+            setup=setup,
+            sim=self.sim,
+            clock=self.clock,
+            state=self.state,
+            links=self.links,
+            publisher=self.publisher,
+            handlers=self.handlers,
+            precland=self.precland,
+            flight_log=self.flight_log,
         )
         self._stop = threading.Event()
         self._land_cmd: Command | None = None
@@ -523,12 +531,6 @@ class MavlinkSitl:
             )
             perf.add("log", t)
         return stamp_us
-
-
-def _default_land_controller(vehicle: VehicleConfig, planet: Any) -> LandController:
-    # AUTO.LAND flies the SITL's own cascade lander on ground truth (the law that
-    # expert.cascade.CascadeLander wraps as a Policy); pass land_controller_factory to replace it.
-    return CascadeLandController(vehicle, planet)
 
 
 # --------------------------------------------------------------------------- entry points
