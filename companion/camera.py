@@ -33,6 +33,7 @@ import numpy as np
 
 from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
 from companion.contract.camera_packet import CameraPacketError, FrameAssembler
+from companion.contract.datagrams import RCVBUF_BYTES, RX_DATAGRAMS_PER_POLL
 
 __all__ = [
     "RESTART_WINDOW_S",
@@ -203,7 +204,7 @@ class UdpCameraSource:
 
     def __init__(self, host: str = "127.0.0.1", port: int = 5600) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
         try:
             self.sock.bind((host, port))
         except OSError as exc:
@@ -216,13 +217,18 @@ class UdpCameraSource:
         self.bad_packets = 0
         self.bad_size = 0
         self.stale_frames = 0
+        self.deferred = 0
 
     def fileno(self) -> int | None:
         return self.sock.fileno()
 
     def poll(self) -> list[ReceivedFrame]:
+        """The frames the waiting datagrams complete, oldest first: at most
+        :data:`~companion.contract.datagrams.RX_DATAGRAMS_PER_POLL` datagrams (``deferred``
+        counts the polls that stopped there), so a flood on the camera's port delays the
+        companion's loop but never holds it from its MAVLink link."""
         out: list[ReceivedFrame] = []
-        while True:
+        for _ in range(RX_DATAGRAMS_PER_POLL):
             try:
                 data = self.sock.recv(65_535)
             except (BlockingIOError, InterruptedError):
@@ -245,6 +251,8 @@ class UdpCameraSource:
                 continue
             self._newest_time_s = frame.time_s
             out.append(ReceivedFrame(frame.frame_id, frame.time_s, frame.image, time.monotonic()))
+        self.deferred += 1  # the budget is spent; the rest waits for the next poll
+        return out
 
     def counters(self) -> dict[str, int]:
         """What was refused: malformed datagrams, wrong-size frames, incomplete frames evicted,
@@ -254,6 +262,7 @@ class UdpCameraSource:
             "bad_size": self.bad_size,
             "incomplete_dropped": self._assembler.dropped,
             "corrupt": self._assembler.corrupt,
+            "deferred": self.deferred,
         }
 
     def close(self) -> None:

@@ -32,6 +32,7 @@ from companion.app import CompanionConfig, CompanionError, load_toml
 from companion.camera import CameraError, UdpCameraSource, fit_to_policy, focal_px_from_fov
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
+from companion.contract.datagrams import RX_DATAGRAMS_PER_POLL
 from companion.contract.topics import TOPIC_COMPANION_COMMAND
 from companion.flight import OffboardConfig
 from companion.flightlog import read_log
@@ -104,6 +105,25 @@ def test_udp_camera_source_assembles_frames_and_counts_bad_packets():
         assert frames[0].time_s == pytest.approx(1.234)
         assert np.array_equal(frames[0].image, img)
         assert cam.bad_packets == 1 and cam.bad_size == 1
+    finally:
+        cam.close()
+
+
+def test_udp_camera_source_reads_a_bounded_number_of_datagrams_per_poll():
+    """Behind a flood on its port the frame still comes, one poll later: a poll stops after
+    RX_DATAGRAMS_PER_POLL datagrams (counted as deferred), so the companion's loop gets back
+    to its MAVLink link in between."""
+    port = free_udp_port()
+    cam = UdpCameraSource("127.0.0.1", port)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for _ in range(RX_DATAGRAMS_PER_POLL):
+                tx.sendto(b"junk", ("127.0.0.1", port))
+            (frame,) = encode_frame(np.zeros((128, 128), np.uint8), 9, 2_000_000)
+            tx.sendto(frame, ("127.0.0.1", port))
+        assert cam.poll() == [] and cam.counters()["deferred"] == 1  # loopback: all queued
+        (got,) = cam.poll()
+        assert got.frame_id == 9 and cam.bad_packets == RX_DATAGRAMS_PER_POLL
     finally:
         cam.close()
 

@@ -14,6 +14,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.datagrams import MAX_DATAGRAM_BYTES, RCVBUF_BYTES, RX_DATAGRAMS_PER_POLL
 from companion.link import MavlinkLink
 from training.exec.fly import free_udp_port
 
@@ -172,3 +173,89 @@ def test_udpout_links_have_no_peer(nodes):
         assert link.peer is None  # udpout sends to its one address anyway
     finally:
         link.close()
+
+
+# --------------------------------------------------------------------------- a flood (issue 31)
+
+
+def _attitude(ap: _Node, to: tuple[str, int], time_boot_ms: int) -> None:
+    ap.send(ap.mav.attitude_encode(time_boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), to)
+
+
+def _poll_for(link: MavlinkLink, kind: str) -> tuple[list[str], int]:
+    """Poll until a ``kind`` message is delivered: the types delivered and the polls taken."""
+    seen: list[str] = []
+    for polls in range(1, 201):
+        link.poll(lambda m, _t: seen.append(m.get_type()))
+        if kind in seen:
+            return seen, polls
+        select.select([link.fileno()], [], [], 0.05)
+    raise AssertionError(f"the link never delivered {kind}; got {seen}")
+
+
+def test_a_flood_from_another_address_is_refused_before_any_parse(nodes, udpin):
+    """Once the autopilot is pinned, a stranger's datagrams cost a ``recvfrom`` each: none
+    reaches the parser (no rx_bad_data, no rx_other_systems, no spoofed HEARTBEAT), each is
+    counted as rx_peer_mismatch, and the autopilot's message behind them is delivered."""
+    link, to, _ = udpin
+    ap, stranger = nodes["autopilot"], nodes["stranger"]
+    ap.heartbeat(to)
+    _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
+    before = (link.counters.rx_bad_data, link.counters.rx_other_systems)
+    # (few large ones: a machine whose rmem_max caps the buffer at 425,984 bytes keeps them all)
+    junk = [bytes(30_000)] * 2 + [b"\xfd\x09garbage", b"\x00" * 100] * 29
+    for datagram in junk:
+        stranger.sock.sendto(datagram, to)
+    stranger.send(stranger.mav.system_time_encode(0, 0), to)
+    spoof = _Node(1, 1, sock=stranger.sock)  # the autopilot's ids from the stranger's address
+    spoof.mav.seq = 50
+    spoof.heartbeat(to)
+    _attitude(ap, to, 1234)
+    seen, _ = _poll_for(link, "ATTITUDE")
+    assert seen.count("HEARTBEAT") == 0  # the spoof never reached the parser
+    assert link.counters.rx_peer_mismatch == 62
+    assert (link.counters.rx_bad_data, link.counters.rx_other_systems) == before
+    assert link.peer == ap.sock.getsockname()
+
+
+def test_junk_before_the_peer_is_known_is_skipped_at_c_speed(nodes, udpin):
+    """Before the autopilot is heard every datagram is parsed, but an oversized one is one
+    rx_bad_data (not one per byte, as pymavlink's robust parser would scan it), and junk
+    before a frame is cut off: the frame behind it is still read."""
+    link, to, _ = udpin
+    ap, stranger = nodes["autopilot"], nodes["stranger"]
+    stranger.sock.sendto(bytes(MAX_DATAGRAM_BYTES + 1), to)
+    stranger.sock.sendto(b"", to)
+    hb = ap.mav.heartbeat_encode(
+        mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4
+    ).pack(ap.mav)
+    ap.sock.sendto(b"\x00\x01\x02" * 40 + hb, to)
+    _poll_until(link, lambda: link.connected, "the HEARTBEAT behind the junk")
+    assert link.counters.rx_bad_data == 3  # the oversized, the empty, the junk before the frame
+    assert link.peer == ap.sock.getsockname()
+
+
+def test_one_poll_reads_a_bounded_number_of_datagrams(nodes, udpin):
+    """A poll returns after RX_DATAGRAMS_PER_POLL datagrams (rx_deferred), so the companion's
+    loop gets back to its camera; the next polls read on to the autopilot's message."""
+    link, to, _ = udpin
+    ap, stranger = nodes["autopilot"], nodes["stranger"]
+    ap.heartbeat(to)
+    _poll_until(link, lambda: link.connected, "the autopilot's HEARTBEAT")
+    flood = RX_DATAGRAMS_PER_POLL + 10
+    for _ in range(flood):
+        stranger.sock.sendto(b"\x00" * 8, to)
+    _attitude(ap, to, 1234)
+    _, polls = _poll_for(link, "ATTITUDE")
+    assert polls == 2 and link.counters.rx_deferred == 1, (polls, link.counters)
+    assert link.counters.rx_peer_mismatch == flood
+
+
+def test_the_udp_socket_asks_for_a_large_receive_buffer(udpin):
+    link, _, _ = udpin
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as plain:
+        default = plain.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        plain.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
+        granted = plain.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    got = link.conn.port.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    assert got == granted, (got, granted, default)

@@ -26,10 +26,20 @@ its peer*: the address the autopilot's HEARTBEAT came from (each datagram is par
 an incomplete message left by another datagram is dropped, as over UDP it can never complete —
 so every message has a known sender). Everything is then sent to that address only. The peer
 moves only when the link is lost (no autopilot HEARTBEAT for ``link_timeout_s``) and the
-autopilot is heard from a new address — a restarted autopilot on another port; a HEARTBEAT
-spoofing the autopilot's ids from elsewhere while it is alive is counted (``rx_peer_mismatch``)
-and moves nothing. Unsigned MAVLink cannot stop a spoof on a lost link: sign it
-(``signing_key``) or use a serial port where that matters.
+autopilot is heard from a new address — a restarted autopilot on another port. Unsigned MAVLink
+cannot stop a spoof on a lost link: sign it (``signing_key``) or use a serial port where that
+matters.
+
+A flood must not starve the autopilot (issue 31: on a busy 2-core board, a flood of junk on the
+port cost a flight its telemetry). While the link is up, a datagram from any address other than
+the pinned peer is dropped before any MAVLink parse and counted (``rx_peer_mismatch``: a GCS, a
+scanner, a flood, a HEARTBEAT spoofing the autopilot from elsewhere); before the peer is known
+(or while the link is lost) every datagram is parsed, but an oversized one is dropped unparsed
+and junk before the first frame is skipped at C speed (:mod:`companion.contract.datagrams`).
+One :meth:`MavlinkConnection.poll` reads at most
+:data:`~companion.contract.datagrams.RX_DATAGRAMS_PER_POLL` datagrams (``rx_deferred`` counts
+the polls that stopped there), so the companion's loop gets back to its camera; the UDP socket
+asks for a :data:`~companion.contract.datagrams.RCVBUF_BYTES` receive buffer.
 
 What goes over the connection (commands, parameters, setpoints) is
 :class:`companion.link.protocol.LinkProtocol`'s; what differs between autopilots is the
@@ -42,6 +52,7 @@ import errno
 import logging
 import math
 import os
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -53,6 +64,12 @@ os.environ.setdefault("MAVLINK_DIALECT", "common")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.datagrams import (
+    MAX_DATAGRAM_BYTES,
+    RCVBUF_BYTES,
+    RX_DATAGRAMS_PER_POLL,
+    frame_start,
+)
 from companion.contract.signing import UNSIGNED_ALLOWED
 
 mavutil.set_dialect("common")  # v20.common, whatever MAVLINK_DIALECT said
@@ -126,6 +143,8 @@ class LinkCounters:
 
     rx_messages: int = 0
     rx_bad_data: int = 0
+    """Malformed input: bad CRC, bad prefix, an incomplete frame, an empty or oversized
+    datagram, junk before a datagram's first frame (one per datagram)."""
     rx_other_systems: int = 0
     tx_setpoints: int = 0
     tx_landing_targets: int = 0
@@ -135,7 +154,11 @@ class LinkCounters:
     port_errors: int = 0
     rx_stale_heartbeats: int = 0
     rx_peer_mismatch: int = 0
-    """Autopilot HEARTBEATs from an address other than the pinned peer (udpin only)."""
+    """Datagrams from an address other than the pinned peer while the link is up, dropped
+    before any parse (udpin only): a GCS, a scanner, a flood, a spoofed autopilot."""
+    rx_deferred: int = 0
+    """Polls that stopped after ``RX_DATAGRAMS_PER_POLL`` datagrams with more possibly
+    waiting (udpin only; the next poll reads on)."""
     tx_errors: int = 0
     """Datagrams to the pinned peer the OS would not send (too big, no route, no buffer);
     lost, as any UDP datagram (udpin only)."""
@@ -204,6 +227,10 @@ class MavlinkConnection:
         """udpin: the autopilot's address, the only one sent to once known."""
         self._datagram_from: tuple[str, int] | None = None
         self._leftover: tuple[int, int] | None = None
+        self._rx_budget = RX_DATAGRAMS_PER_POLL
+        """udpin: datagrams the current :meth:`poll` may still read."""
+        self._rx_fed = False
+        """udpin: the last ``recv`` gave the parser input (a datagram, or the rest of one)."""
         self._open()
 
     # ------------------------------------------------------------------ the port
@@ -235,19 +262,23 @@ class MavlinkConnection:
             )
 
     def _pin_udp_peer(self, conn: Any) -> None:
-        """Replace a udpin connection's ``recv``/``write`` (module doc: the peer): ``recv``
-        parses each datagram on its own (the messages left in the parser first; an incomplete
-        one is dropped, as it can never complete over UDP) and notes its sender (keeping
-        pymavlink's ``clients`` as it does); ``write`` goes to the peer alone once known."""
+        """Replace a udpin connection's ``recv``/``write`` (module doc: the peer, a flood):
+        ``recv`` parses each datagram on its own (the messages left in the parser first; an
+        incomplete one is dropped, as it can never complete over UDP), drops what the peer
+        rule refuses before parsing it, and notes its sender (keeping pymavlink's ``clients``
+        as it does); ``write`` goes to the peer alone once known."""
         port = conn.port
         write_plain = conn.write
+        _size_receive_buffer(port)
 
         def recv(n: int | None = None) -> bytes | str:
             mav = conn.mav
+            self._rx_fed = False
             if mav.buf_len():
                 mark = (len(mav.buf), mav.buf_index)
                 if mark != self._leftover:
                     self._leftover = mark
+                    self._rx_fed = True
                     return ""  # the parser takes the next message of this datagram first
                 # no progress: an incomplete message, which over UDP never completes (a
                 # datagram carries whole messages); it must not swallow the next datagram
@@ -255,15 +286,13 @@ class MavlinkConnection:
                 mav.expected_length = mavlink.HEADER_LEN_V1 + 2
                 self.counters.rx_bad_data += 1
             self._leftover = None
-            try:
-                data, addr = port.recvfrom(_UDP_MAX)
-            except OSError as exc:
-                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
-                    return ""
-                raise
+            data = self._next_datagram(port)
+            if data is None:
+                return ""
+            self._rx_fed = True
+            addr = self._datagram_from
             conn.clients.add(addr)
             conn.clients_last_alive[addr] = time.time()
-            self._datagram_from = addr  # every message parsed until the next datagram
             return data
 
         def write(buf: bytes) -> None:
@@ -277,6 +306,39 @@ class MavlinkConnection:
 
         conn.recv = recv
         conn.write = write
+
+    def _next_datagram(self, port: socket.socket) -> bytes | None:
+        """The next datagram worth parsing, its sender in ``_datagram_from``; None when none
+        waits or this poll's budget is spent. Refused unparsed (counted): anything from another
+        address than the pinned peer while the link is up (``rx_peer_mismatch``), an empty or
+        oversized datagram, one without a frame start (``rx_bad_data``); junk before the first
+        frame start is cut off (``rx_bad_data``)."""
+        counters = self.counters
+        while True:
+            if self._rx_budget <= 0:
+                counters.rx_deferred += 1
+                return None
+            self._rx_budget -= 1
+            try:
+                data, addr = port.recvfrom(_UDP_MAX)
+            except OSError as exc:
+                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                    return None
+                raise
+            if self.peer is not None and self.connected and addr != self.peer:
+                counters.rx_peer_mismatch += 1
+                continue
+            if not data or len(data) > MAX_DATAGRAM_BYTES:
+                counters.rx_bad_data += 1
+                continue
+            start = frame_start(data)
+            if start:
+                counters.rx_bad_data += 1
+                data = data[start:]
+                if not data:
+                    continue
+            self._datagram_from = addr  # every message parsed until the next datagram
+            return data
 
     @property
     def is_open(self) -> bool:
@@ -331,8 +393,10 @@ class MavlinkConnection:
         rx_monotonic_s)``. Also sends our HEARTBEAT when due and watches the link. Returns the
         number of messages delivered."""
         self._maybe_reopen()
+        self._rx_budget = RX_DATAGRAMS_PER_POLL
         n = 0
         while self.conn is not None:
+            self._rx_fed = False
             try:
                 msg = self.conn.recv_msg()
             except (OSError, mavutil.mavlink.MAVError) as exc:
@@ -342,6 +406,8 @@ class MavlinkConnection:
                 self.counters.rx_bad_data += 1
                 continue
             if msg is None:
+                if self._rx_fed:  # udpin: input without a whole message; read on
+                    continue
                 break
             rx = self.clock()
             if msg.get_type() == "BAD_DATA":
@@ -406,15 +472,14 @@ class MavlinkConnection:
 
     def _from_peer(self) -> bool:
         """udpin: whether the autopilot HEARTBEAT just parsed comes from the pinned peer,
-        pinning (or, on a lost link, moving) it; other transports: always."""
+        pinning (or, on a lost link, moving) it; other transports: always. While the link is
+        up, datagrams from elsewhere never reach the parser (:meth:`_next_datagram`), so a
+        HEARTBEAT parsed from another address is one heard while the link is lost."""
         if self.conn is None or not getattr(self.conn, "udp_server", False):
             return True
         addr = self._datagram_from
         if addr is None or addr == self.peer:
             return True
-        if self.peer is not None and self.connected:
-            self.counters.rx_peer_mismatch += 1
-            return False
         what = "pinned" if self.peer is None else f"moved from {self.peer[0]}:{self.peer[1]}"
         self.peer = addr
         self._event("peer", f"autopilot at {addr[0]}:{addr[1]} ({what}); sending only there")
@@ -485,3 +550,21 @@ class MavlinkConnection:
         mav.total_packets_sent += 1
         mav.total_bytes_sent += len(buf)
         return handed
+
+
+def _size_receive_buffer(sock: socket.socket) -> None:
+    """Ask for :data:`RCVBUF_BYTES` of receive buffer; say once when the OS gives less (Linux
+    caps the request at ``net.core.rmem_max``: ``sysctl -w net.core.rmem_max=4194304``)."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
+        got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    except OSError as exc:
+        log.warning("MAVLink socket: SO_RCVBUF not set (%s)", exc)
+        return
+    if got < RCVBUF_BYTES:  # Linux reports twice what it grants (its bookkeeping overhead)
+        log.warning(
+            "MAVLink socket: receive buffer %d bytes, asked for %d (net.core.rmem_max caps it;"
+            " a flood on the port then costs telemetry sooner)",
+            got,
+            RCVBUF_BYTES,
+        )
