@@ -24,6 +24,7 @@ profile and the clock).
 from __future__ import annotations
 
 from collections.abc import Callable
+from operator import attrgetter
 from typing import Any
 
 from companion.contract.autopilots import ARDUPILOT, PROFILES, PX4, AutopilotProfile
@@ -53,9 +54,55 @@ __all__ = [
 ]
 
 
+def _reads_through(**parts: tuple[str, ...]) -> Callable[[type], type]:
+    """Class decorator: each ``name`` listed under ``part`` becomes a read-only attribute
+    ``obj.name`` that is ``obj.part.name`` (a method comes bound to the part)."""
+
+    def decorate(cls: type) -> type:
+        for part, names in parts.items():
+            for name in names:
+                setattr(cls, name, property(attrgetter(f"{part}.{name}")))
+        return cls
+
+    return decorate
+
+
+# the calls and state the companion's state machines use, straight from the part that owns them
+@_reads_through(
+    protocol=(
+        "send_setpoint",
+        "send_landing_target",
+        "send_frame_marker",
+        "command",
+        "ack",
+        "request_mode",
+        "arm",
+        "set_message_interval",
+        "request_param",
+        "param",
+        "param_int",
+    ),
+    connection=(
+        "fileno",
+        "close",
+        "pop_events",
+        "url",
+        "conn",
+        "target_system",
+        "target_component",
+        "connected",
+        "peer",
+        "counters",
+        "heartbeat_age_s",
+        "last_send_call_s",
+    ),
+)
 class MavlinkLink:
     """One MAVLink 2 link to one autopilot: a :class:`MavlinkConnection`, the autopilot's
-    :class:`AutopilotProfile` and a :class:`LinkProtocol` over them.
+    :class:`AutopilotProfile` and a :class:`LinkProtocol` over them. What the state machines
+    call and read (``send_setpoint``, ``request_mode``, ``connected``, ``counters``, ...) is
+    the owning part's own (``link.send_setpoint`` is ``link.protocol.send_setpoint``,
+    ``link.connected`` is ``link.connection.connected``), listed above the class.
 
     Args:
         url: pymavlink connection string (see :mod:`companion.link.connection`).
@@ -74,21 +121,6 @@ class MavlinkLink:
         self.profile = profile
         self.connection = MavlinkConnection(url, **connection_options)
         self.protocol = LinkProtocol(self.connection, profile, self.connection.clock)
-        # the calls the companion's state machines make, straight to the part that owns them
-        self.send_setpoint = self.protocol.send_setpoint
-        self.send_landing_target = self.protocol.send_landing_target
-        self.send_frame_marker = self.protocol.send_frame_marker
-        self.command = self.protocol.command
-        self.ack = self.protocol.ack
-        self.request_mode = self.protocol.request_mode
-        self.arm = self.protocol.arm
-        self.set_message_interval = self.protocol.set_message_interval
-        self.request_param = self.protocol.request_param
-        self.param = self.protocol.param
-        self.param_int = self.protocol.param_int
-        self.fileno = self.connection.fileno
-        self.close = self.connection.close
-        self.pop_events = self.connection.pop_events
 
     def poll(self, on_message: Callable[[Any, float], None]) -> int:
         """Receive everything waiting; each autopilot message goes to the protocol (ACKs,
@@ -104,47 +136,3 @@ class MavlinkLink:
         n = self.connection.poll(deliver)
         protocol.tick()
         return n
-
-    # ------------------------------------------------------------------ the connection's state
-
-    @property
-    def url(self) -> str:
-        return self.connection.url
-
-    @property
-    def conn(self) -> Any:
-        """pymavlink's connection (None while the port is being reopened)."""
-        return self.connection.conn
-
-    @property
-    def target_system(self) -> int | None:
-        """The autopilot's system id (None: not discovered yet)."""
-        return self.connection.target_system
-
-    @property
-    def target_component(self) -> int:
-        return self.connection.target_component
-
-    @property
-    def connected(self) -> bool:
-        """An autopilot HEARTBEAT came within ``link_timeout_s``."""
-        return self.connection.connected
-
-    @property
-    def peer(self) -> tuple[str, int] | None:
-        """udpin: the autopilot's address, the only one sent to once known."""
-        return self.connection.peer
-
-    @property
-    def counters(self) -> LinkCounters:
-        return self.connection.counters
-
-    @property
-    def heartbeat_age_s(self) -> float:
-        return self.connection.heartbeat_age_s
-
-    @property
-    def last_send_call_s(self) -> float:
-        """How long the last setpoint's write call took (see
-        :meth:`MavlinkConnection.send_timed`)."""
-        return self.connection.last_send_call_s
