@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -140,6 +140,7 @@ class SafetyMonitor:
         return Command(thrust_norm=thrust, rate_frd_rad_s=rates), True
 
 
+@dataclass(eq=False)
 class TouchdownDetector:
     """Touchdown from the radar and the IMU, or from the autopilot's own land detector.
 
@@ -153,24 +154,15 @@ class TouchdownDetector:
     the expert's 0.17 m/s touchdown speed; the 0.8 s trend (slope noise ≈ 0.026 m/s) does not.
     """
 
-    def __init__(
-        self,
-        range_m: float = 0.15,
-        still_m: float = 0.08,
-        still_m_s: float = 0.05,
-        window_s: float = 0.8,
-        gyro_quiet_rad_s: float = 0.1,
-        landed_hold_s: float = 0.1,
-    ) -> None:
-        self.range_m = range_m
-        self.still_m = still_m
-        self.still_m_s = still_m_s
-        self.window_s = window_s
-        self.gyro_quiet_rad_s = gyro_quiet_rad_s
-        self.landed_hold_s = landed_hold_s
-        self._readings: deque[tuple[float, float]] = deque()
-        self._landed_rx = -math.inf
-        self._on_ground_since: float | None = None
+    range_m: float = 0.15
+    still_m: float = 0.08
+    still_m_s: float = 0.05
+    window_s: float = 0.8
+    gyro_quiet_rad_s: float = 0.1
+    landed_hold_s: float = 0.1
+    _readings: deque[tuple[float, float]] = field(init=False, default_factory=deque)
+    _landed_rx: float = field(init=False, default=-math.inf)
+    _on_ground_since: float | None = field(init=False, default=None)
 
     def update(self, store: TelemetryStore, since_rx_s: float) -> bool:
         """True once on the ground (``since_rx_s``: ignore landed states received earlier)."""
