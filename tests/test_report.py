@@ -18,16 +18,42 @@ from sitl_sim.env import LandingEnv
 from training.exec.rollout import fly_episode, make_policy
 from training.paper import PAPER_RUNTIME_S, PAPER_TABLE3
 from training.profiles import PROFILES
+from training.record import RecordError
 from training.report.metrics import ROWS
 from training.report.results import ReportConfig, load_metrics, write_report
 from training.report.targets import TARGETS
 from training.run_folder import Run
-from training.stage_records import BcRecord, DaggerRecord, ValidationScore, VisionRecord
+from training.stage_records import (
+    BcRecord,
+    DaggerRecord,
+    DaggerRoundRecord,
+    FitRecord,
+    ValidationScore,
+    VisionRecord,
+)
 from training.stages import eval as eval_stage
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "models" / "visland_vision.pt"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+# ----------------------------------------------------------------------------- stage records
+
+
+def test_a_fit_stands_inline_in_the_bc_and_dagger_round_records():
+    fit = {"steps": 5, "final_loss": None, "seconds": 2.0, "buffer_episodes": 3, "buffer_steps": 40}
+    bc = {"stage": "bc", "git_commit": "abc", "checkpoint": "bc.pt", **fit}
+    rec = BcRecord.from_dict(bc, "bc.json")
+    assert rec.fit == FitRecord(**fit)
+    assert list(rec.to_dict().items()) == list(bc.items())  # same keys, same order
+    pairs = {"checkpoint": "r0.pt", "rollouts": "r0", "pairs": [["a.mcap", "a.labels"]]}
+    round0 = {"stage": "dagger_r0", "git_commit": "abc", **pairs, **fit}
+    assert list(DaggerRoundRecord.from_dict(round0).to_dict().items()) == list(round0.items())
+    with pytest.raises(RecordError, match=r"bc.json: field buffer_steps is missing"):
+        BcRecord.from_dict({k: v for k, v in bc.items() if k != "buffer_steps"}, "bc.json")
+    with pytest.raises(RecordError, match=r"unexpected field\(s\) 'fit'"):
+        BcRecord.from_dict({**bc, "fit": fit}, "bc.json")
+
 
 # ----------------------------------------------------------------------------- per-episode field
 
@@ -79,13 +105,13 @@ def tiny_run(tmp_path_factory, low_scenario) -> Path:
         priv = dataclasses.replace(cfg, kind="privileged")
         save_checkpoint(ck / "dagger.pt", priv, control, None, {"from": str(SHIPPED), **meta})
         shutil.copyfile(SHIPPED, ck / "vision.pt")
-        fit = {"steps": 0, "final_loss": None, "seconds": 0.0, "buffer_episodes": 0}
+        fit = FitRecord(steps=0, final_loss=None, seconds=0.0, buffer_episodes=0, buffer_steps=0)
         picked = {
             "checkpoint": str(ck / "dagger.pt"),
             "selected": str(ck / "dagger.pt"),
             "validation": (ValidationScore(str(ck / "dagger.pt"), 0.0, 0.0, 1.0, 0.0),),
         }
-        run.finish(BcRecord("bc", run.commit, str(ck / "bc.pt"), **fit, buffer_steps=0))
+        run.finish(BcRecord("bc", run.commit, str(ck / "bc.pt"), fit))
         run.finish(DaggerRecord("dagger", run.commit, rounds=0, **picked))
         run.finish(
             VisionRecord(

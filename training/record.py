@@ -13,6 +13,8 @@ Field metadata (``dataclasses.field(metadata=...)``):
 - ``omit_none``: the key is absent when the value is None (a missing key reads as None);
 - ``prefix``: a ``dict[str, X]`` field whose entries are spread into the object as
   ``<prefix><name>`` keys (the keys of the object starting with the prefix read back into it);
+- ``inline``: a record field whose keys are spread into the object (its own keys, in its order,
+  where the field stands), so records that share a group of keys declare it once;
 - ``what``: how an error names the expected value (e.g. ``"[north, east] in m"``);
 - ``added``: a key added after records were written; a missing one reads as the field's
   default, which must be the behaviour before the key existed (e.g. a profile key that is off
@@ -163,6 +165,8 @@ class Record:
             value = getattr(self, f.name)
             if f.metadata.get("prefix"):
                 out.update({f"{f.metadata['prefix']}{k}": _write(v) for k, v in value.items()})
+            elif f.metadata.get("inline"):
+                out.update(value.to_dict())
             elif value is None and f.metadata.get("omit_none"):
                 continue
             else:
@@ -178,7 +182,13 @@ class Record:
                 raise RecordError(f"{source}: expected {what}, got {type(data).__name__}")
             raise _bad(source, keys, what, data)
         fields = cls._fields()
-        names = {f.name for f, _ in fields if not f.metadata.get("prefix")}
+        inline = {
+            f.name: {g.name for g, _ in tp._fields()}
+            for f, tp in fields
+            if f.metadata.get("inline")
+        }
+        names = {f.name for f, _ in fields if not f.metadata.get("prefix") and f.name not in inline}
+        names.update(*inline.values())
         prefixes = [f.metadata["prefix"] for f, _ in fields if f.metadata.get("prefix")]
         unknown = [k for k in data if k not in names and not any(k.startswith(p) for p in prefixes)]
         if unknown:
@@ -194,6 +204,10 @@ class Record:
             if prefix:
                 spread = {k[len(prefix) :]: v for k, v in data.items() if k.startswith(prefix)}
                 kwargs[f.name] = _read(tp, spread, source, keys)
+                continue
+            if f.name in inline:
+                own = {k: v for k, v in data.items() if k in inline[f.name]}
+                kwargs[f.name] = tp.from_dict(own, source, keys)
                 continue
             if f.name not in data:
                 if f.metadata.get("omit_none"):

@@ -76,11 +76,7 @@ class BcRecord(StageRecord):
     """``bc``: the behaviour-cloned privileged controller; the fit's keys inline."""
 
     checkpoint: str
-    steps: int
-    final_loss: float | None
-    seconds: float
-    buffer_episodes: int
-    buffer_steps: int
+    fit: FitRecord = field(metadata={"inline": True})
 
 
 @dataclass(frozen=True)
@@ -91,11 +87,7 @@ class DaggerRoundRecord(StageRecord):
     checkpoint: str
     rollouts: str
     pairs: tuple[tuple[str, str], ...]
-    steps: int
-    final_loss: float | None
-    seconds: float
-    buffer_episodes: int
-    buffer_steps: int
+    fit: FitRecord = field(metadata={"inline": True})
 
 
 @dataclass(frozen=True)

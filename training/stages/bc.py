@@ -27,6 +27,4 @@ def run(r: Run) -> BcRecord:
         None,
         r.metadata("bc", {"episodes": names, "fit": fit.to_dict()}),
     )
-    return r.finish(
-        BcRecord(stage="bc", git_commit=r.commit, checkpoint=str(path), **fit.to_dict())
-    )
+    return r.finish(BcRecord(stage="bc", git_commit=r.commit, checkpoint=str(path), fit=fit))

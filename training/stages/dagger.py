@@ -46,7 +46,7 @@ def _round(r: Run, k: int, ckpt: Path) -> DaggerRoundRecord:
             checkpoint=str(out),
             rollouts=p.rollouts,
             pairs=tuple((str(a), str(b)) for a, b in pairs),
-            **fit.to_dict(),
+            fit=fit,
         )
     )
 
