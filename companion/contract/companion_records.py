@@ -1,5 +1,6 @@
 """The records only the companion's log holds (``/companion/*``), declared once like the rest of
-:mod:`companion.contract.records` (which re-exports nothing from here: import these from here).
+:mod:`companion.contract.records` (which re-exports nothing from here: import these from here),
+and :class:`ObservationKeys`, the keys ``/companion/observation`` shares with ``/observation``.
 """
 
 from __future__ import annotations
@@ -22,16 +23,16 @@ __all__ = [
     "CompanionLandingTargetRecord",
     "CompanionObservationRecord",
     "CompanionSummaryRecord",
+    "ObservationKeys",
 ]
 
 
 @dataclass(**RECORD)
-class CompanionObservationRecord(LogRecord):
-    """``/companion/observation``: the observation the policy saw (image excluded), with the
-    sample times it was assembled from (``groundtruth_time_s``: the ODOMETRY a privileged
-    policy was given; null for a deployable one). ``hover_thrust_norm`` null: not reported."""
+class ObservationKeys(LogRecord):
+    """The keys ``/observation`` (:class:`companion.contract.records.ObservationRecord`) and
+    ``/companion/observation`` share, first in both: an Observation's fields but the image and
+    the hover thrust, with each sample's time."""
 
-    SCHEMA = SCHEMA_COMPANION_OBSERVATION
     frame_id: int
     image_time_s: float
     attitude_rad: Vector
@@ -41,6 +42,15 @@ class CompanionObservationRecord(LogRecord):
     range_time_s: float
     accel_frd_m_s2: Vector
     imu_time_s: float
+
+
+@dataclass(**RECORD)
+class CompanionObservationRecord(ObservationKeys):
+    """``/companion/observation``: the observation the policy saw (image excluded), with the
+    sample times it was assembled from (``groundtruth_time_s``: the ODOMETRY a privileged
+    policy was given; null for a deployable one). ``hover_thrust_norm`` null: not reported."""
+
+    SCHEMA = SCHEMA_COMPANION_OBSERVATION
     hover_thrust_norm: float | None
     groundtruth_time_s: float | None
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.contract.companion_records import COMPANION_RECORDS
+from companion.contract.companion_records import COMPANION_RECORDS, ObservationKeys
 from companion.contract.messages import Command, GroundTruth, Observation
 from companion.contract.record_base import (
     ABSENT,
@@ -261,20 +261,11 @@ class GroundTruthRecord(LogRecord):
 
 
 @dataclass(**RECORD)
-class ObservationRecord(LogRecord):
+class ObservationRecord(ObservationKeys):
     """``/observation``: an Observation's fields but the image (``/camera/image`` holds it);
     ``range_m`` null = invalid (NaN); ``hover_thrust_norm`` left out when not reported."""
 
     SCHEMA = SCHEMA_OBSERVATION
-    frame_id: int
-    image_time_s: float
-    attitude_rad: Vector
-    rate_frd_rad_s: Vector
-    attitude_time_s: float
-    range_m: float | None
-    range_time_s: float
-    accel_frd_m_s2: Vector
-    imu_time_s: float
     hover_thrust_norm: float | Absent = ABSENT
 
     @classmethod
