@@ -45,7 +45,11 @@ from sitl_sim.mavlink.config import (
     add_sitl_arguments,
     sitl_config_from_args,
 )
-from sitl_sim.mavlink.endpoint import SitlPortInUseError
+from sitl_sim.mavlink.endpoint import (
+    RX_DATAGRAMS_PER_TICK,
+    MavlinkEndpoint,
+    SitlPortInUseError,
+)
 from sitl_sim.mavlink.sitl import MavlinkSitl
 from tools.sitl_client import (
     HOLD_CUSTOM_MODE,
@@ -398,7 +402,7 @@ def test_setup_signing_sets_changes_and_clears_the_key_only_while_disarmed(ports
 
 def test_fuzzing_never_crashes_or_stalls_a_flight(ports, start_sitl, client):
     # 1 s lockstep wait (not the fixture's 0.1 s): a loaded machine may park the client thread
-    # for a while, but only a stalled SITL (the decoder's 20 ms time box failing under the flood)
+    # for a while, but only a stalled SITL (the decoder's 2 ms time box failing under the flood)
     # leaves a frame unanswered for a whole second
     runner = start_sitl(groundtruth=True, lockstep_timeout_s=1.0)
     stop = threading.Event()
@@ -827,3 +831,27 @@ def test_mavsdk_connects_arms_and_runs_offboard(start_sitl, ports):
             await until(tel.flight_mode, lambda f: MavsdkMode(f) == MavsdkMode.HOLD)
 
     asyncio.run(asyncio.wait_for(card(), 30.0))
+
+
+def test_one_receive_reads_a_bounded_number_of_datagrams():
+    """A flood waits in the socket for the next physics step: one receive reads at most
+    RX_DATAGRAMS_PER_TICK datagrams (rx_deferred), the next reads on to the companion's
+    message behind them (issue 31: with 256 a flood stalled the wall-paced HOLD phase).
+    Oversized junk is one rx_bad_data, dropped unparsed."""
+    endpoint = MavlinkEndpoint(("127.0.0.1", free_udp_port()), ("127.0.0.1", free_udp_port()))
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for _ in range(RX_DATAGRAMS_PER_TICK - 1):
+                tx.sendto(b"\x00" * 8, endpoint.address)
+            tx.sendto(bytes(30_000), endpoint.address)
+            tx.sendto(mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav), endpoint.address)
+        # loopback: everything is queued before the first call; no time box in a test
+        accepted, errors = endpoint.receive(budget_s=math.inf)
+        assert accepted == [] and len(errors) == RX_DATAGRAMS_PER_TICK
+        assert endpoint.stats.rx_deferred == 1
+        accepted, _ = endpoint.receive(budget_s=math.inf)
+        assert [a.msg.get_type() for a in accepted] == ["HEARTBEAT"]
+        assert endpoint.stats.rx_bad_data == RX_DATAGRAMS_PER_TICK
+    finally:
+        endpoint.close()

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.contract.datagrams import MAX_DATAGRAM_BYTES, RCVBUF_BYTES, frame_start
 from companion.contract.signing import UNSIGNED_ALLOWED, sign_outgoing, signing_timestamp_now
 from sitl_sim.errors import SimError
 
@@ -44,6 +45,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MAX_DATAGRAM_BYTES",
+    "RX_BUDGET_S",
+    "RX_DATAGRAMS_PER_TICK",
     "Inbound",
     "LinkStats",
     "MavlinkEndpoint",
@@ -55,10 +58,16 @@ __all__ = [
 
 
 _NEW_STREAM_WINDOW = 6_000_000  # 60 s in 10 us units: how far behind a new stream may start
-_RCVBUF_BYTES = 4 * 1024 * 1024
-MAX_DATAGRAM_BYTES = 4096
-"""Larger datagrams are dropped unparsed: a MAVLink 2 frame is at most 280 bytes and routers
-pack frames into MTU-sized (1500-byte) datagrams; only junk is bigger."""
+_RCVBUF_BYTES = RCVBUF_BYTES  # the companion's too (companion.contract.datagrams)
+RX_DATAGRAMS_PER_TICK = 32
+"""At most this many datagrams per :meth:`MavlinkEndpoint.receive` (the SITL's loop calls it once
+per 4-ms physics step, and again and again while it waits for a frame's answer): 8,000 a second
+per link at 250 Hz, four times the fuzz test's flood, while one step's decoding stays ~1.5 ms
+(48 us a datagram, measured on the 2-core CI machine). With 256 and 20 ms (issue 31) a flood
+slowed the wall-paced HOLD phase so far that the companion heard no HEARTBEAT for 3 s and
+declared the link lost (for 32 s, at the start of the fuzz test's flooded run)."""
+RX_BUDGET_S = 0.002
+"""The decoding time one :meth:`MavlinkEndpoint.receive` may take (half a physics step)."""
 _BATCH_BYTES = 1472
 """A batch is sent before it would outgrow this: a 1500-byte Ethernet MTU less the IPv4 and UDP
 headers (a datagram any MAVLink peer on a LAN receives unfragmented)."""
@@ -295,11 +304,12 @@ class MavlinkEndpoint:
     # ------------------------------------------------------------------ receiving
 
     def receive(
-        self, max_datagrams: int = 256, budget_s: float = 0.02
+        self, max_datagrams: int = RX_DATAGRAMS_PER_TICK, budget_s: float = RX_BUDGET_S
     ) -> tuple[list[Inbound], list[RxError]]:
         """Drain waiting datagrams without blocking: at most ``max_datagrams`` and about
         ``budget_s`` of decoding, so a flood delays the simulation but never stalls it (the
-        rest waits in the kernel buffer, which drops the excess)."""
+        rest waits in the kernel buffer, which drops the excess). The loop receives once per
+        physics step and keeps receiving while it waits for the companion's answer."""
         accepted: list[Inbound] = []
         errors: list[RxError] = []
         imp = self._impairment
@@ -342,8 +352,7 @@ class MavlinkEndpoint:
             errors.append(RxError("rx_bad_data", "empty or oversize datagram", len(data), addr))
             return
         # Skip leading junk at C speed (pymavlink's robust parser scans it byte by byte).
-        starts = [i for i in (data.find(m) for m in (b"\xfd", b"\xfe")) if i >= 0]
-        start = min(starts) if starts else len(data)
+        start = frame_start(data)
         if start > 0:
             st.rx_bad_data += 1
             errors.append(RxError("rx_bad_data", f"{start} bytes before a frame", len(data), addr))
