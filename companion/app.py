@@ -4,7 +4,11 @@ One thread, one loop: ``select`` on the MAVLink port and the camera, feed the te
 answer each camera frame with one command (or, in shadow mode, only log it), run the timers of
 the state machine (:mod:`companion.offboard`). One MCAP log per flight
 (:mod:`companion.record`). SIGINT/SIGTERM hand control back (LAND or HOLD, ``on_exit``) and close
-the log; the process then prints a JSON report on stdout.
+the log; the process then prints a JSON report on stdout. A flight still waiting when the
+companion stops (it never pre-streamed, engaged or, in shadow, flew: e.g. the next one, opened
+after the last landing of a simulator run) was never flown: its log is removed and the report
+says so under ``not_flown`` (the index, why it waited, why it stopped), instead of a log and a
+flight marked aborted.
 
 Configuration: :class:`~companion.config.CompanionConfig` (:mod:`companion.config`) — the
 hardware template's defaults, then a TOML file (``--config``, table ``[companion]``; without it
@@ -108,6 +112,8 @@ class Companion:
         self.flight = None
         self.flight_log = None
         self.outcomes: list[dict[str, Any]] = []
+        self.not_flown: dict[str, Any] | None = None
+        """The flight that was waiting when the companion stopped (its log removed)."""
         self.link_events: list[str] = []
         self._clock: Callable[[], float] = time.monotonic
         self._requested_streams = False
@@ -200,6 +206,22 @@ class Companion:
             return LandingTargetController(ctx, self.tracker, flog, index)
         return FlightController(ctx, self.runtime, flog, index)
 
+    def _drop_unflown(self, reason: str) -> None:
+        """Stop the flight that never began (still WAITING): remove its log and note it in
+        :attr:`not_flown`."""
+        flight, flog = self.flight, self.flight_log
+        self.flight = self.flight_log = None
+        waiting = flight.outcome.events[-1] if flight.outcome.events else "waiting"
+        flog.close()
+        Path(flog.path).unlink(missing_ok=True)
+        self.not_flown = {"index": flight.outcome.index, "waiting": waiting, "stopped": reason}
+        print(
+            f"visland companion: flight {flight.outcome.index} not flown ({waiting}; {reason}):"
+            " its log removed",
+            file=sys.stderr,
+            flush=True,
+        )
+
     def _close_flight(self) -> None:
         flight, flog = self.flight, self.flight_log
         if flight is None:
@@ -271,6 +293,8 @@ class Companion:
                             break
                         self.flight = self._new_flight(index)
         finally:
+            if self.flight is not None and not self.flight.began:
+                self._drop_unflown(self._stop_reason or "exit")
             if self.flight is not None:
                 self.flight.hand_back(cfg.on_exit, self._stop_reason or "exit")
                 self._drain(0.3)
@@ -280,6 +304,7 @@ class Companion:
             perf.close()
         return {
             "flights": self.outcomes,
+            "not_flown": self.not_flown,
             "link_events": self.link_events,
             "link": dataclasses.asdict(self.link.counters),
             "camera": self.camera.counters() if hasattr(self.camera, "counters") else {},

@@ -190,6 +190,9 @@ class FlightMachine(ABC):
         self.perf = ctx.perf
         self.outcome = FlightOutcome(index=index, log_path=str(log.path))
         self.state = FlightState.WAITING
+        self.began = False
+        """The flight has left WAITING (pre-streamed, engaged, or in shadow flown): a flight
+        stopped before that never was one (the companion drops its log)."""
         self._entered_s = clock()
         self._created_s = clock()
         self._wait_reason = ""
@@ -240,6 +243,7 @@ class FlightMachine(ABC):
 
     def _enter(self, state: FlightState, text: str) -> None:
         self._event(EventKind.STATE, f"{self.state.value} -> {state.value}: {text}")
+        self.began = self.began or state not in (FlightState.WAITING, FlightState.DONE)
         self.state = state
         self._entered_s = self._clock()
 

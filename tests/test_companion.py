@@ -538,6 +538,34 @@ def test_card_sigterm_in_flight_hands_back_with_land_and_closes_the_log(procs, p
     assert sitl_flight.topic("/episode/result")[-1]["landed"]
 
 
+def test_card_a_run_leaves_one_companion_log_per_flight_and_none_aborted(low_scenario, tmp_path):
+    """``visland fly`` runs the companion with ``--flights 0`` and stops it when the SITL is
+    done: the flight it opened after the last landing never began, so it leaves no log (it used
+    to leave one marked aborted) and the report names it under ``not_flown``."""
+    from training.exec.fly import FlyConfig, fly
+
+    report = fly(
+        FlyConfig(
+            policy="expert",
+            episodes=1,
+            seed=0,
+            scenario=low_scenario,
+            out=str(tmp_path / "run"),
+            progress=False,
+            companion_args=_RELAXED_MAX_AGE,
+            sitl_args=_PATIENT_LOCKSTEP,
+        )
+    )
+    assert report["success_rate"] == 1.0 and report["companion_flights"] == {"landed": 1}
+    companion = json.loads((tmp_path / "run" / "companion.json").read_text())
+    (log_path,) = sorted((tmp_path / "run" / "companion").glob("*.mcap"))
+    (flight,) = companion["flights"]
+    assert flight["result"] == "landed" and flight["log_path"] == str(log_path)
+    assert read_log(log_path).topic("/companion/summary")[-1]["result"] == "landed"
+    not_flown = companion["not_flown"]
+    assert not_flown["index"] == 1 and "SIGTERM" in not_flown["stopped"], not_flown
+
+
 def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_scenario, tmp_path):
     """A learned vision network (untrained weights, shipped size) loaded from a checkpoint
     file: camera rendered, images in the log, the replay reproduces every command."""
