@@ -344,15 +344,7 @@ class FlightController(FlightMachine):
         self.log.observation(
             now,
             CompanionObservationRecord(
-                frame_id=frame.frame_id,
-                image_time_s=obs.image_time_s,
-                attitude_rad=obs.attitude_rad,
-                rate_frd_rad_s=obs.rate_frd_rad_s,
-                attitude_time_s=obs.attitude_time_s,
-                range_m=obs.range_m,
-                range_time_s=obs.range_time_s,
-                accel_frd_m_s2=obs.accel_frd_m_s2,
-                imu_time_s=obs.imu_time_s,
+                **CompanionObservationRecord.values_of(obs),
                 hover_thrust_norm=obs.hover_thrust_norm,  # NaN (not reported) is null
                 groundtruth_time_s=None if gt is None else gt.time_s,
             ),

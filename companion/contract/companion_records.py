@@ -6,8 +6,8 @@ and :class:`ObservationKeys`, the keys ``/companion/observation`` shares with ``
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Any
 
 from companion.contract.record_base import ABSENT, RECORD, Absent, LogRecord, Vector
 from companion.contract.topics import (
@@ -16,6 +16,9 @@ from companion.contract.topics import (
     SCHEMA_COMPANION_OBSERVATION,
     SCHEMA_COMPANION_SUMMARY,
 )
+
+if TYPE_CHECKING:
+    from companion.contract.messages import Observation
 
 __all__ = [
     "COMPANION_RECORDS",
@@ -42,6 +45,11 @@ class ObservationKeys(LogRecord):
     range_time_s: float
     accel_frd_m_s2: Vector
     imu_time_s: float
+
+    @staticmethod
+    def values_of(obs: Observation) -> dict[str, Any]:
+        """These keys' values in ``obs`` (``range_m`` NaN, invalid, is written as null)."""
+        return {f.name: getattr(obs, f.name) for f in fields(ObservationKeys)}
 
 
 @dataclass(**RECORD)

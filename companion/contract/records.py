@@ -272,15 +272,7 @@ class ObservationRecord(ObservationKeys):
     def from_observation(cls, obs: Observation) -> ObservationRecord:
         hover = obs.hover_thrust_norm
         return cls(
-            frame_id=obs.frame_id,
-            image_time_s=obs.image_time_s,
-            attitude_rad=obs.attitude_rad,
-            rate_frd_rad_s=obs.rate_frd_rad_s,
-            attitude_time_s=obs.attitude_time_s,
-            range_m=obs.range_m,  # NaN (invalid) is written as null
-            range_time_s=obs.range_time_s,
-            accel_frd_m_s2=obs.accel_frd_m_s2,
-            imu_time_s=obs.imu_time_s,
+            **cls.values_of(obs),
             hover_thrust_norm=hover if hover > 0 else ABSENT,  # NaN: not reported
         )
 
