@@ -1,14 +1,18 @@
-"""Small stand-ins the unit tests share: decoded MAVLink messages without a link, and one step of
-a logged episode as the observation the companion built in flight."""
+"""Small stand-ins the unit tests share: decoded MAVLink messages without a link, one step of
+a logged episode as the observation the companion built in flight, and the CLI run as a user
+runs it."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from companion.contract import Observation
+from training.provenance import REPO
 
 __all__ = [
     "NO_RETURN_CM",
@@ -17,10 +21,22 @@ __all__ = [
     "episode_observation",
     "imu_msg",
     "range_msg",
+    "visland",
 ]
 
 NO_RETURN_CM = 65535
 """DISTANCE_SENSOR ``current_distance`` of a rangefinder with no return (UINT16_MAX)."""
+
+
+def visland(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """``visland ARGS`` as its own process from the repository root, output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+    )
 
 
 class FakeMsg(SimpleNamespace):

@@ -3,20 +3,13 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
-
-
-def _visland(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *args], capture_output=True, text=True, timeout=timeout
-    )
+from helpers import visland
 
 
 def test_bench_sim_prints_a_real_time_factor():
-    proc = _visland("bench", "sim", "--seconds", "2", "--repeats", "1", "--json")
+    proc = visland("bench", "sim", "--seconds", "2", "--repeats", "1", "--json")
     assert proc.returncode == 0, proc.stderr
     res = json.loads(proc.stdout)
     assert res["realtime_factor"] > 1.0
@@ -27,5 +20,5 @@ def test_bench_sim_prints_a_real_time_factor():
     "args", [["--help"], ["demo", "--help"], ["bench", "--help"], ["sitl", "--help"]]
 )
 def test_help(args):
-    proc = _visland(*args)
+    proc = visland(*args)
     assert proc.returncode == 0 and "usage: visland" in proc.stdout

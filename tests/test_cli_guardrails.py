@@ -14,6 +14,7 @@ from io import StringIO
 from pathlib import Path
 
 import pytest
+from helpers import visland
 
 from sitl_sim.config import CONFIG_DIR
 from sitl_sim.metrics import EpisodeResult, summarize
@@ -22,16 +23,6 @@ from training.evaluate import format_table
 from training.seeds import EVAL_SEED
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def _visland(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-    )
 
 
 def _parsers(parser: argparse.ArgumentParser, name: str = "visland"):
@@ -46,14 +37,14 @@ def _parsers(parser: argparse.ArgumentParser, name: str = "visland"):
 
 
 def test_eval_refuses_a_vision_policy_without_the_camera():
-    proc = _visland("eval", "--policy", "models/visland_vision.pt", "--no-camera")
+    proc = visland("eval", "--policy", "models/visland_vision.pt", "--no-camera")
     assert proc.returncode == 2, proc.stderr
     assert "is a vision policy" in proc.stderr and "fly blind" in proc.stderr
     assert proc.stdout == ""
 
 
 def test_eval_of_one_episode_names_its_scenario_and_prints_no_pybullet_banner():
-    proc = _visland("eval", "--episodes", "1", "--no-camera")
+    proc = visland("eval", "--episodes", "1", "--no-camera")
     assert proc.returncode == 0, proc.stderr
     assert "pybullet build time" not in proc.stdout + proc.stderr
     assert f"expert: 1 episodes, seed {EVAL_SEED}, scenario configs/scenario.toml" in proc.stdout
@@ -63,7 +54,7 @@ def test_eval_refuses_a_scenario_out_of_physical_bounds_naming_file_key_expected
     bad = tmp_path / "hurricane.toml"
     text = (CONFIG_DIR / "scenario.toml").read_text()
     bad.write_text(text + "\n[wind]\nspeed_m_s = [200.0, 300.0]\ndirection_deg = [0, 360]\n")
-    proc = _visland("eval", "--episodes", "1", "--no-camera", "--scenario", str(bad))
+    proc = visland("eval", "--episodes", "1", "--no-camera", "--scenario", str(bad))
     assert proc.returncode == 2
     (line,) = proc.stderr.strip().splitlines()
     assert str(bad) in line and "[wind] speed_m_s = [200.0, 300.0]" in line
@@ -109,7 +100,7 @@ def test_commands_that_evaluate_default_to_the_evaluation_seed_and_say_so():
     parser = _parser()
     for argv in (["sitl"], ["fly"], ["demo"]):
         assert parser.parse_args(argv).seed == EVAL_SEED, argv
-    proc = _visland("sitl", "--help")
+    proc = visland("sitl", "--help")
     assert f"(default: {EVAL_SEED})" in re.sub(r"\s+", " ", proc.stdout)
 
 
@@ -136,7 +127,7 @@ def test_param_is_repeatable_on_sitl_and_fly_and_takes_the_comma_form(capsys):
 
 
 def test_version_names_the_package_and_the_commit():
-    proc = _visland("--version")
+    proc = visland("--version")
     assert proc.returncode == 0
     assert re.fullmatch(r"visland \S+ \(git [0-9a-f]{40}(\+dirty)?\)\n", proc.stdout), proc.stdout
 

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import visland
 from PIL import Image
 
 from companion.flightlog import read_log
@@ -33,16 +34,6 @@ _ROW = re.compile(
     r"(?P<err>\d+\.\d{3})\s+\S+\s+\S+\s+(?P<verdict>success|FAILED.*)$",
     re.M,
 )
-
-
-def _visland(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-    )
 
 
 def _check_demo_output(
@@ -86,7 +77,7 @@ def test_demo_flies_the_shipped_model_over_mavlink_and_reports_it(tmp_path):
     """One landing from the paper's initial states, the shipped model, two processes; with
     ``--json`` the report alone is on stdout and the narration on stderr."""
     out = tmp_path / "demo"
-    proc = _visland("demo", "--episodes", "1", "--out", str(out), "--json")
+    proc = visland("demo", "--episodes", "1", "--out", str(out), "--json")
     report = _check_demo_output(proc, out, 1, proc.stderr)
     assert json.loads(proc.stdout) == json.loads((out / "demo.json").read_text())
     assert report["policy"] == str(REPO / "models" / "visland_vision.pt")
@@ -110,7 +101,7 @@ def test_make_demo_default_three_landings(tmp_path):
     """Exactly ``visland demo`` with its defaults (3 landings): what ``make demo`` runs."""
     out = tmp_path / "demo"
     t0 = time.monotonic()
-    proc = _visland("demo", "--out", str(out))
+    proc = visland("demo", "--out", str(out))
     wall = time.monotonic() - t0
     _check_demo_output(proc, out, 3, proc.stdout)
     assert wall < 300  # the issue's limit after install
@@ -195,7 +186,7 @@ def test_ctrl_c_stops_both_processes(tmp_path, low_scenario, target):
 def test_missing_or_corrupt_model_is_a_clear_user_error(tmp_path, monkeypatch):
     corrupt = tmp_path / "visland_vision.pt"
     corrupt.write_bytes(b"not a checkpoint")
-    proc = _visland("demo", "--policy", str(corrupt), "--out", str(tmp_path / "o"))
+    proc = visland("demo", "--policy", str(corrupt), "--out", str(tmp_path / "o"))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "visland demo: error: policy" in proc.stderr and str(corrupt) in proc.stderr
     assert "not a readable visland checkpoint" in proc.stderr
@@ -214,7 +205,7 @@ def test_missing_or_corrupt_model_is_a_clear_user_error(tmp_path, monkeypatch):
 
 
 def test_bad_counts_and_folders_are_user_errors(tmp_path):
-    proc = _visland("demo", "--episodes", "0", "--out", str(tmp_path / "o"))
+    proc = visland("demo", "--episodes", "0", "--out", str(tmp_path / "o"))
     assert proc.returncode == 2 and "--episodes must be >= 1, got 0" in proc.stderr
 
     foreign = tmp_path / "mine"

@@ -4,12 +4,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from flights import LOW_INITIAL_STATE  # low starts: each episode a few simulated seconds
+from helpers import visland
 
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import load_scenario
@@ -186,22 +185,12 @@ def test_missing_suite_file_is_a_config_error(tmp_path):
         load_suite(tmp_path / "nope.toml")
 
 
-def _visland(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=REPO,
-    )
-
-
 def test_cli_suite_json_and_plot(tmp_path, low_file):
     suite_path = _write(
         tmp_path / "one.toml", f'[suite]\nepisodes = 3\n[conditions.low]\nscenario = "{low_file}"\n'
     )
     png = tmp_path / "suite.png"
-    proc = _visland(
+    proc = visland(
         "eval", "--suite", str(suite_path), "--episodes", "1", "--no-camera", "--json",
         "--plot", str(png),
     )  # fmt: skip
@@ -223,13 +212,13 @@ def test_cli_suite_json_and_plot(tmp_path, low_file):
     ],
 )
 def test_cli_suite_refuses_scenario_and_mavlink(extra, flag):
-    proc = _visland("eval", "--suite", "configs/suites/standard.toml", *extra)
+    proc = visland("eval", "--suite", "configs/suites/standard.toml", *extra)
     assert proc.returncode == 2
     assert "--suite" in proc.stderr and flag in proc.stderr, proc.stderr
 
 
 def test_cli_plot_without_suite_is_a_usage_error():
-    proc = _visland("eval", "--plot", "x.png", "--episodes", "1")
+    proc = visland("eval", "--plot", "x.png", "--episodes", "1")
     assert proc.returncode == 2 and "--plot and --markdown need --suite" in proc.stderr
 
 
