@@ -150,13 +150,14 @@ def test_ctrl_c_stops_both_processes(tmp_path, low_scenario, target):
     try:
         deadline = time.monotonic() + 90
         while not (
-            list((out / "companion").glob("*.mcap")) and len(_group(proc.pid)) >= 3
-        ):  # demo + SITL + companion running, the companion's first flight log open
+            list((out / "companion").glob("*.mcap"))
+            and (out / "sitl" / "sitl_seed0_ep0000.mcap").exists()
+            and len(_group(proc.pid)) >= 3
+        ):  # demo + SITL + companion running, both processes' first flight logs open
             assert proc.poll() is None, proc.stderr.read()
             assert time.monotonic() < deadline, "the demo never started flying"
             time.sleep(0.2)
         time.sleep(1.0)  # in flight
-        assert (out / "sitl" / "sitl_seed0_ep0000.mcap").exists()
         if target == "demo process":
             proc.send_signal(signal.SIGINT)  # only the demo: fly must stop its children
         else:

@@ -104,9 +104,9 @@ def _sensors(tmp_path: Path, extra: str, base: Path = CONFIG_DIR / "scenario.tom
         ),
         (
             "gyro_bias_rad_s = [0.001, 0.005]",
-            "gyro_bias_rad_s = 0.005",
-            r"scenario\.toml: \[sensors\] gyro_bias_rad_s = 0\.005; expected \[lo, hi\] "
-            r"\(two numbers\)",
+            "gyro_bias_rad_s = [0.001, 0.005, 0.01]",
+            r"scenario\.toml: \[sensors\] gyro_bias_rad_s = \[0\.001, 0\.005, 0\.01\]; expected "
+            r"\[lo, hi\]",
         ),
         (
             "radar_outlier_m = [1.0, 150.0]\n",

@@ -237,6 +237,9 @@ class EvalRow(Record):
     per_episode: tuple[EpisodeRow, ...]
     backend: BackendInfo | None = field(default=None, metadata={"omit_none": True})
     """Absent in runs evaluated before execution backends existed."""
+    landed: int | None = field(default=None, metadata={"omit_none": True})
+    """Episodes the landing-error, touchdown-speed and tilt statistics cover (the rest timed
+    out); absent in runs evaluated before timeouts were left out of them."""
 
 
 @dataclass(frozen=True)
