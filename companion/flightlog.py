@@ -267,22 +267,12 @@ class FlightLogWriter:
 
     def write_image(self, time_s: float, image: np.ndarray, frame_id: int) -> None:
         """A mono8 frame as ``foxglove.RawImage`` on :data:`TOPIC_IMAGE`."""
-        img = np.ascontiguousarray(image, dtype=np.uint8)
-        if img.ndim != 2:
-            raise FlightLogError(f"{self.path}: image must be 2-D mono8, got shape {img.shape}")
-        self.write_record(
-            TOPIC_IMAGE,
-            time_s,
-            RawImageRecord(
-                timestamp=Timestamp.from_ns(self.log_time_ns(time_s)),
-                frame_id=f"camera/{frame_id}",
-                width=int(img.shape[1]),
-                height=int(img.shape[0]),
-                encoding="mono8",
-                step=int(img.shape[1]),
-                data=base64.b64encode(img.tobytes()).decode("ascii"),
-            ),
-        )
+        if np.ndim(image) != 2:
+            raise FlightLogError(
+                f"{self.path}: image must be 2-D mono8, got shape {np.shape(image)}"
+            )
+        record = RawImageRecord.mono8(image, frame_id, self.log_time_ns(time_s))
+        self.write_record(TOPIC_IMAGE, time_s, record)
 
     def write_pose(self, time_s: float, pos_ned_m, quat_wxyz) -> None:
         """Ground-truth pose as ``foxglove.PoseInFrame`` in frame ``ned`` (pad centre origin)."""

@@ -45,7 +45,7 @@ from companion.contract.companion_records import (
     CompanionSummaryRecord,
 )
 from companion.contract.record_base import ABSENT, TIME_S, LogRecord
-from companion.contract.records import EventKind, EventRecord, RawImageRecord, Timestamp
+from companion.contract.records import EventKind, EventRecord, RawImageRecord
 from companion.contract.topics import (
     TOPIC_COMPANION_COMMAND,
     TOPIC_COMPANION_LANDING_TARGET,
@@ -127,16 +127,11 @@ class CompanionLog:
         )
 
     def frame(self, frame: ReceivedFrame) -> None:
-        img = np.ascontiguousarray(frame.image, dtype=np.uint8)
         t_ns = self.writer.log_time_ns(max(0.0, self.rel(frame.rx_s)))
-        record = RawImageRecord(
-            timestamp=Timestamp.from_ns(t_ns),
-            frame_id=f"camera/{frame.frame_id}",
-            width=int(img.shape[1]),
-            height=int(img.shape[0]),
-            encoding="mono8",
-            step=int(img.shape[1]),
-            data=base64.b64encode(img.tobytes()).decode("ascii"),
+        record = RawImageRecord.mono8(
+            frame.image,
+            frame.frame_id,
+            t_ns,
             frame_number=frame.frame_id,
             capture_time_s=frame.time_s,
             rx_s=frame.rx_s,

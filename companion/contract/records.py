@@ -12,6 +12,7 @@ lists when read back.
 
 from __future__ import annotations
 
+import base64
 import enum
 import math
 from collections.abc import Mapping, Sequence
@@ -191,6 +192,24 @@ class RawImageRecord(LogRecord):
     frame_number: int | Absent = ABSENT
     capture_time_s: float | Absent = ABSENT
     rx_s: float | Absent = ABSENT
+
+    @classmethod
+    def mono8(
+        cls, image: np.ndarray, frame_id: int, log_time_ns: int, **extra: Any
+    ) -> RawImageRecord:
+        """Frame ``frame_id``'s 2-D image as uint8 ``mono8``, stamped ``log_time_ns``
+        (``extra``: the companion's ``frame_number``, ``capture_time_s``, ``rx_s``)."""
+        img = np.ascontiguousarray(image, dtype=np.uint8)
+        return cls(
+            timestamp=Timestamp.from_ns(log_time_ns),
+            frame_id=f"camera/{frame_id}",
+            width=int(img.shape[1]),
+            height=int(img.shape[0]),
+            encoding="mono8",
+            step=int(img.shape[1]),
+            data=base64.b64encode(img.tobytes()).decode("ascii"),
+            **extra,
+        )
 
 
 @dataclass(**RECORD)
