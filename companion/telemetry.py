@@ -226,9 +226,15 @@ class TelemetryStore:
         self._reject(f"{name} late")
         return True
 
-    def _stamp(self, time_s: float) -> None:
-        if time_s > self.latest_time_s:
-            self.latest_time_s = time_s
+    def _keep(self, name: str, sample: Any, msg_name: str) -> bool:
+        """Hold ``sample`` as the newest ``name`` reading unless it is late (see :meth:`_late`);
+        whether it was kept."""
+        if self._late(getattr(self, name), sample.time_s, msg_name):
+            return False
+        setattr(self, name, sample)
+        if sample.time_s > self.latest_time_s:
+            self.latest_time_s = sample.time_s
+        return True
 
     def reset_clock(self) -> None:
         """The autopilot restarted: its clock starts again, forget the old newest stamp."""
@@ -247,24 +253,15 @@ class TelemetryStore:
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
         if not (np.all(np.isfinite(att)) and np.all(np.isfinite(rates))):
             return self._reject("ATTITUDE")
-        t = msg.time_boot_ms * 1e-3
-        if self._late(self.attitude, t, "ATTITUDE"):
-            return False
-        self.attitude = AttitudeSample(att, rates, t, rx_s)
-        self._stamp(t)
-        return True
+        sample = AttitudeSample(att, rates, msg.time_boot_ms * 1e-3, rx_s)
+        return self._keep("attitude", sample, "ATTITUDE")
 
     def handle_highres_imu(self, msg: Any, rx_s: float) -> bool:
         acc = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
         gyro = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float)
         if msg.fields_updated & 0b111 != 0b111 or not np.all(np.isfinite(acc)):
             return self._reject("HIGHRES_IMU")
-        t = msg.time_usec * 1e-6
-        if self._late(self.imu, t, "HIGHRES_IMU"):
-            return False
-        self.imu = ImuSample(acc, gyro, t, rx_s)
-        self._stamp(t)
-        return True
+        return self._keep("imu", ImuSample(acc, gyro, msg.time_usec * 1e-6, rx_s), "HIGHRES_IMU")
 
     def handle_distance_sensor(self, msg: Any, rx_s: float) -> bool:
         if msg.orientation != _MAV_SENSOR_ROTATION_PITCH_270:
@@ -275,13 +272,11 @@ class TelemetryStore:
             or getattr(msg, "signal_quality", 0) == 1
         )
         t = msg.time_boot_ms * 1e-3
-        if self._late(self.range, t, "DISTANCE_SENSOR"):
-            return False
         sample = RangeSample(math.nan if invalid else msg.current_distance * 0.01, t, rx_s)
-        self.range = sample
+        if not self._keep("range", sample, "DISTANCE_SENSOR"):
+            return False
         if sample.valid:
             self.last_valid_range = sample
-        self._stamp(t)
         return True
 
     def handle_extended_sys_state(self, msg: Any, rx_s: float) -> bool:
@@ -292,11 +287,7 @@ class TelemetryStore:
         sample = odometry_from_msg(msg, rx_s)
         if sample is None:
             return self._reject("ODOMETRY")
-        if self._late(self.odometry, sample.time_s, "ODOMETRY"):
-            return False
-        self.odometry = sample
-        self._stamp(sample.time_s)
-        return True
+        return self._keep("odometry", sample, "ODOMETRY")
 
     # ------------------------------------------------------------------ queries
 
