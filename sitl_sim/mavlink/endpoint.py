@@ -36,7 +36,12 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.contract.datagrams import MAX_DATAGRAM_BYTES, RCVBUF_BYTES, frame_start
+from companion.contract.datagrams import (
+    MAX_DATAGRAM_BYTES,
+    RCVBUF_BYTES,
+    RX_DATAGRAMS_PER_POLL,
+    frame_start,
+)
 from companion.contract.signing import UNSIGNED_ALLOWED, sign_outgoing, signing_timestamp_now
 from sitl_sim.errors import SimError
 
@@ -45,8 +50,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MAX_DATAGRAM_BYTES",
-    "RX_BUDGET_S",
-    "RX_DATAGRAMS_PER_TICK",
+    "RX_FOREIGN_PER_CALL",
     "Inbound",
     "LinkStats",
     "MavlinkEndpoint",
@@ -59,15 +63,15 @@ __all__ = [
 
 _NEW_STREAM_WINDOW = 6_000_000  # 60 s in 10 us units: how far behind a new stream may start
 _RCVBUF_BYTES = RCVBUF_BYTES  # the companion's too (companion.contract.datagrams)
-RX_DATAGRAMS_PER_TICK = 32
-"""At most this many datagrams per :meth:`MavlinkEndpoint.receive` (the SITL's loop calls it once
-per 4-ms physics step, and again and again while it waits for a frame's answer): 8,000 a second
-per link at 250 Hz, four times the fuzz test's flood, while one step's decoding stays ~1.5 ms
-(48 us a datagram, measured on the 2-core CI machine). With 256 and 20 ms (issue 31) a flood
-slowed the wall-paced HOLD phase so far that the companion heard no HEARTBEAT for 3 s and
-declared the link lost (for 32 s, at the start of the fuzz test's flooded run)."""
-RX_BUDGET_S = 0.002
-"""The decoding time one :meth:`MavlinkEndpoint.receive` may take (half a physics step)."""
+RX_FOREIGN_PER_CALL = 8
+"""At most this many datagrams from addresses other than the link's remote (the companion, the
+GCS) are decoded per :meth:`MavlinkEndpoint.receive`; the rest of them are shed unparsed
+(``rx_shed``), at the cost of a ``recvfrom``. The SITL's loop receives once per 4-ms physics
+step and again and again while it waits for a frame's answer: 2,000 foreign datagrams a second
+per link at 250 Hz, plenty for a second client. Without it (issue 31) a flood's backlog filled
+the socket buffer, which the SITL only kept pace with at ~48 us of decoding a datagram: every
+lockstep answer waited behind megabytes of flood (one frame per 1.5 s of wall time), HEARTBEATs
+(sim time) came 3-11 s apart, and the companion declared the link lost and failed safe."""
 _BATCH_BYTES = 1472
 """A batch is sent before it would outgrow this: a 1500-byte Ethernet MTU less the IPv4 and UDP
 headers (a datagram any MAVLink peer on a LAN receives unfragmented)."""
@@ -102,6 +106,9 @@ class LinkStats:
     rx_rejected_setpoints: int = 0
     rx_deferred: int = 0
     """Times a receive call stopped (count/time budget) with datagrams possibly waiting."""
+    rx_shed: int = 0
+    """Datagrams from other addresses than the link's remote dropped unparsed beyond
+    :data:`RX_FOREIGN_PER_CALL` (a flood; counted in ``errors_comm`` as dropped packets)."""
     tx_messages: int = 0
     tx_errors: int = 0
 
@@ -114,6 +121,7 @@ class LinkStats:
             + self.rx_bad_signature
             + self.rx_wrong_target
             + self.rx_rejected_setpoints
+            + self.rx_shed
         )
 
     @property
@@ -304,16 +312,22 @@ class MavlinkEndpoint:
     # ------------------------------------------------------------------ receiving
 
     def receive(
-        self, max_datagrams: int = RX_DATAGRAMS_PER_TICK, budget_s: float = RX_BUDGET_S
+        self,
+        max_datagrams: int = RX_DATAGRAMS_PER_POLL,
+        budget_s: float = 0.02,
+        max_foreign: int = RX_FOREIGN_PER_CALL,
     ) -> tuple[list[Inbound], list[RxError]]:
         """Drain waiting datagrams without blocking: at most ``max_datagrams`` and about
         ``budget_s`` of decoding, so a flood delays the simulation but never stalls it (the
-        rest waits in the kernel buffer, which drops the excess). The loop receives once per
-        physics step and keeps receiving while it waits for the companion's answer."""
+        rest waits in the kernel buffer, which drops the excess). Of the datagrams from other
+        addresses than :attr:`remote`, ``max_foreign`` are decoded and the rest shed unparsed
+        (``rx_shed``): a flood's backlog is drained at ``recvfrom`` speed and the remote's
+        datagrams behind it are not kept waiting."""
         accepted: list[Inbound] = []
         errors: list[RxError] = []
         imp = self._impairment
         deadline = time.perf_counter() + budget_s
+        foreign = 0
         for _ in range(max_datagrams):
             if time.perf_counter() > deadline:
                 self.stats.rx_deferred += 1
@@ -326,6 +340,13 @@ class MavlinkEndpoint:
                 errors.append(RxError("rx_bad_data", f"recvfrom: {exc}", 0, ("", 0)))
                 self.stats.rx_bad_data += 1
                 break
+            if addr != self.remote:
+                if foreign >= max_foreign:
+                    self.stats.rx_datagrams += 1
+                    self.stats.rx_bytes += len(data)
+                    self.stats.rx_shed += 1
+                    continue
+                foreign += 1
             if imp is None:
                 self._decode_datagram(data, addr, accepted, errors)
             else:  # on the impaired wire: decoded when (and if) it arrives
