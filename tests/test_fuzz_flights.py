@@ -6,7 +6,12 @@ Nothing may crash, every landing must fly as it does without the flood (or, wher
 dropped some of the SITL's telemetry from a full socket buffer, land as through a lossy link),
 no setpoint may go back to the flood's address, and the refusals must be counted where a user
 looks: the SITL's SYS_STATUS error fields (as the companion received them) and the companion's
-report (``link.rx_bad_data``, ``camera.bad_packets``).
+report (``link.rx_peer_mismatch``: datagrams from other addresses than its pinned autopilot,
+refused before any parse; ``camera.bad_packets``).
+
+Run it on a busy machine too (issue 31: with two CPU hogs beside it, one flight in 24 failed
+safe while the companion parsed the flood byte by byte): ``python -c "while True: pass" &``
+twice, then this test.
 """
 
 from __future__ import annotations
@@ -113,6 +118,11 @@ def _fly(tmp: Path, name: str, ports: tuple[int, int, int], gcs: int) -> dict:
                 "--lockstep-timeout-s",
                 "5",
             ),
+            # the same holds for the companion's 600 ms staleness limit, which is wall time: in
+            # lockstep the next frame comes when the SITL has rendered it, and with two CPU hogs
+            # beside the test it once took 635 ms in the calm run (a camera_stale failsafe with
+            # no flood at all); staleness has its own tests (test_flight_controller.py)
+            companion_args=("--max-age-ms", "3000"),
             progress=False,
         )
     )
@@ -189,10 +199,12 @@ def test_a_flood_of_malformed_datagrams_on_every_port_harms_no_flight(tmp_path):
         assert sum(lost) == 0 or kernel_drops > 0, (lost, kernel_drops)
     # refusals counted: the companion's report ... (how many of the 100 000 a process reads
     # depends on the machine: the kernel drops the rest from a full socket buffer; measured
-    # 948-several thousand per counter, so > 100 says "counted", not "fast")
+    # 948-several thousand per counter, so > 100 says "counted", not "fast"). Once the
+    # autopilot is pinned, the flood's datagrams are refused unparsed (rx_peer_mismatch); what
+    # came before is parsed and counted as rx_bad_data / rx_other_systems, as many as the
+    # flood got in before the SITL's first HEARTBEAT (none, on a fast start)
     report = json.loads((tmp_path / "flood" / "companion.json").read_text())
-    assert report["link"]["rx_bad_data"] > 100, report["link"]
-    assert report["link"]["rx_other_systems"] > 100, report["link"]
+    assert report["link"]["rx_peer_mismatch"] > 100, report["link"]
     assert report["camera"]["bad_packets"] > 100, report["camera"]
     # the flood's socket never got a setpoint back: the udpin link answers its pinned peer only
     # (pymavlink's own udpin sends to every address that ever sent to the port)
