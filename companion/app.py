@@ -4,11 +4,11 @@ One thread, one loop: ``select`` on the MAVLink port and the camera, feed the te
 answer each camera frame with one command (or, in shadow mode, only log it), run the timers of
 the state machine (:mod:`companion.offboard`). One MCAP log per flight
 (:mod:`companion.record`). SIGINT/SIGTERM hand control back (LAND or HOLD, ``on_exit``) and close
-the log; the process then prints a JSON report on stdout. A flight still waiting when the
-companion stops (it never pre-streamed, engaged or, in shadow, flew: e.g. the next one, opened
-after the last landing of a simulator run) was never flown: its log is removed and the report
-says so under ``not_flown`` (the index, why it waited, why it stopped), instead of a log and a
-flight marked aborted.
+the log; the process then prints a JSON report on stdout. A flight that never began when the
+companion stops (no armed autopilot seen, still waiting: e.g. the next one, opened after the last
+landing of a simulator run) was never flown: its log is removed and the report says so under
+``not_flown`` (the index, why it waited, why it stopped), instead of a log and a flight marked
+aborted (:attr:`~companion.flight.FlightMachine.began`).
 
 Configuration: :class:`~companion.config.CompanionConfig` (:mod:`companion.config`) — the
 hardware template's defaults, then a TOML file (``--config``, table ``[companion]``; without it

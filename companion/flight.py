@@ -191,8 +191,10 @@ class FlightMachine(ABC):
         self.outcome = FlightOutcome(index=index, log_path=str(log.path))
         self.state = FlightState.WAITING
         self.began = False
-        """The flight has left WAITING (pre-streamed, engaged, or in shadow flown): a flight
-        stopped before that never was one (the companion drops its log)."""
+        """The flight has begun: the autopilot was seen armed, or the flight left WAITING
+        (pre-streamed, engaged, in shadow flew). One stopped before that was never a flight
+        (the one opened after a simulator run's last landing): the companion drops its log.
+        A vehicle armed but never engaged keeps its log: it says why (a parameter, a gate)."""
         self._entered_s = clock()
         self._created_s = clock()
         self._wait_reason = ""
@@ -260,6 +262,8 @@ class FlightMachine(ABC):
         if name == "COMMAND_ACK" and msg.command == mavlink.MAV_CMD_DO_SET_MODE:
             self._on_mode_ack(int(msg.result))
         elif name == "HEARTBEAT" and msg.get_srcComponent() == self.link.target_component:
+            heartbeat = self.store.heartbeat
+            self.began = self.began or (heartbeat is not None and heartbeat.armed)
             self._on_heartbeat()
 
     @abstractmethod
