@@ -40,8 +40,7 @@ from companion.config import (
     add_arguments,
     config_from_args,
     load_toml,
-    open_configured_camera,
-    open_configured_link,
+    open_camera_and_link,
 )
 from companion.contract.companion_records import CompanionSummaryRecord
 from companion.contract.perf import LoopPerf
@@ -68,10 +67,6 @@ log = logging.getLogger("visland.companion")
 
 
 # --------------------------------------------------------------------------- the process
-
-
-def _open_camera(cfg: CompanionConfig):
-    return open_configured_camera(cfg)
 
 
 class Companion:
@@ -101,12 +96,7 @@ class Companion:
         if error is not None:
             raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
         self.store = TelemetryStore()
-        self.camera = _open_camera(cfg)
-        try:
-            self.link = open_configured_link(cfg)
-        except Exception:
-            self.camera.close()
-            raise
+        self.camera, self.link = open_camera_and_link(cfg)
         self._stop = threading.Event()
         self._stop_reason = ""
         self.flight = None
@@ -268,10 +258,7 @@ class Companion:
                     t = perf.add("log", t)
                 fds = [fd for fd in (self.link.fileno(), self.camera.fileno()) if fd is not None]
                 timeout = 0.01 if self.camera.fileno() is None else 0.02
-                try:
-                    select.select(fds, [], [], timeout)
-                except InterruptedError:
-                    pass
+                select.select(fds, [], [], timeout)  # EINTR is retried (PEP 475)
                 t = perf.add("wait", t)
                 self.link.poll(self._on_message)
                 self._link_events()

@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from typing import Any, TextIO
 
-from companion.config import CompanionConfig, open_configured_camera, open_configured_link
+from companion.config import CompanionConfig, open_camera_and_link
 from companion.landing_target import LandingTargetError, PadTracker, landing_target_fields
 from companion.link import mavlink
 from companion.telemetry import TelemetryStore, assemble_observation
@@ -66,12 +66,7 @@ class _BenchCheck:
         except LandingTargetError:
             self.tracker = None  # a privileged policy has no camera: link and camera only
         self.store = TelemetryStore()
-        self.camera = open_configured_camera(cfg)
-        try:
-            self.link = open_configured_link(cfg)
-        except Exception:
-            self.camera.close()
-            raise
+        self.camera, self.link = open_camera_and_link(cfg)
         self.stop = threading.Event()
         self.frames = 0
         self.pad_seen = 0
@@ -168,10 +163,7 @@ class _BenchCheck:
                 if cfg.max_wall_s is not None and now - t0 > cfg.max_wall_s:
                     break
                 fds = [f for f in (self.link.fileno(), self.camera.fileno()) if f is not None]
-                try:
-                    select.select(fds, [], [], 0.02)
-                except InterruptedError:
-                    pass
+                select.select(fds, [], [], 0.02)  # EINTR is retried (PEP 475)
                 self.link.poll(self.on_message)
                 self.on_link_events()
                 frames = self.camera.poll()

@@ -15,6 +15,7 @@ safety settings they fly with (:class:`~companion.flight.OffboardConfig`'s and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ __all__ = [
     "add_arguments",
     "config_from_args",
     "load_toml",
+    "open_camera_and_link",
     "open_configured_camera",
     "open_configured_link",
 ]
@@ -312,3 +314,19 @@ def open_configured_link(cfg: CompanionConfig) -> MavlinkLink:
         signing_key=signing_key_bytes(cfg.signing_key) if cfg.signing_key else None,
         link_timeout_s=cfg.link_timeout_s,
     )
+
+
+def open_camera_and_link(cfg: CompanionConfig) -> tuple[Any, MavlinkLink]:
+    """The configured camera, then the link; the camera is closed again when the link cannot
+    open, so a failed start leaves no device held.
+
+    Raises:
+        companion.camera.CameraError: cannot open the camera.
+        companion.link.LinkError: cannot open the link.
+    """
+    with contextlib.ExitStack() as opened:
+        camera = open_configured_camera(cfg)
+        opened.callback(camera.close)
+        link = open_configured_link(cfg)
+        opened.pop_all()
+    return camera, link

@@ -17,8 +17,9 @@ import time
 import numpy as np
 import pytest
 
-from companion.app import CompanionConfig, CompanionError, _open_camera
+from companion.app import CompanionConfig, CompanionError
 from companion.camera import CameraError, OpenCvCameraSource, focal_px_from_fov
+from companion.config import open_configured_camera
 from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_from_euler
 
@@ -115,7 +116,7 @@ def test_a_file_plays_at_its_recorded_speed_and_the_config_opens_it(video):
     give every third frame, none before its recorded time on the companion clock."""
     path, _ = video
     cfg = CompanionConfig(camera=f"opencv:{path}", camera_hfov_deg=HFOV_DEG)
-    src = _open_camera(cfg)
+    src = open_configured_camera(cfg)
     assert isinstance(src, OpenCvCameraSource) and src.clock == "companion"
     t0 = time.monotonic()
     frames = _read_all(src)
