@@ -39,7 +39,6 @@ from companion.config import (
     CompanionError,
     add_arguments,
     config_from_args,
-    load_toml,
     open_camera_and_link,
 )
 from companion.contract.companion_records import CompanionSummaryRecord
@@ -53,11 +52,6 @@ from companion.states import FlightResult, FlightState
 from companion.telemetry import TelemetryStore
 
 __all__ = [
-    "CompanionConfig",
-    "CompanionError",
-    "add_arguments",
-    "config_from_args",
-    "load_toml",
     "main",
     "run",
     "run_from_args",

@@ -28,8 +28,8 @@ import pytest
 from flights import Ports, companion_command, free_ports, sitl_command
 from helpers import NO_RETURN_CM, FakeMsg, attitude_msg, imu_msg, range_msg
 
-from companion.app import CompanionConfig, CompanionError, load_toml
 from companion.camera import CameraError, UdpCameraSource, fit_to_policy, focal_px_from_fov
+from companion.config import CompanionConfig, CompanionError, load_toml
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
 from companion.contract.datagrams import RX_DATAGRAMS_PER_POLL

@@ -17,9 +17,8 @@ import time
 import numpy as np
 import pytest
 
-from companion.app import CompanionConfig, CompanionError
 from companion.camera import CameraError, OpenCvCameraSource, focal_px_from_fov
-from companion.config import open_configured_camera
+from companion.config import CompanionConfig, CompanionError, open_configured_camera
 from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_from_euler
 

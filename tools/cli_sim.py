@@ -341,7 +341,7 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
 def register_sim(sub: argparse._SubParsersAction) -> None:
     """Add ``demo``, ``readme``, ``sitl``, ``companion`` and ``fly`` to the ``visland``
     subcommands."""
-    from companion.app import add_arguments as add_companion_arguments
+    from companion.config import add_arguments as add_companion_arguments
     from sitl_sim.mavlink.config import add_sitl_arguments
 
     _register_demo(sub)
