@@ -37,6 +37,7 @@ __all__ = [
     "LUMA_Q8",
     "GroundMap",
     "PadGeometry",
+    "PadTexture",
     "luma",
     "nominal_ground",
 ]
@@ -86,6 +87,71 @@ class PadGeometry:
             cross_top_m=self.cross_top_m,
         )
 
+    def recoloured(self, gains) -> PadGeometry:
+        """The same pad, the square's colour x ``gains[:3]`` and the cross's x ``gains[3:]``
+        (each channel capped at 1)."""
+
+        def jit(rgb, g):
+            return tuple(float(min(1.0, c * k)) for c, k in zip(rgb, g, strict=True))
+
+        return PadGeometry(
+            side_m=self.side_m,
+            cross_length_m=self.cross_length_m,
+            cross_width_m=self.cross_width_m,
+            green_rgb=jit(self.green_rgb, gains[:3]),
+            red_rgb=jit(self.red_rgb, gains[3:]),
+            square_top_m=self.square_top_m,
+            cross_top_m=self.cross_top_m,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PadTexture:
+    """A pad drawn from a picture (:meth:`sitl_sim.render.pads.PadDesign.scene_pad`): a flat
+    textured rectangle of ``size_m`` (width across east, height across north) centred on the
+    origin, its top ``top_m`` above the ground; texel row 0 is its north edge, column 0 its west
+    edge. Equal when the pictures, sizes and heights are (renderers rebuild only on a change)."""
+
+    rgb: np.ndarray
+    size_m: tuple[float, float]
+    name: str = "pad"
+    top_m: float = 0.02
+
+    @functools.cached_property
+    def mono(self) -> np.ndarray:
+        return luma(self.rgb)
+
+    @functools.cached_property
+    def digest(self) -> str:
+        return _digest(self.rgb)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PadTexture):
+            return NotImplemented
+        return (self.size_m, self.top_m, self.rgb.shape, self.digest) == (
+            other.size_m,
+            other.top_m,
+            other.rgb.shape,
+            other.digest,
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.size_m, self.top_m, self.digest))
+
+    @property
+    def texel_to_ne(self) -> np.ndarray:
+        """(3, 3) affine: texel (col, row, 1), integer = texel centre -> (north, east, 1)."""
+        rows, cols = self.rgb.shape[:2]
+        w, h = self.size_m
+        se, sn = w / cols, h / rows
+        return np.array(
+            [[0.0, -sn, h / 2 - 0.5 * sn], [se, 0.0, -w / 2 + 0.5 * se], [0.0, 0.0, 1.0]]
+        )
+
+    def png(self) -> Path:
+        """The picture as a PNG file (for pybullet), written once per content."""
+        return _png(self.rgb, "pad")
+
 
 @dataclass(frozen=True, eq=False)
 class GroundMap:
@@ -113,15 +179,18 @@ class GroundMap:
 
     def png(self) -> Path:
         """The texture as a PNG file (for pybullet), written once per content."""
-        from PIL import Image
+        return _png(self.rgb, "ground")
 
-        digest = _digest(self.rgb)
-        path = Path(tempfile.gettempdir()) / f"visland_ground_{digest}.png"
-        if not path.exists():
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.png")
-            Image.fromarray(self.rgb, "RGB").save(tmp)
-            tmp.replace(path)  # atomic: parallel workers never read a half-written file
-        return path
+
+def _png(rgb: np.ndarray, kind: str) -> Path:
+    from PIL import Image
+
+    path = Path(tempfile.gettempdir()) / f"visland_{kind}_{_digest(rgb)}.png"
+    if not path.exists():
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.png")
+        Image.fromarray(np.ascontiguousarray(rgb), "RGB").save(tmp)
+        tmp.replace(path)  # atomic: parallel workers never read a half-written file
+    return path
 
 
 def _digest(a: np.ndarray) -> str:
