@@ -27,7 +27,7 @@ import functools
 import hashlib
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -112,7 +112,7 @@ class PadTexture:
     origin, its top ``top_m`` above the ground; texel row 0 is its north edge, column 0 its west
     edge. Equal when the pictures, sizes and heights are (renderers rebuild only on a change)."""
 
-    rgb: np.ndarray
+    rgb: np.ndarray = field(repr=False)
     size_m: tuple[float, float]
     name: str = "pad"
     top_m: float = 0.02

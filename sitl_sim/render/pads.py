@@ -232,8 +232,10 @@ def _luma_levels(y: np.ndarray, k: int = 3) -> list[float]:
         if np.allclose(new, centres):
             break
         centres = new
+    label = np.argmin(np.abs(v[:, None] - centres[None, :]), axis=1)
+    used = sorted(c for i, c in enumerate(centres) if np.any(label == i))
     out: list[float] = []
-    for c in sorted(centres):
+    for c in used:
         if not out or c - out[-1] > 8.0:
             out.append(round(float(c), 1))
     return out
