@@ -11,6 +11,7 @@ directly, registered by the module of its job:
 - :mod:`tools.cli_log`: ``log info``, ``log plot``;
 - :mod:`tools.cli_bench`: ``bench sim|mpc|policy|companion|rollouts``;
 - :mod:`tools.cli_train`: ``pipeline``, ``train``, ``ship``, ``report``;
+- :mod:`tools.cli_pad`: ``pad info|print|check`` (make the landing pad);
 - :mod:`tools.export_onnx`: ``export-onnx``.
 
 The flags and output several commands share are in :mod:`tools.cli_args`.
@@ -73,6 +74,7 @@ def _parser() -> argparse.ArgumentParser:
     from tools.cli_bench import register_bench
     from tools.cli_eval import register_eval
     from tools.cli_log import register_log
+    from tools.cli_pad import register_pad
     from tools.cli_sim import register_sim
     from tools.cli_train import register_training
     from tools.export_onnx import register_export
@@ -93,6 +95,7 @@ def _parser() -> argparse.ArgumentParser:
         register_log,
         register_bench,
         register_training,
+        register_pad,
         register_export,
     ):
         register(sub)
