@@ -6,7 +6,9 @@ pitch, yaw and rates are drawn uniformly. ``sampler = "uniform"`` draws everythi
 An optional ``[wind]`` section (:mod:`sitl_sim.physics.wind`) adds wind, turbulence and gusts; an
 optional ``[vehicle]`` section (:mod:`sitl_sim.physics.airframe`) scales the vehicle file per
 episode;
-``[visual]`` (:mod:`sitl_sim.render.visual`) draws ground families, sun, pad and camera effects;
+``[visual]`` (:mod:`sitl_sim.render.visual`) draws ground families or ground pictures, sun, pad
+size and colour and camera effects; ``[pad]`` (:mod:`sitl_sim.render.pad_section`) picks the pad
+design;
 ``[sensors]`` (:mod:`sitl_sim.physics.sensor_faults`) adds sensor faults; ``[link]``
 (:mod:`sitl_sim.mavlink.link_impairment`) impairs the MAVLink SITL's real-time link (loss, delay,
 jitter, duplicates, reordering, outages).
@@ -34,6 +36,7 @@ from sitl_sim.physics.airframe import AirframeConfig
 from sitl_sim.physics.dynamics import quat_from_euler
 from sitl_sim.physics.sensor_faults import SensorFaultsConfig
 from sitl_sim.physics.wind import WindConfig
+from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.visual import VisualConfig
 from sitl_sim.table import Section, check_section, choice, keys_markdown, read_values, span
 
@@ -69,9 +72,9 @@ class Scenario:
     """Ranges ``(lo, hi)`` of the initial state (the ``[initial_state]`` keys), the sampler,
     the planet, and the optional sections: the wind (None: still air), the airframe factors of
     ``[vehicle]`` (None: the vehicle file as is), the look of ``[visual]`` (None: the nominal
-    ground and camera) and the sensor faults (None: the sensors of the sim config, no faults)
-    and the link impairment (None: a perfect link; only the real-time MAVLink SITL has a link
-    to impair)."""
+    ground and camera), the pad of ``[pad]`` (None: the paper's pad), the sensor faults (None:
+    the sensors of the sim config, no faults) and the link impairment (None: a perfect link;
+    only the real-time MAVLink SITL has a link to impair)."""
 
     SECTION: ClassVar[str] = "initial_state"
 
@@ -108,6 +111,7 @@ class Scenario:
     source: str = "<memory>"
     wind: WindConfig | None = None
     visual: VisualConfig | None = None
+    pad: PadConfig | None = None
     vehicle: AirframeConfig | None = None
     sensors: SensorFaultsConfig | None = None
     link: LinkConfig | None = None
@@ -137,6 +141,7 @@ _OPTIONAL: dict[str, type[Section]] = {
     "wind": WindConfig,
     "vehicle": AirframeConfig,
     "visual": VisualConfig,
+    "pad": PadConfig,
     "sensors": SensorFaultsConfig,
     "link": LinkConfig,
 }
@@ -155,9 +160,11 @@ def scenario_keys_markdown() -> str:
         "Generated from the section declarations by `python -m sitl_sim.scenario --markdown > "
         "docs/scenario_keys.md`; do not edit (a test compares it with the declarations).\n\n"
         "A key left out takes its default; `required` keys have none. A section left out is "
-        "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, no "
-        "sensor faults, a perfect link). Unknown keys, wrong types and values out of range "
-        "are `ConfigError`s naming the file, `[section] key`, what was expected and what was "
+        "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, the "
+        "paper's pad, no sensor faults, a perfect link). A `file list` is one file name or a "
+        "list of them, relative to the scenario file (else to the repository root). Unknown "
+        "keys, wrong types and values out of range are `ConfigError`s naming the file, "
+        "`[section] key`, what was expected and what was "
         "found. A `span` is `[lo, hi]`, drawn per episode (uniform); a single number `x` "
         "means `[x, x]`.\n\n"
     )

@@ -21,8 +21,9 @@ same way (:class:`Section`'s ``__post_init__``). Rules, the same for every secti
 Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode; a single number ``x`` in
 the file means ``[x, x]``), :func:`integer_span` (likewise),
 :func:`number`, :func:`probability`, :func:`integer`, :func:`choice` (a string among choices)
-and :func:`choice_list` (a non-empty list of them). :func:`keys_markdown` makes the table of
-keys; ``python -m sitl_sim.scenario --markdown`` prints the scenario's (``docs/scenario_keys.md``).
+and :func:`choice_list` (a non-empty list of them), :func:`file_list` (file names).
+:func:`keys_markdown` makes the table of keys; ``python -m sitl_sim.scenario --markdown``
+prints the scenario's (``docs/scenario_keys.md``).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ __all__ = [
     "check_section",
     "choice",
     "choice_list",
+    "file_list",
     "integer",
     "integer_span",
     "keys_markdown",
@@ -67,6 +69,7 @@ _NUMBER, _INTEGER, _SPAN, _INT_SPAN, _CHOICE, _CHOICES = (
     "choice",
     "choice list",
 )
+_FILES = "file list"
 
 
 def _g(x: float) -> str:
@@ -129,6 +132,10 @@ class Key:
             return cast(value[0]), cast(value[1])
         if self.kind == _CHOICE:
             return value if isinstance(value, str) and value in self.choices else None
+        if self.kind == _FILES:  # one name is a list of one
+            names = [value] if isinstance(value, str) else value
+            ok = isinstance(names, list) and names and all(isinstance(v, str) for v in names)
+            return tuple(names) if ok and all(v.strip() for v in names) else None
         good = isinstance(value, list) and value and all(v in self.choices for v in value)
         return tuple(value) if good and all(isinstance(v, str) for v in value) else None
 
@@ -151,6 +158,8 @@ class Key:
             return value in self.choices
         if self.kind == _CHOICES:
             return bool(value) and all(v in self.choices for v in value)
+        if self.kind == _FILES:
+            return bool(value)
         if self.kind in (_NUMBER, _INTEGER):
             return (
                 math.isfinite(value)
@@ -174,6 +183,8 @@ class Key:
             return f"one of {list(self.choices)}"
         if self.kind == _CHOICES:
             return f"a non-empty list of {list(self.choices)}"
+        if self.kind == _FILES:
+            return "a file name, or a non-empty list of them"
         lo_op = "<" if self.lo_open else "<="
         if self.kind in (_NUMBER, _INTEGER):
             if self.lo is not None and self.hi is not None and not self.lo_open:
@@ -194,7 +205,7 @@ class Key:
     def expected(self) -> str:
         """The "expected" of a value out of range."""
         unit = f" ({self.unit})" if self.unit not in ("", "1") else ""
-        if self.kind in (_CHOICE, _CHOICES):
+        if self.kind in (_CHOICE, _CHOICES, _FILES):
             return self.bounds()
         if self.kind in (_NUMBER, _INTEGER):
             bounds = self.bounds()
@@ -262,6 +273,12 @@ def choice(default: str, choices: Iterable[str], *, doc: str) -> Any:
 def choice_list(default: tuple[str, ...], choices: Iterable[str], *, doc: str) -> Any:
     """A non-empty list of strings among ``choices`` (a tuple once read)."""
     return _field(Key(_CHOICES, "", doc, choices=tuple(choices)), default)
+
+
+def file_list(*, doc: str) -> Any:
+    """A file name or a non-empty list of them (a tuple once read; absent: None, off). The
+    section resolves and checks the files (relative to its scenario file)."""
+    return _field(Key(_FILES, "", doc), None)
 
 
 # --------------------------------------------------------------------------- reading

@@ -6,7 +6,7 @@ terrain families, sensor fault rates, ...); :func:`episode_world` draws the valu
 <sitl_sim.simulator.Simulator.reset>` takes. Every section draws from its own generator, keyed by
 ``(seed, index, SECTION_STREAM)`` (a distinct constant per section:
 :data:`sitl_sim.physics.wind.WIND_STREAM`, :data:`sitl_sim.physics.airframe.AIRFRAME_STREAM`,
-:data:`sitl_sim.render.visual.VISUAL_STREAM`,
+:data:`sitl_sim.render.visual.VISUAL_STREAM`, :data:`sitl_sim.render.pad_section.PAD_STREAM`,
 :data:`sitl_sim.physics.sensor_faults.SENSORS_STREAM`), so adding a section to a scenario never
 changes what another section draws, and the same (seed, episode) is the same world in every
 process (the gymnasium env, the MAVLink SITL, parallel evaluation workers, resumed runs).
@@ -17,13 +17,15 @@ so the nominal scenario flies exactly the world it always did.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from sitl_sim.config import VehicleConfig
 from sitl_sim.physics.airframe import AirframeScales, draw_airframe
 from sitl_sim.physics.sensor_faults import SensorFaults
 from sitl_sim.physics.wind import WindModel
-from sitl_sim.render.visual import VisualSample
+from sitl_sim.render.ground import PadGeometry
+from sitl_sim.render.pads import PadDesign
+from sitl_sim.render.visual import VisualConfig, VisualSample
 from sitl_sim.scenario import Scenario
 
 __all__ = ["EpisodeWorld", "episode_world"]
@@ -38,13 +40,18 @@ class EpisodeWorld:
     generators of frame drops and radar faults), each carrying its own generator; they are
     stateful, so an EpisodeWorld is flown once (:func:`episode_world` again to re-fly).
     ``airframe`` holds the drawn factors of ``[vehicle]``, not a vehicle: the world does not
-    depend on the vehicle file; :meth:`vehicle` applies them to one.
+    depend on the vehicle file; :meth:`vehicle` applies them to one. ``pad`` is the design
+    ``[pad]`` drew; the renderers get it through ``visual`` (:meth:`VisualSample.pad
+    <sitl_sim.render.visual.VisualSample.pad>`): a scenario with ``[pad]`` and no ``[visual]``
+    gets the nominal look (full light, no effect: the same images) carrying the design, unless
+    the design is the nominal pad itself.
     """
 
     wind: WindModel | None = None
     airframe: AirframeScales | None = None
     visual: VisualSample | None = None
     sensors: SensorFaults | None = None
+    pad: PadDesign | None = None
 
     def vehicle(self, base: VehicleConfig) -> VehicleConfig:
         """The episode's vehicle: ``base`` (the vehicle file) itself without ``[vehicle]``,
@@ -53,13 +60,19 @@ class EpisodeWorld:
 
     def record(self) -> dict:
         """What was drawn, for the episode's log records and ``info`` (``airframe``,
-        ``visual``; absent sections left out, so nominal records are unchanged). The wind is
-        logged as it blows, in the ground truth."""
+        ``visual``, ``pad``; absent sections left out, so nominal records are unchanged). The
+        wind is logged as it blows, in the ground truth."""
         out: dict = {}
         if self.airframe is not None:
             out["airframe"] = self.airframe.to_dict()
         if self.visual is not None:
             out["visual"] = self.visual.to_dict()
+        if self.pad is not None:
+            out["pad"] = {
+                "design": self.pad.name,
+                "file": str(self.pad.path) if self.pad.path else None,
+                "size_m": list(self.pad.size_m),
+            }
         return out
 
 
@@ -70,9 +83,12 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
         draw_airframe(scenario.vehicle, seed, index) if scenario.vehicle is not None else None
     )
     visual = scenario.visual.draw(seed, index) if scenario.visual is not None else None
+    pad = scenario.pad.draw(seed, index) if scenario.pad is not None else None
+    if pad is not None and (visual is not None or pad.scene_pad() != PadGeometry()):
+        visual = replace(visual or VisualConfig().draw(seed, index), pad_design=pad)
     sensors = (
         SensorFaults.for_episode(scenario.sensors, seed, index)
         if scenario.sensors is not None
         else None
     )
-    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual, sensors=sensors)
+    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual, sensors=sensors, pad=pad)

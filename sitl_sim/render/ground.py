@@ -163,7 +163,9 @@ class GroundMap:
         periodic: the texture repeats edge to edge over the whole ground (a tile); otherwise it
             covers the ground once and nothing lies beyond it.
         name: what it is, for logs (e.g. ``"nominal"``, ``"mars_rocks#12"``).
-        tile_m: the side of one tile in metres (periodic maps).
+        tile_m: the side of one tile in metres (periodic maps whose tile is an axis-aligned
+            square: the terrain families); 0 for any other periodic map (a ground image's
+            mirrored tile, rotated and of any shape).
     """
 
     rgb: np.ndarray

@@ -43,12 +43,14 @@ __all__ = [
     "PadDesign",
     "builtin_pad_paths",
     "default_pad",
+    "find_file",
     "load_pad",
     "read_image_rgb",
 ]
 
 DEFAULT_PAD = "paper"
-PADS_DIR = Path(__file__).resolve().parent.parent.parent / "configs" / "pads"
+REPO_DIR = Path(__file__).resolve().parent.parent.parent
+PADS_DIR = REPO_DIR / "configs" / "pads"
 """Where the shipped pad files live (``configs/pads``)."""
 
 PAPER_SIDE_M = 4.0
@@ -223,6 +225,8 @@ def _jitter(rgb: np.ndarray, gain: tuple[float, ...]) -> np.ndarray:
 def _luma_levels(y: np.ndarray, k: int = 3) -> list[float]:
     """Dominant grey levels: 1-D k-means from the 10/50/90 % quantiles, close ones merged."""
     v = y.astype(np.float64).ravel()
+    if v.size > 200_000:  # a large picture: a regular subsample has the same levels
+        v = v[:: v.size // 200_000]
     centres = np.quantile(v, np.linspace(0.1, 0.9, k))
     for _ in range(30):
         label = np.argmin(np.abs(v[:, None] - centres[None, :]), axis=1)
@@ -247,6 +251,28 @@ def _luma_levels(y: np.ndarray, k: int = 3) -> list[float]:
 def builtin_pad_paths() -> dict[str, Path]:
     """name -> ``configs/pads/NAME.toml`` for every shipped pad file."""
     return {p.stem: p for p in sorted(PADS_DIR.glob("*.toml"))}
+
+
+def find_file(name: str, source: str, where: str) -> Path:
+    """The file a scenario names: an absolute path as is; a relative one in the folder of the
+    scenario file ``source`` (``"dir/x.toml"``, or ``"dir/suite.toml: [conditions.a]"`` for a
+    table inline in a suite), else in the repository root, else in the working directory.
+
+    Raises:
+        ConfigError: ``"<where> = 'name'; expected a file, found none (looked in ...)"``.
+    """
+    path = Path(name).expanduser()
+    if path.is_absolute():
+        places = [path]
+    else:
+        scenario_file = Path(source.split(": [", 1)[0])
+        dirs = [scenario_file.parent] if scenario_file.is_file() else []
+        places = [d / path for d in (*dirs, REPO_DIR, Path.cwd())]
+    for p in places:
+        if p.is_file():
+            return p.resolve()
+    looked = ", ".join(dict.fromkeys(str(p.parent) for p in places))
+    raise ConfigError(f"{where} = {name!r}; expected a file, found none (looked in {looked})")
 
 
 def read_image_rgb(path: Path, where: str) -> np.ndarray:

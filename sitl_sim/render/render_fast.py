@@ -29,7 +29,7 @@ import numpy as np
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_to_rotation
-from sitl_sim.render.ground import GroundMap, PadGeometry, luma, nominal_ground
+from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture, luma, nominal_ground
 
 __all__ = ["FastRenderer", "camera_intrinsics", "plane_homography"]
 
@@ -61,21 +61,32 @@ class FastRenderer:
     """Renders a :class:`GroundMap` and a :class:`PadGeometry` to mono8 (no pybullet), under
     the reference scene's full, overhead light (the camera applies the episode's light level)."""
 
-    def __init__(self, ground: GroundMap | None = None, pad: PadGeometry | None = None) -> None:
+    def __init__(
+        self, ground: GroundMap | None = None, pad: PadGeometry | PadTexture | None = None
+    ) -> None:
         self._k_cache: tuple[CameraConfig, np.ndarray] | None = None
         self.configure(ground or nominal_ground(), pad or PadGeometry())
 
-    def configure(self, ground: GroundMap, pad: PadGeometry) -> None:
+    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None:
         """Show ``ground`` and ``pad`` from now on (a new episode's world)."""
         self.ground = ground
         self.pad = pad
         self._ground_mono = ground.mono
-        self._pad_square, self._square_to_ne = _pad_layer(pad, cross=False)
-        self._pad_cross, self._cross_to_ne = _pad_layer(pad, cross=True)
+        if isinstance(pad, PadTexture):
+            # one layer: (grey, inside) per texel, warped together
+            inside = np.full(pad.mono.shape, 255, np.uint8)
+            self._layers = [(np.dstack([pad.mono, inside]), pad.texel_to_ne, pad.top_m, None)]
+            return
+        square, square_to_ne = _pad_layer(pad, cross=False)
+        cross, cross_to_ne = _pad_layer(pad, cross=True)
         # TinyRenderer turns a float colour into bytes by truncation (0.25 -> 63)
         greys = [luma((np.array(c) * 255.0).astype(np.uint8)) for c in (pad.green_rgb, pad.red_rgb)]
         # label -> grey level: 0 = ground (painted separately), 1 = green, 2 = red
-        self._pad_grey = np.array([0, *greys], dtype=np.uint8)
+        grey = np.array([0, *greys], dtype=np.uint8)
+        self._layers = [
+            (square, square_to_ne, pad.square_top_m, grey),
+            (cross, cross_to_ne, pad.cross_top_m, grey),
+        ]
 
     def _k(self, cfg: CameraConfig) -> np.ndarray:
         if self._k_cache is None or self._k_cache[0] != cfg:
@@ -98,18 +109,19 @@ class FastRenderer:
             borderValue=0,
         )
         altitude = -float(pos_ned_m[2])
-        for labels, to_ne, top in (
-            (self._pad_square, self._square_to_ne, self.pad.square_top_m),
-            (self._pad_cross, self._cross_to_ne, self.pad.cross_top_m),
-        ):
+        for texels, to_ne, top, grey in self._layers:
             if altitude <= top:
                 continue
             h = plane_homography(k, pos_ned_m, rot, -top) @ to_ne
             layer = cv2.warpPerspective(
-                labels, h, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
+                texels, h, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
             )
-            mask = layer != 0
-            image[mask] = self._pad_grey[layer[mask]]
+            if grey is None:  # a picture: (grey, inside)
+                mask = layer[..., 1] != 0
+                image[mask] = layer[..., 0][mask]
+            else:  # labels: 0 = none, else the grey of grey[label]
+                mask = layer != 0
+                image[mask] = grey[layer[mask]]
         return image
 
     def close(self) -> None:

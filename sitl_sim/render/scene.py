@@ -25,7 +25,14 @@ import numpy as np
 from sitl_sim.config import CameraConfig
 from sitl_sim.errors import SimError
 from sitl_sim.physics.dynamics import quat_to_rotation
-from sitl_sim.render.ground import GROUND_HALF_SIDE_M, GroundMap, PadGeometry, luma, nominal_ground
+from sitl_sim.render.ground import (
+    GROUND_HALF_SIDE_M,
+    GroundMap,
+    PadGeometry,
+    PadTexture,
+    luma,
+    nominal_ground,
+)
 
 if TYPE_CHECKING:
     from sitl_sim.render.visual import CameraEffects
@@ -72,7 +79,7 @@ class Renderer(Protocol):
     """What the camera renders from: :class:`Scene` (pybullet, the reference) or
     :class:`sitl_sim.render.render_fast.FastRenderer`; both draw the same ground map and pad."""
 
-    def configure(self, ground: GroundMap, pad: PadGeometry) -> None: ...
+    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None: ...
 
     def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray: ...
 
@@ -106,12 +113,14 @@ class Scene:
     GROUND_HALF_SIDE_M = GROUND_HALF_SIDE_M
     QUAD_M = 10.0
 
-    def __init__(self, pad: PadGeometry | None = None, ground: GroundMap | None = None) -> None:
+    def __init__(
+        self, pad: PadGeometry | PadTexture | None = None, ground: GroundMap | None = None
+    ) -> None:
         self._client = pb.connect(pb.DIRECT)
         if self._client < 0:
             raise SimError("pybullet: could not open a DIRECT client")
         self.ground: GroundMap | None = None
-        self.pad: PadGeometry | None = None
+        self.pad: PadGeometry | PadTexture | None = None
         try:
             self.configure(ground or nominal_ground(), pad or PadGeometry())
         except Exception:
@@ -122,7 +131,7 @@ class Scene:
     def client_id(self) -> int:
         return self._client
 
-    def configure(self, ground: GroundMap, pad: PadGeometry) -> None:
+    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None:
         """Show ``ground`` and ``pad`` from now on (rebuilds the bodies if they changed)."""
         if ground is self.ground and pad == self.pad:
             return
@@ -146,8 +155,10 @@ class Scene:
     def _build(self) -> None:
         c = self._client
         h = self.GROUND_HALF_SIDE_M
-        if self.ground.periodic:
+        if self.ground.periodic and self.ground.tile_m > 0.0:
             ground = self._tiled_ground()
+        elif self.ground.periodic:
+            ground = self._wrapped_ground()
         else:
             ground = self._box([h, h, 0.05], [1, 1, 1, 1], 0.0)
         tex = pb.loadTexture(str(self.ground.png()), physicsClientId=c)
@@ -155,11 +166,81 @@ class Scene:
             raise SimError("pybullet: could not load the ground texture")
         pb.changeVisualShape(ground, -1, textureUniqueId=tex, physicsClientId=c)
         pad = self.pad
+        if isinstance(pad, PadTexture):
+            self._textured_pad(pad)
+            return
         s = pad.side_m / 2
         self._box([s, s, 0.01], [*pad.green_rgb, 1], pad.square_top_m)
         a, w = pad.cross_length_m / 2, pad.cross_width_m / 2
         self._box([a, w, 0.01], [*pad.red_rgb, 1], pad.cross_top_m)
         self._box([w, a, 0.01], [*pad.red_rgb, 1], pad.cross_top_m)
+
+    def _textured_pad(self, pad: PadTexture) -> None:
+        """A picture pad: one textured quad of its true size, ``top_m`` above the ground."""
+        c = self._client
+        w, h = pad.size_m
+        vertices, uvs = [], []
+        for n, e in ((h / 2, -w / 2), (h / 2, w / 2), (-h / 2, w / 2), (-h / 2, -w / 2)):
+            vertices.append(ned_to_scene((n, e, -pad.top_m)).tolist())
+            # u runs east from the west edge; TinyRenderer reads a mesh's v bottom-up
+            uvs.append([(e + w / 2) / w, (n + h / 2) / h])
+        shape = pb.createVisualShape(
+            pb.GEOM_MESH,
+            vertices=vertices,
+            indices=[0, 1, 2, 0, 2, 3, 0, 2, 1, 0, 3, 2],
+            uvs=uvs,
+            normals=[[0.0, 0.0, 1.0]] * 4,
+            physicsClientId=c,
+        )
+        if shape < 0:
+            raise SimError("pybullet: could not create the pad mesh")
+        body = pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=c)
+        tex = pb.loadTexture(str(pad.png()), physicsClientId=c)
+        if tex < 0:
+            raise SimError("pybullet: could not load the pad texture")
+        pb.changeVisualShape(body, -1, textureUniqueId=tex, physicsClientId=c)
+
+    def _wrapped_ground(self) -> int:
+        """One mesh body for any periodic map (a ground image's rotated tile): the ground square
+        cut into QUAD_M quads whose uvs run on past the tile's edges, each quad's shifted by
+        whole tiles to near [0, 1) (TinyRenderer wraps uvs; the mirrored tile's texels either
+        side of its edge are the same, so a rounding there shows nothing)."""
+        g = self.ground
+        h = self.GROUND_HALF_SIDE_M
+        inv = np.linalg.inv(g.texel_to_ne)
+        rows, cols = g.rgb.shape[:2]
+        grid = np.arange(-h, h + 0.5 * self.QUAD_M, self.QUAD_M)
+        n, e = np.meshgrid(grid, grid, indexing="ij")  # vertex (i, j): north i, east j
+        col, row, _ = np.einsum("ij,jkl->ikl", inv, np.stack([n, e, np.ones_like(n)]))
+        u, v = (col + 0.5) / cols, 1.0 - (row + 0.5) / rows  # TinyRenderer's v runs bottom-up
+        k = len(grid)
+        vertices, uvs, indices = [], [], []
+        for i in range(k - 1):
+            for j in range(k - 1):
+                corners = ((i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1))
+                du = math.floor(sum(u[c] for c in corners) / 4)
+                dv = math.floor(sum(v[c] for c in corners) / 4)
+                base = len(vertices)
+                for c in corners:
+                    vertices.append(ned_to_scene((n[c], e[c], 0.0)).tolist())
+                    uvs.append([float(u[c] - du), float(v[c] - dv)])
+                indices += [base, base + 1, base + 2, base, base + 2, base + 3]
+                indices += [base, base + 2, base + 1, base, base + 3, base + 2]  # both faces
+        return self._mesh(vertices, indices, uvs)
+
+    def _mesh(self, vertices, indices, uvs) -> int:
+        c = self._client
+        shape = pb.createVisualShape(
+            pb.GEOM_MESH,
+            vertices=vertices,
+            indices=indices,
+            uvs=uvs,
+            normals=[[0.0, 0.0, 1.0]] * len(vertices),
+            physicsClientId=c,
+        )
+        if shape < 0:
+            raise SimError("pybullet: could not create the ground mesh")
+        return pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=c)
 
     def _tiled_ground(self) -> int:
         """One mesh body: the ground square cut into quads at the tile edges (z = 0)."""

@@ -21,6 +21,15 @@ uniformly per episode; the generated table: ``docs/scenario_keys.md``):
 ``motion_blur_ms``        exposure time (ms): the body rates smear the image over it
 ``lens_k1``               radial distortion ``x_d = x (1 + k1 r^2)`` in normalised coordinates
                           (negative: barrel), in [-0.5, 0.5]
+``ground_image``          a user's ground picture(s), PNG or JPEG, grey or RGB, one drawn per
+                          episode instead of a terrain family (paths relative to the scenario
+                          file; :mod:`sitl_sim.render.ground_image`): mirrored beyond its edges,
+                          a random point of it under the pad, a random rotation; lit by the sun's
+                          light level, and every camera effect applies
+``ground_m_per_px``       the picture's metres per pixel, drawn per episode (default 0.05)
+
+The pad's design comes from the ``[pad]`` section (:mod:`sitl_sim.render.pad_section`);
+``pad_scale`` and ``pad_colour_jitter`` apply to any design.
 
 Absent section: the nominal world, bit for bit. The draw comes from its own generator
 ``(seed, episode, VISUAL_STREAM)``; the per-frame exposure flicker from a second stream of that
@@ -30,16 +39,20 @@ key, so neither touches the sensor noise, the initial state or the wind.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any, ClassVar
 
 import cv2
 import numpy as np
 
 from sitl_sim.config import CameraConfig
-from sitl_sim.render.ground import GroundMap, PadGeometry, nominal_ground
+from sitl_sim.errors import ConfigError
+from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture, nominal_ground
+from sitl_sim.render.ground_image import check_ground_image, ground_image_map
+from sitl_sim.render.pads import PadDesign, find_file
 from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
-from sitl_sim.table import Section, choice_list, integer_span, number, span
+from sitl_sim.table import Section, choice_list, file_list, integer_span, number, span
 
 __all__ = [
     "VISUAL_STREAM",
@@ -105,6 +118,35 @@ class VisualConfig(Section):
     lens_k1: tuple[float, float] = _range(
         (0.0, 0.0), "1", -0.5, 0.5, "radial distortion x_d = x (1 + k1 r^2) (negative: barrel)"
     )
+    ground_image: tuple[str, ...] | None = file_list(
+        doc="ground picture(s) (PNG/JPEG, grey or RGB), one drawn per episode instead of a "
+        "terrain; relative to the scenario file; mirrored beyond its edges, random offset and "
+        "rotation"
+    )
+    ground_m_per_px: tuple[float, float] = span(
+        (0.05, 0.05),
+        unit="m",
+        lo=0.0,
+        lo_open=True,
+        hi=10.0,
+        doc="metres per pixel of the ground picture",
+    )
+    ground_paths: tuple[Path, ...] = field(default=(), init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.ground_image:
+            return
+        if self.terrain != (NOMINAL_TERRAIN,):
+            raise ConfigError(
+                f"{self.source}: [visual] terrain = {list(self.terrain)} and ground_image; "
+                "expected one of them (a ground picture replaces the terrain)"
+            )
+        where = f"{self.source}: [visual] ground_image"
+        paths = tuple(find_file(name, self.source, where) for name in self.ground_image)
+        for path in paths:
+            check_ground_image(path, self.ground_m_per_px[0], where)
+        object.__setattr__(self, "ground_paths", paths)
 
     def draw(self, seed: int, index: int) -> VisualSample:
         """Episode ``index`` of ``seed``: a pure function of the three."""
@@ -120,7 +162,7 @@ class VisualConfig(Section):
         pad_scale = u(self.pad_scale)
         j = self.pad_colour_jitter
         jitter = tuple(float(v) for v in rng.uniform(1.0 - j, 1.0 + j, 6))
-        return VisualSample(
+        sample = VisualSample(
             terrain=terrain,
             texture_seed=texture_seed,
             sun_elevation_deg=sun[0],
@@ -134,6 +176,17 @@ class VisualConfig(Section):
             motion_blur_s=u(self.motion_blur_ms) / 1000.0,
             lens_k1=u(self.lens_k1),
             frame_seed=(int(seed), int(index), VISUAL_STREAM + 1),
+        )
+        if not self.ground_paths:
+            return sample
+        # drawn after everything else: a section without pictures draws what it always did
+        path = self.ground_paths[int(rng.integers(len(self.ground_paths)))]
+        return replace(
+            sample,
+            ground_image=str(path),
+            ground_m_per_px=u(self.ground_m_per_px),
+            ground_anchor=(float(rng.random()), float(rng.random())),
+            ground_rotation_deg=float(rng.uniform(0.0, 360.0)),
         )
 
 
@@ -154,6 +207,11 @@ class VisualSample:
     motion_blur_s: float
     lens_k1: float
     frame_seed: tuple[int, int, int]
+    ground_image: str = ""
+    ground_m_per_px: float = 0.0
+    ground_anchor: tuple[float, float] = (0.0, 0.0)
+    ground_rotation_deg: float = 0.0
+    pad_design: PadDesign | None = None
 
     @property
     def sun(self) -> Sun:
@@ -162,14 +220,27 @@ class VisualSample:
     @property
     def light(self) -> float:
         """The flat-ground light level (1.0 on the nominal ground: it has no sun)."""
+        if self.ground_image:
+            return self.sun.flat_light
         return 1.0 if self.terrain == NOMINAL_TERRAIN else self.sun.flat_light
 
     def ground(self) -> GroundMap:
+        if self.ground_image:
+            return ground_image_map(
+                Path(self.ground_image),
+                self.ground_m_per_px,
+                self.ground_anchor,
+                self.ground_rotation_deg,
+            )
         if self.terrain == NOMINAL_TERRAIN:
             return nominal_ground()
         return terrain_map(self.terrain, self.texture_seed, self.sun)
 
-    def pad(self, base: PadGeometry | None = None) -> PadGeometry:
+    def pad(self, base: PadGeometry | None = None) -> PadGeometry | PadTexture:
+        """The pad the renderers draw: ``[pad]``'s design (or ``base``, else the paper's pad)
+        scaled by ``pad_scale``, its colours jittered."""
+        if self.pad_design is not None and base is None:
+            return self.pad_design.scene_pad(self.pad_scale, self.pad_colour_gain)
         base = (base or PadGeometry()).scaled(self.pad_scale)
         g = self.pad_colour_gain
 
@@ -187,9 +258,19 @@ class VisualSample:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
+        """The record of the draw (the ground picture's and the pad's keys only when set, so
+        the records of scenarios without them are unchanged)."""
+        d = asdict(replace(self, pad_design=None))
         d["pad_colour_gain"] = list(self.pad_colour_gain)
         d["frame_seed"] = list(self.frame_seed)
+        d["ground_anchor"] = list(self.ground_anchor)
+        if not self.ground_image:
+            for key in ("ground_image", "ground_m_per_px", "ground_anchor", "ground_rotation_deg"):
+                del d[key]
+        del d["pad_design"]
+        if self.pad_design is not None:
+            d["pad"] = self.pad_design.name
+            d["pad_file"] = str(self.pad_design.path) if self.pad_design.path else None
         return d
 
 
