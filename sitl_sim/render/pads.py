@@ -223,21 +223,25 @@ def _jitter(rgb: np.ndarray, gain: tuple[float, ...]) -> np.ndarray:
 
 
 def _luma_levels(y: np.ndarray, k: int = 3) -> list[float]:
-    """Dominant grey levels: 1-D k-means from the 10/50/90 % quantiles, close ones merged."""
-    v = y.astype(np.float64).ravel()
-    if v.size > 200_000:  # a large picture: a regular subsample has the same levels
-        v = v[:: v.size // 200_000]
-    centres = np.quantile(v, np.linspace(0.1, 0.9, k))
-    for _ in range(30):
-        label = np.argmin(np.abs(v[:, None] - centres[None, :]), axis=1)
+    """Dominant grey levels: 1-D k-means on the luma histogram, started from the lowest,
+    median and highest grey present; empty clusters dropped, close ones merged."""
+    counts = np.bincount(y.ravel(), minlength=256).astype(np.float64)
+    grey = np.arange(256, dtype=np.float64)
+    present = grey[counts > 0]
+    centres = np.quantile(present, np.linspace(0.0, 1.0, k))
+    for _ in range(50):
+        label = np.argmin(np.abs(grey[:, None] - centres[None, :]), axis=1)
         new = np.array(
-            [v[label == i].mean() if np.any(label == i) else c for i, c in enumerate(centres)]
+            [
+                np.average(grey, weights=counts * (label == i)) if counts[label == i].sum() else c
+                for i, c in enumerate(centres)
+            ]
         )
         if np.allclose(new, centres):
             break
         centres = new
-    label = np.argmin(np.abs(v[:, None] - centres[None, :]), axis=1)
-    used = sorted(c for i, c in enumerate(centres) if np.any(label == i))
+    label = np.argmin(np.abs(grey[:, None] - centres[None, :]), axis=1)
+    used = sorted(c for i, c in enumerate(centres) if counts[label == i].sum() > 0)
     out: list[float] = []
     for c in used:
         if not out or c - out[-1] > 8.0:
