@@ -281,11 +281,12 @@ def format_info(info: dict[str, Any], out: TextIO) -> None:
             file=out,
         )
         width = max(12, *(len(r["ground"]) for r in info["contrast"]))
-        head = "".join(f"{p[:12]:>13}" for p in parts)
+        cols = {p: max(8, len(p) + 1) for p in parts}
+        head = "".join(f"{p:>{cols[p]}}  " for p in parts)
         print(f"{'ground':<{width}}  {'median':>6}{head}", file=out)
         for row in info["contrast"]:
             cells = "".join(
-                f"{row['contrast'][p]:+11.0f}{' !' if p in row['vanishes'] else '  '}"
+                f"{row['contrast'][p]:+{cols[p]}.0f}{' !' if p in row['vanishes'] else '  '}"
                 for p in parts
             )
             print(f"{row['ground']:<{width}}  {row['median_luma']:6.0f}{cells}", file=out)
