@@ -9,7 +9,9 @@
   observation);
 * ``info["airframe"]`` (only with a ``[vehicle]`` scenario section): the episode's airframe
   factors; :attr:`LandingEnv.episode_vehicle` is the vehicle they make (privileged too);
-  ``info["visual"]`` (only with ``[visual]``): the episode's drawn look (terrain, seed, sun, ...);
+  ``info["visual"]`` (only with ``[visual]``, or a ``[pad]`` other than the paper's pad): the
+  episode's drawn look (terrain or ground picture, seed, sun, ...); ``info["pad"]`` (only with
+  ``[pad]``): the episode's pad design (name, file, size);
 * the episode terminates at the first ground contact (``info["result"]`` then holds the landing
   metrics) and is truncated at ``episode_timeout_s``;
 * reward: 0 during flight; at the end ``-(landing error [m] + touchdown speed [m/s])``, or
