@@ -44,7 +44,7 @@ def _cmd_pad_info(args: argparse.Namespace) -> int:
 
 def _cmd_pad_print(args: argparse.Namespace) -> int:
     from tools.pad_info import resolve_pad
-    from tools.pad_print import write_pdf, write_png
+    from tools.pad_print import PAPER_NAMES, write_pdf, write_png
 
     pad = resolve_pad(args.pad)
     if args.png:
@@ -61,7 +61,7 @@ def _cmd_pad_print(args: argparse.Namespace) -> int:
     w, h = pad.size_m
     print(
         f"wrote {rep.out}: pad {pad.name}, {w:g} x {h:g} m on {rep.pages} pages of "
-        f"{rep.paper.upper()} {'landscape' if rep.landscape else 'portrait'} (page 1: the "
+        f"{PAPER_NAMES[rep.paper]} {'landscape' if rep.landscape else 'portrait'} (page 1: the "
         f"assembly map; {rep.rows} rows x {rep.cols} columns of tiles; pad image "
         f"{rep.image_dpi:.0f} dpi). Print at 100 %: the 10 cm scale bar must measure 10 cm."
     )

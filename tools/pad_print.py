@@ -31,6 +31,7 @@ __all__ = [
     "MARGIN_PT",
     "OVERLAP_PT",
     "PAPERS",
+    "PAPER_NAMES",
     "PT_PER_M",
     "SCALE_BAR_PT",
     "Layout",
@@ -49,6 +50,7 @@ PAPERS = {
     "poster": (2383.94, 3370.39),  # A0
 }
 """Portrait page sizes in points (width, height)."""
+PAPER_NAMES = {"a4": "A4", "a3": "A3", "letter": "Letter", "poster": "A0 poster"}
 MARGIN_PT = 0.012 * PT_PER_M
 """Blank border of a tile page (12 mm): most printers cannot print to the edge; the page's
 label and scale bar stand in it."""
@@ -351,7 +353,7 @@ def _map_page(pdf: _Pdf, lay: Layout, pad: PadDesign, thumb: np.ndarray, dpi: fl
         (title, f"Landing pad {pad.name}: {w_m:g} m x {h_m:g} m at true scale"),
         (
             9,
-            f"{lay.pages} pages of {lay.paper.upper()} {orient}: "
+            f"{lay.pages} pages of {PAPER_NAMES[lay.paper]} {orient}: "
             f"this map, then {lay.tiles} tiles ({lay.rows} rows x {lay.cols} columns) from the "
             "pad's north-west corner.",
         ),
