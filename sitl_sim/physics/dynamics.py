@@ -103,6 +103,10 @@ class Physics:
             ]
         )
         self.allocation_inv = np.linalg.inv(self.allocation)
+        self.rates_of_change, self.rk4 = _kernels(self)
+        """The integrator's kernels for these constants (:func:`_kernels`): ``rates_of_change``
+        is :func:`derivative` less the position rows, ``rk4`` is :func:`rk4_step`. A Physics
+        is not changed once built (the kernels hold its constants)."""
 
     @property
     def hover_rotor_thrust_n(self) -> float:
@@ -216,34 +220,16 @@ def translational_accel_ned(
 def derivative(x, rotor_cmd_n, phys: Physics, wind_ned_m_s=None) -> list[float]:
     """Time derivative of the 17-float state for commanded rotor thrusts ``rotor_cmd_n`` (4, N)
     in the wind ``wind_ned_m_s`` (3, NED; None: still air, see :func:`translational_accel_ned`)."""
-    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
-    p, q, r = x[10], x[11], x[12]
-    t1, t2, t3, t4 = x[13], x[14], x[15], x[16]
-    an, ae, ad = translational_accel_ned(
-        (qw, qx, qy, qz), (x[3], x[4], x[5]), t1 + t2 + t3 + t4, phys, wind_ned_m_s
-    )
-    rx, ry = phys.rx, phys.ry
-    tau_x = -(ry[0] * t1 + ry[1] * t2 + ry[2] * t3 + ry[3] * t4)
-    tau_y = rx[0] * t1 + rx[1] * t2 + rx[2] * t3 + rx[3] * t4
-    tau_z = phys.km * (t1 + t2 - t3 - t4)
-    ixx, iyy, izz = phys.ixx, phys.iyy, phys.izz
-    # Euler: J w' = tau - w x (J w), J diagonal.
-    dp = (tau_x + (iyy - izz) * q * r) / ixx
-    dq = (tau_y + (izz - ixx) * r * p) / iyy
-    dr = (tau_z + (ixx - iyy) * p * q) / izz
-    # q' = 1/2 q (x) (0, w)
-    dqw = 0.5 * (-qx * p - qy * q - qz * r)
-    dqx = 0.5 * (qw * p + qy * r - qz * q)
-    dqy = 0.5 * (qw * q - qx * r + qz * p)
-    dqz = 0.5 * (qw * r + qx * q - qy * p)
-    tau_m = phys.tau_motor
-    if tau_m > 0.0:
-        inv = 1.0 / tau_m
-        c1, c2, c3, c4 = rotor_cmd_n
-        dt1, dt2, dt3, dt4 = (c1 - t1) * inv, (c2 - t2) * inv, (c3 - t3) * inv, (c4 - t4) * inv
-    else:
-        dt1 = dt2 = dt3 = dt4 = 0.0
-    return [x[3], x[4], x[5], an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, dt1, dt2, dt3, dt4]
+    c1, c2, c3, c4 = rotor_cmd_n
+    return [
+        x[3],
+        x[4],
+        x[5],
+        *phys.rates_of_change(
+            x[3], x[4], x[5], x[6], x[7], x[8], x[9], x[10], x[11], x[12],
+            x[13], x[14], x[15], x[16], c1, c2, c3, c4, wind_ned_m_s,
+        ),
+    ]  # fmt: skip
 
 
 def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> list[float]:
@@ -252,17 +238,125 @@ def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> lis
     The wind is held for the whole step (zero-order hold): all four stages see the same
     ``wind_ned_m_s``, as the commanded rotor thrusts are held.
     """
-    n = STATE_SIZE
-    k1 = derivative(x, rotor_cmd_n, phys, wind_ned_m_s)
-    h = 0.5 * dt
-    x2 = [x[i] + h * k1[i] for i in range(n)]
-    k2 = derivative(x2, rotor_cmd_n, phys, wind_ned_m_s)
-    x3 = [x[i] + h * k2[i] for i in range(n)]
-    k3 = derivative(x3, rotor_cmd_n, phys, wind_ned_m_s)
-    x4 = [x[i] + dt * k3[i] for i in range(n)]
-    k4 = derivative(x4, rotor_cmd_n, phys, wind_ned_m_s)
-    s = dt / 6.0
-    return [x[i] + s * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(n)]
+    return phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
+
+
+def _kernels(phys: Physics):
+    """``(rates_of_change, rk4)`` for ``phys``'s constants, in plain Python floats.
+
+    ``rates_of_change(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4,
+    wind)`` is the state derivative but for the position rows (which are the velocity): the
+    equations of :func:`translational_accel_ned` and of the module docstring, operation for
+    operation, so every result is the same float. ``rk4(x, rotor_cmd_n, dt, wind)`` is the
+    classic RK4 step of it with the stages held in locals (no per-stage lists): ~2x faster
+    than stage lists of 17, and the SITL steps its physics 250 times a simulated second.
+    """
+    kx, ky, kz = phys.kdrag
+    mass, g, km = phys.mass, phys.g, phys.km
+    ixx, iyy, izz = phys.ixx, phys.iyy, phys.izz
+    rx0, rx1, rx2, rx3 = phys.rx
+    ry0, ry1, ry2, ry3 = phys.ry
+    i_p, i_q, i_r = iyy - izz, izz - ixx, ixx - iyy  # Euler's coupling terms
+    lag = phys.tau_motor > 0.0
+    inv_tau = 1.0 / phys.tau_motor if lag else 0.0
+    inv_m = 1.0 / mass
+
+    def rates_of_change(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4, wind):
+        if wind is not None:
+            wn, we, wd = wind
+            vn, ve, vd = vn - wn, ve - we, vd - wd
+        # translational_accel_ned: rotation body -> NED, drag on the air-relative body velocity
+        r00 = 1 - 2 * (qy * qy + qz * qz)
+        r01 = 2 * (qx * qy - qw * qz)
+        r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz)
+        r11 = 1 - 2 * (qx * qx + qz * qz)
+        r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy)
+        r21 = 2 * (qy * qz + qw * qx)
+        r22 = 1 - 2 * (qx * qx + qy * qy)
+        vbx = r00 * vn + r10 * ve + r20 * vd
+        vby = r01 * vn + r11 * ve + r21 * vd
+        vbz = r02 * vn + r12 * ve + r22 * vd
+        fbx = -kx * abs(vbx) * vbx
+        fby = -ky * abs(vby) * vby
+        fbz = -kz * abs(vbz) * vbz - (t1 + t2 + t3 + t4)
+        # Euler: J w' = tau - w x (J w), J diagonal; q' = 1/2 q (x) (0, w); the rotor lag
+        if lag:
+            dt1, dt2 = (c1 - t1) * inv_tau, (c2 - t2) * inv_tau
+            dt3, dt4 = (c3 - t3) * inv_tau, (c4 - t4) * inv_tau
+        else:
+            dt1 = dt2 = dt3 = dt4 = 0.0
+        return (
+            (r00 * fbx + r01 * fby + r02 * fbz) * inv_m,
+            (r10 * fbx + r11 * fby + r12 * fbz) * inv_m,
+            (r20 * fbx + r21 * fby + r22 * fbz) * inv_m + g,
+            0.5 * (-qx * p - qy * q - qz * r),
+            0.5 * (qw * p + qy * r - qz * q),
+            0.5 * (qw * q - qx * r + qz * p),
+            0.5 * (qw * r + qx * q - qy * p),
+            (-(ry0 * t1 + ry1 * t2 + ry2 * t3 + ry3 * t4) + i_p * q * r) / ixx,
+            (rx0 * t1 + rx1 * t2 + rx2 * t3 + rx3 * t4 + i_q * r * p) / iyy,
+            (km * (t1 + t2 - t3 - t4) + i_r * p * q) / izz,
+            dt1,
+            dt2,
+            dt3,
+            dt4,
+        )
+
+    f = rates_of_change
+
+    def rk4(x, rotor_cmd_n, dt, wind=None):
+        pn, pe, pd, vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4 = x
+        c1, c2, c3, c4 = rotor_cmd_n
+        h = 0.5 * dt
+        # k1 at x; k2 at x + h k1; k3 at x + h k2; k4 at x + dt k3 (the position rows' k is
+        # the stage's velocity)
+        a1 = f(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4, wind)
+        an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, d1, d2, d3, d4 = a1
+        vn2, ve2, vd2 = vn + h * an, ve + h * ae, vd + h * ad
+        a2 = f(
+            vn2, ve2, vd2, qw + h * dqw, qx + h * dqx, qy + h * dqy, qz + h * dqz,
+            p + h * dp, q + h * dq, r + h * dr, t1 + h * d1, t2 + h * d2, t3 + h * d3,
+            t4 + h * d4, c1, c2, c3, c4, wind,
+        )  # fmt: skip
+        an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, d1, d2, d3, d4 = a2
+        vn3, ve3, vd3 = vn + h * an, ve + h * ae, vd + h * ad
+        a3 = f(
+            vn3, ve3, vd3, qw + h * dqw, qx + h * dqx, qy + h * dqy, qz + h * dqz,
+            p + h * dp, q + h * dq, r + h * dr, t1 + h * d1, t2 + h * d2, t3 + h * d3,
+            t4 + h * d4, c1, c2, c3, c4, wind,
+        )  # fmt: skip
+        an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, d1, d2, d3, d4 = a3
+        vn4, ve4, vd4 = vn + dt * an, ve + dt * ae, vd + dt * ad
+        a4 = f(
+            vn4, ve4, vd4, qw + dt * dqw, qx + dt * dqx, qy + dt * dqy, qz + dt * dqz,
+            p + dt * dp, q + dt * dq, r + dt * dr, t1 + dt * d1, t2 + dt * d2, t3 + dt * d3,
+            t4 + dt * d4, c1, c2, c3, c4, wind,
+        )  # fmt: skip
+        s = dt / 6.0  # x + dt/6 (k1 + 2 k2 + 2 k3 + k4), row by row
+        e, b, c, d = a1, a2, a3, a4
+        return [
+            pn + s * (vn + 2.0 * vn2 + 2.0 * vn3 + vn4),
+            pe + s * (ve + 2.0 * ve2 + 2.0 * ve3 + ve4),
+            pd + s * (vd + 2.0 * vd2 + 2.0 * vd3 + vd4),
+            vn + s * (e[0] + 2.0 * b[0] + 2.0 * c[0] + d[0]),
+            ve + s * (e[1] + 2.0 * b[1] + 2.0 * c[1] + d[1]),
+            vd + s * (e[2] + 2.0 * b[2] + 2.0 * c[2] + d[2]),
+            qw + s * (e[3] + 2.0 * b[3] + 2.0 * c[3] + d[3]),
+            qx + s * (e[4] + 2.0 * b[4] + 2.0 * c[4] + d[4]),
+            qy + s * (e[5] + 2.0 * b[5] + 2.0 * c[5] + d[5]),
+            qz + s * (e[6] + 2.0 * b[6] + 2.0 * c[6] + d[6]),
+            p + s * (e[7] + 2.0 * b[7] + 2.0 * c[7] + d[7]),
+            q + s * (e[8] + 2.0 * b[8] + 2.0 * c[8] + d[8]),
+            r + s * (e[9] + 2.0 * b[9] + 2.0 * c[9] + d[9]),
+            t1 + s * (e[10] + 2.0 * b[10] + 2.0 * c[10] + d[10]),
+            t2 + s * (e[11] + 2.0 * b[11] + 2.0 * c[11] + d[11]),
+            t3 + s * (e[12] + 2.0 * b[12] + 2.0 * c[12] + d[12]),
+            t4 + s * (e[13] + 2.0 * b[13] + 2.0 * c[13] + d[13]),
+        ]
+
+    return rates_of_change, rk4
 
 
 @dataclass(frozen=True)
@@ -334,7 +428,7 @@ def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_
         came down onto the ground during this step, else ``None``.
     """
     on_ground = x[2] >= 0.0
-    x_new = rk4_step(x, rotor_cmd_n, dt, phys, wind_ned_m_s)
+    x_new = phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
     n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
     x_new[6] /= n
     x_new[7] /= n

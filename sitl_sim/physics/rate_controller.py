@@ -29,9 +29,12 @@ class RateController:
         self._prev_error: list[float] | None = None
         inv = phys.allocation_inv
         # Per-rotor thrust per unit torque (columns 1..3 of the inverse allocation), as floats.
-        self._rp_x = tuple(float(v) for v in inv[:, 1])
-        self._rp_y = tuple(float(v) for v in inv[:, 2])
+        self._rp_xy = tuple(zip(inv[:, 1].tolist(), inv[:, 2].tolist(), strict=True))
         self._yaw = tuple(float(v) for v in inv[:, 3])
+        self._max_rate = gains.max_rate_rad_s
+        self._per_axis = tuple(
+            zip(gains.kp, gains.ki, gains.kd, gains.integrator_limit_rad_s2, strict=True)
+        )
         self.saturated = False
         """True when the last output was limited by the rotors."""
 
@@ -41,20 +44,25 @@ class RateController:
         self.saturated = False
 
     def update(self, command: Command, rate_frd_rad_s, dt: float) -> list[float]:
-        """Rotor thrust commands (4, N, each in [0, max]) for ``command`` at measured rates."""
-        g = self._gains
+        """Rotor thrust commands (4, N, each in [0, max]) for ``command`` at measured rates.
+
+        Plain floats, one axis at a time (the autopilot runs this at every physics step); the
+        operations are those of ``J (kp e + ki int(e) + kd de/dt) + w x J w``, in that order.
+        """
         phys = self._phys
-        sp = [
-            max(-lim, min(lim, float(v)))
-            for v, lim in zip(command.rate_frd_rad_s, g.max_rate_rad_s, strict=True)
-        ]
         w = [float(v) for v in rate_frd_rad_s]
-        err = [sp[i] - w[i] for i in range(3)]
-        prev = self._prev_error if self._prev_error is not None else err
-        alpha = [
-            g.kp[i] * err[i] + self._integral[i] + g.kd[i] * (err[i] - prev[i]) / dt
-            for i in range(3)
-        ]
+        integral = self._integral
+        prev = self._prev_error
+        err = []
+        alpha = []
+        for i, (v, lim, (kp, _, kd, _)) in enumerate(
+            zip(command.rate_frd_rad_s.tolist(), self._max_rate, self._per_axis, strict=True)
+        ):
+            v = v if v < lim else lim  # the setpoint clamped: max(-lim, min(lim, v))
+            e = (v if v > -lim else -lim) - w[i]
+            err.append(e)
+            de = e - (e if prev is None else prev[i])
+            alpha.append(kp * e + integral[i] + kd * de / dt)
         self._prev_error = err
         ixx, iyy, izz = phys.ixx, phys.iyy, phys.izz
         p, q, r = w
@@ -66,11 +74,12 @@ class RateController:
         )
         collective = command.thrust_norm * phys.max_total_thrust_n
         rotors, limited, collective_limited = self._mix(collective, tau)
-        self.saturated = any(limited) or collective_limited
-        for i in range(3):
+        self.saturated = limited[0] or limited[2] or collective_limited
+        for i, (_, ki, _, lim) in enumerate(self._per_axis):
             if not limited[i]:
-                lim = g.integrator_limit_rad_s2[i]
-                self._integral[i] = max(-lim, min(lim, self._integral[i] + g.ki[i] * err[i] * dt))
+                v = integral[i] + ki * err[i] * dt
+                v = v if v < lim else lim
+                integral[i] = v if v > -lim else -lim
         return rotors
 
     def _mix(self, collective_n: float, tau) -> tuple[list[float], tuple[bool, bool, bool], bool]:
@@ -80,18 +89,17 @@ class RateController:
         had to be shifted.
         """
         tmax = self._phys.max_rotor_thrust
-        rx, ry, yz = self._rp_x, self._rp_y, self._yaw
-        rp = [rx[i] * tau[0] + ry[i] * tau[1] for i in range(4)]
-        yw = [yz[i] * tau[2] for i in range(4)]
+        tau_x, tau_y, tau_z = tau
+        rp = [x * tau_x + y * tau_y for x, y in self._rp_xy]
+        yw = [z * tau_z for z in self._yaw]
         limited_rp = limited_y = False
         spread = max(rp) - min(rp)
         if spread > tmax:
             k = tmax / spread
-            rp = [v * k for v in rp]
-            yw = [0.0] * 4
+            total = [v * k + 0.0 for v in rp]  # roll/pitch scaled to fit, no yaw at all
             limited_rp = limited_y = True
         else:
-            total = [rp[i] + yw[i] for i in range(4)]
+            total = [a + b for a, b in zip(rp, yw)]  # noqa: B905 (4 rotors each)
             if max(total) - min(total) > tmax:
                 # Largest yaw fraction that still fits: spread is piecewise linear in the fraction.
                 lo, hi = 0.0, 1.0
@@ -104,10 +112,14 @@ class RateController:
                         lo = mid
                 yw = [v * lo for v in yw]
                 limited_y = True
-        delta = [rp[i] + yw[i] for i in range(4)]
+                total = [a + b for a, b in zip(rp, yw)]  # noqa: B905
         base = collective_n / 4.0
-        base_fit = min(max(base, -min(delta)), tmax - max(delta))
-        rotors = [min(tmax, max(0.0, base_fit + d)) for d in delta]
+        base_fit = min(max(base, -min(total)), tmax - max(total))
+        rotors = []
+        for d in total:  # min(tmax, max(0.0, base_fit + d))
+            d = base_fit + d
+            d = d if d > 0.0 else 0.0
+            rotors.append(d if d < tmax else tmax)
         # A shifted collective protects the torque: thrust-limited, but the axes are not, so the
         # integrators keep running.
         return rotors, (limited_rp, limited_rp, limited_y), abs(base_fit - base) > 1e-9
