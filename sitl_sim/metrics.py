@@ -8,11 +8,14 @@ touchdown (first ground contact); success means error <= 1 m, vertical speed <= 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from companion.contract.record_base import RECORD
+from companion.contract.records import EpisodeResultRecord
 from sitl_sim.physics.dynamics import ContactEvent
 
 __all__ = [
@@ -27,10 +30,15 @@ SUCCESS_MAX_ERROR_M = 1.0
 SUCCESS_MAX_VERTICAL_SPEED_M_S = 1.0
 SUCCESS_MAX_TILT_DEG = 20.0
 
+_RESULT_KEYS = EpisodeResultRecord.required_field_names()
+"""The result's own keys: those every ``/episode/result`` message has (the SITL's are extras)."""
 
-@dataclass(frozen=True)
-class EpisodeResult:
-    """How one episode ended.
+
+@dataclass(**RECORD)
+class EpisodeResult(EpisodeResultRecord):
+    """How one episode ended: the ``/episode/result`` message's own fields (its record,
+    :class:`~companion.contract.records.EpisodeResultRecord`, declares them once; the SITL's
+    extras stay absent), scored here.
 
     Attributes:
         landed: the vehicle touched the ground (False: timeout).
@@ -43,13 +51,11 @@ class EpisodeResult:
         success: the DESIGN.md success criterion.
     """
 
-    landed: bool
-    time_s: float
-    landing_error_m: float
-    touchdown_speed_m_s: float
-    touchdown_vertical_speed_m_s: float
-    tilt_deg: float
-    success: bool
+    @classmethod
+    def read(cls, values: Mapping[str, Any]) -> EpisodeResult:
+        """The result in a logged ``/episode/result`` message, or in a report's row (their
+        other keys left out; a metric logged as null, NaN when written, is NaN again)."""
+        return cls(**{k: math.nan if values[k] is None else values[k] for k in _RESULT_KEYS})
 
     @classmethod
     def from_contact(cls, contact: ContactEvent) -> EpisodeResult:
@@ -80,9 +86,6 @@ class EpisodeResult:
             tilt_deg=math.nan,
             success=False,
         )
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 def _stats(values: list[float]) -> dict[str, float]:

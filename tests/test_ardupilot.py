@@ -33,6 +33,7 @@ from sitl_sim.physics.dynamics import euler_from_quat, quat_from_euler
 from sitl_sim.scenario import InitialState
 from sitl_sim.simulator import Simulator
 from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly
+from training.reports import FlyReport
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -333,26 +334,29 @@ _PATIENT = ("--lockstep-timeout-s", "5")
 """Every frame's answer awaited: a descheduled companion cannot change a flight."""
 
 
-def test_card_companion_flies_the_shipped_model_to_landings_in_guided_nogps(tmp_path):
-    """``visland fly --autopilot ardupilot``: GUID_OPTIONS = 8 set on the SITL, the companion's
-    ardupilot profile engages GUIDED_NOGPS and flies thrust + body rates to touchdown."""
-    report = fly(
+def _fly_ardupilot(tmp_path, **cfg) -> FlyReport:
+    """``visland fly --autopilot ardupilot`` into ``tmp_path/run``, staleness relaxed."""
+    return fly(
         FlyConfig(
-            policy=DEFAULT_VISION_POLICY,
             autopilot="ardupilot",
-            episodes=2,
             out=str(tmp_path / "run"),
             progress=False,
             companion_args=_RELAXED,
-            sitl_args=_PATIENT,
+            **cfg,
         )
     )
-    assert report["autopilot"] == "ardupilot" and report["episodes"] == 2
-    assert report["success_rate"] == 1.0, report["per_episode"]
-    assert report["landing_error_m"]["max"] <= 1.0
-    assert report["companion_flights"].get("landed") == 2
-    for row in report["per_episode"]:
-        flight = read_log(row["log"])
+
+
+def test_card_companion_flies_the_shipped_model_to_landings_in_guided_nogps(tmp_path):
+    """``visland fly --autopilot ardupilot``: GUID_OPTIONS = 8 set on the SITL, the companion's
+    ardupilot profile engages GUIDED_NOGPS and flies thrust + body rates to touchdown."""
+    report = _fly_ardupilot(tmp_path, policy=DEFAULT_VISION_POLICY, episodes=2, sitl_args=_PATIENT)
+    assert report.autopilot == "ardupilot" and report.episodes == 2
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert report.summary.landing_error_m.max <= 1.0
+    assert report.companion_flights.get("landed") == 2
+    for row in report.per_episode:
+        flight = read_log(row.log)
         assert {m["mode"] for m in flight.topic("/autopilot/command")} == {"GUIDED_NOGPS"}
         beats = flight.topic("/mavlink/out/HEARTBEAT")
         assert {b["autopilot"] for b in beats} == {3}  # MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -372,20 +376,15 @@ def test_card_companion_flies_the_shipped_model_to_landings_in_guided_nogps(tmp_
 def test_card_guid_options_0_companion_refuses_to_engage_and_says_why(tmp_path):
     """ArduPilot's default GUID_OPTIONS = 0 reads thrust as a climb rate: the companion never
     requests GUIDED_NOGPS, and its log says which bit to set."""
-    report = fly(
-        FlyConfig(
-            policy="expert",
-            autopilot="ardupilot",
-            episodes=1,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_args=_RELAXED,
-            sitl_params=("GUID_OPTIONS=0",),  # after fly's GUID_OPTIONS=8: wins
-            sitl_args=("--hold-timeout-s", "5"),  # the SITL gives up on a take-over
-        )
+    report = _fly_ardupilot(
+        tmp_path,
+        policy="expert",
+        episodes=1,
+        sitl_params=("GUID_OPTIONS=0",),  # after fly's GUID_OPTIONS=8: wins
+        sitl_args=("--hold-timeout-s", "5"),  # the SITL gives up on a take-over
     )
-    assert report["success_rate"] == 0.0 and report["timeouts"] == 1
-    flight = read_log(report["per_episode"][0]["log"])
+    assert report.summary.success_rate == 0.0 and report.summary.timeouts == 1
+    flight = read_log(report.per_episode[0].log)
     assert not flight.topic("/autopilot/command")  # never taken over: frozen in ALT_HOLD
     modes = [c for c in flight.topic("/mavlink/in/COMMAND_LONG") if c["command"] == 176]
     assert modes == []  # DO_SET_MODE never sent
@@ -445,21 +444,16 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, t
 def test_card_landing_target_mode_lands_through_land_with_plnd(tmp_path):
     """``--companion-mode landing-target --autopilot ardupilot``: PLND_ENABLED = 1, PLND_TYPE =
     1; the companion requests LAND and streams LANDING_TARGET position_valid = 1 in BODY_FRD."""
-    report = fly(
-        FlyConfig(
-            policy=DEFAULT_VISION_POLICY,
-            companion_mode="landing-target",
-            autopilot="ardupilot",
-            episodes=1,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_args=_RELAXED,
-            sitl_args=_PATIENT,
-        )
+    report = _fly_ardupilot(
+        tmp_path,
+        policy=DEFAULT_VISION_POLICY,
+        companion_mode="landing-target",
+        episodes=1,
+        sitl_args=_PATIENT,
     )
-    assert report["success_rate"] == 1.0, report["per_episode"]
-    assert report["landing_error_m"]["max"] <= 0.5
-    flight = read_log(report["per_episode"][0]["log"])
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert report.summary.landing_error_m.max <= 0.5
+    flight = read_log(report.per_episode[0].log)
     assert {m["mode"] for m in flight.topic("/autopilot/command")} == {"LAND"}
     beats = flight.topic("/mavlink/out/HEARTBEAT")
     assert any(b["custom_mode"] == 9 and b["base_mode"] == 81 | 8 | 128 for b in beats)

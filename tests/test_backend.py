@@ -35,7 +35,7 @@ def ray_backend():
 
 
 def _rows(outcomes):
-    return [{k: v for k, v in o.row().items() if k != "log"} for o in outcomes]
+    return [replace(o.row(), log=None) for o in outcomes]
 
 
 def test_ray_gives_the_local_backends_records_logs_and_labels(tmp_path, ray_backend, low_scenario):
@@ -198,11 +198,12 @@ def test_ray_flies_sitl_companion_pairs_as_the_local_backend(tmp_path, ray_backe
     cfg = FlyConfig(policy="expert", seed=48, scenario=low_scenario, progress=False)
     local = fly_many(replace(cfg, out=str(tmp_path / "l")), [0, 1, 2], instances=2, chunk=2)
     ray = fly_many(replace(cfg, out=str(tmp_path / "r")), [0, 1, 2], chunk=2, backend=ray_backend)
-    assert ray["backend"]["name"] == "ray" and ray["runs"] == 2
-    strip = [{k: v for k, v in r.items() if k != "log"} for r in ray["per_episode"]]
-    assert strip == [{k: v for k, v in r.items() if k != "log"} for r in local["per_episode"]]
-    for row in ray["per_episode"]:
-        assert Path(row["log"]).parent == tmp_path / "r" / "sitl" and Path(row["log"]).is_file()
+    assert ray.backend.name == "ray" and ray.runs == 2
+    assert [replace(r, log=None) for r in ray.per_episode] == [
+        replace(r, log=None) for r in local.per_episode
+    ]
+    for row in ray.per_episode:
+        assert Path(row.log).parent == tmp_path / "r" / "sitl" and Path(row.log).is_file()
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["ep0000", "ep0002", "sitl"]
     assert list((tmp_path / "r" / "ep0000" / "companion").glob("*.mcap"))
 

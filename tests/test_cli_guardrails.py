@@ -17,9 +17,10 @@ import pytest
 from helpers import visland
 
 from sitl_sim.config import CONFIG_DIR
-from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.metrics import EpisodeResult
 from tools.cli import _parser
 from training.evaluate import format_table
+from training.reports import EvalReport, LandingSummary
 from training.seeds import EVAL_SEED
 
 REPO = Path(__file__).resolve().parent.parent
@@ -61,17 +62,40 @@ def test_eval_refuses_a_scenario_out_of_physical_bounds_naming_file_key_expected
     assert "expected finite [lo, hi] with 0 <= lo <= hi <= 50 (m/s)" in line
 
 
+def _report(*results: EpisodeResult) -> EvalReport:
+    return EvalReport(
+        policy="p",
+        transport="inprocess",
+        seed=1,
+        scenario="s.toml",
+        episodes=len(results),
+        summary=LandingSummary.of(results),
+        policy_stats={},
+        wall_s=0.0,
+        per_episode=(),
+    )
+
+
 def test_a_timed_out_flight_never_enters_the_landing_error_mean():
-    landed = EpisodeResult(True, 20.0, 0.4, 0.3, 0.3, 2.0, True)
+    landed = EpisodeResult(
+        landed=True,
+        time_s=20.0,
+        landing_error_m=0.4,
+        touchdown_speed_m_s=0.3,
+        touchdown_vertical_speed_m_s=0.3,
+        tilt_deg=2.0,
+        success=True,
+    )
     timeout = EpisodeResult.timeout(90.0, [30.0, 40.0, -10.0], [0.0, 0.0, 0.0])
-    report = {"policy": "p", "seed": 1, "scenario": "s.toml", **summarize([landed, timeout])}
-    assert report["landed"] == 1 and report["landing_error_m"]["mean"] == pytest.approx(0.4)
+    report = _report(landed, timeout)
+    s = report.summary
+    assert s.landed == 1 and s.landing_error_m.mean == pytest.approx(0.4)
     out = StringIO()
     format_table(report, out)
     assert "mean    0.400" in out.getvalue() and "(over 1 landed; 1 timed out)" in out.getvalue()
 
-    report = {"policy": "p", "seed": 1, "scenario": "s.toml", **summarize([timeout, timeout])}
-    assert report["landed"] == 0 and math.isnan(report["landing_error_m"]["mean"])
+    report = _report(timeout, timeout)
+    assert report.summary.landed == 0 and math.isnan(report.summary.landing_error_m.mean)
     out = StringIO()
     format_table(report, out)
     text = out.getvalue()

@@ -33,6 +33,7 @@ from companion.config import CompanionConfig, CompanionError, load_toml
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
 from companion.contract.datagrams import RX_DATAGRAMS_PER_POLL
+from companion.contract.records import EpisodeResultRecord
 from companion.contract.topics import TOPIC_COMPANION_COMMAND
 from companion.flight import OffboardConfig
 from companion.flightlog import read_log
@@ -43,6 +44,7 @@ from companion.safety import SafetyConfig, SafetyMonitor, TouchdownDetector
 from companion.states import FailsafeReason, FlightResult
 from companion.telemetry import TelemetryStore, odometry_from_msg
 from training.exec.fly import free_udp_port
+from training.reports import FlyReport
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -296,11 +298,26 @@ def _sitl_args(ports: Ports, scenario, log_dir, *extra) -> list[str]:
     )
 
 
-def _result(sitl_log: Path) -> dict:
+def _result(sitl_log: Path) -> EpisodeResultRecord:
     flight = read_log(sitl_log)
     result = flight.topic("/episode/result")
     assert result, f"{sitl_log}: no episode result"
-    return result[-1]
+    return EpisodeResultRecord.from_dict(result[-1])
+
+
+def _fly_low(low_scenario, out: Path, **cfg) -> FlyReport:
+    """``visland fly`` on the low scenario into ``out``, staleness relaxed."""
+    from training.exec.fly import FlyConfig, fly
+
+    return fly(
+        FlyConfig(
+            scenario=low_scenario,
+            out=str(out),
+            progress=False,
+            companion_args=_RELAXED_MAX_AGE,
+            **cfg,
+        )
+    )
 
 
 def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
@@ -314,8 +331,8 @@ def test_card_expert_lands_through_mavlink_and_its_log_replays_exactly(
     assert sitl.wait(60) == 0, procs.text("sitl")
     assert comp.wait(20) == 0, procs.text("companion")  # --flights 1: it exits after landing
     res = _result(sitl_dir / "sitl_seed0_ep0000.mcap")
-    assert res["landed"] and res["success"]
-    assert res["landing_error_m"] < 0.1 and res["touchdown_vertical_speed_m_s"] < 0.5
+    assert res.landed and res.success
+    assert res.landing_error_m < 0.1 and res.touchdown_vertical_speed_m_s < 0.5
     (log_path,) = sorted(comp_dir.glob("*.mcap"))
     flight = read_log(log_path)
     assert not flight.truncated
@@ -461,7 +478,7 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
     second = procs.start("sitl2", _sitl_args(ports, low_scenario, tmp_path / "sitl2"))
     procs.wait_text("companion", r"link reconnected", 30.0)
     assert second.wait(60) == 0, procs.text("sitl2")
-    assert _result(tmp_path / "sitl2" / "sitl_seed0_ep0000.mcap")["success"]
+    assert _result(tmp_path / "sitl2" / "sitl_seed0_ep0000.mcap").success
     comp.send_signal(signal.SIGTERM)
     assert comp.wait(20) == 0, procs.text("companion")
     report = json.loads((tmp_path / "companion.out").read_text())
@@ -471,23 +488,15 @@ def test_card_sitl_restarted_companion_reconnects_and_flies_again(
 
 def test_eval_over_mavlink_agrees_with_in_process(low_scenario, tmp_path):
     from training.evaluate import EvalConfig, evaluate
-    from training.exec.fly import FlyConfig, fly
 
-    kw = dict(policy="expert", episodes=3, seed=5, scenario=low_scenario)
-    over_udp = fly(
-        FlyConfig(
-            **kw,
-            out=str(tmp_path / "fly"),
-            progress=False,
-            companion_args=_RELAXED_MAX_AGE,
-            sitl_args=_PATIENT_LOCKSTEP,
-        )
-    )
-    here = evaluate(EvalConfig(**kw, render_camera=False, progress=False))
-    assert over_udp["transport"] == "mavlink" and over_udp["episodes"] == 3
-    assert over_udp["success_rate"] == here["success_rate"] == 1.0
+    kw = dict(policy="expert", episodes=3, seed=5)
+    over_udp = _fly_low(low_scenario, tmp_path / "fly", **kw, sitl_args=_PATIENT_LOCKSTEP)
+    here = evaluate(EvalConfig(**kw, scenario=low_scenario, render_camera=False, progress=False))
+    assert over_udp.transport == "mavlink" and over_udp.episodes == 3
+    assert over_udp.summary.success_rate == here.summary.success_rate == 1.0
     for key in ("landing_error_m", "touchdown_speed_m_s"):
-        a, b = over_udp[key]["mean"], here[key]["mean"]
+        a = getattr(over_udp.summary, key).mean
+        b = getattr(here.summary, key).mean
         assert abs(a - b) <= max(0.05, 0.1 * abs(b)), (key, a, b)
 
 
@@ -542,21 +551,10 @@ def test_card_a_run_leaves_one_companion_log_per_flight_and_none_aborted(low_sce
     """``visland fly`` runs the companion with ``--flights 0`` and stops it when the SITL is
     done: the flight it opened after the last landing never began, so it leaves no log (it used
     to leave one marked aborted) and the report names it under ``not_flown``."""
-    from training.exec.fly import FlyConfig, fly
-
-    report = fly(
-        FlyConfig(
-            policy="expert",
-            episodes=1,
-            seed=0,
-            scenario=low_scenario,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_args=_RELAXED_MAX_AGE,
-            sitl_args=_PATIENT_LOCKSTEP,
-        )
+    report = _fly_low(
+        low_scenario, tmp_path / "run", policy="expert", episodes=1, sitl_args=_PATIENT_LOCKSTEP
     )
-    assert report["success_rate"] == 1.0 and report["companion_flights"] == {"landed": 1}
+    assert report.summary.success_rate == 1.0 and report.companion_flights == {"landed": 1}
     companion = json.loads((tmp_path / "run" / "companion.json").read_text())
     (log_path,) = sorted((tmp_path / "run" / "companion").glob("*.mcap"))
     (flight,) = companion["flights"]
@@ -571,24 +569,13 @@ def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_
     file: camera rendered, images in the log, the replay reproduces every command."""
     from companion.policy_net import save_checkpoint, untrained_policy
     from companion.runtime import load_policy_file
-    from training.exec.fly import FlyConfig, fly
 
     net = untrained_policy(seed=3)
     ckpt = save_checkpoint(tmp_path / "net.pt", net.config, net.control, net.perception, {})
-    report = fly(
-        FlyConfig(
-            policy=str(ckpt),
-            episodes=1,
-            seed=0,
-            scenario=low_scenario,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_args=_RELAXED_MAX_AGE,
-        )
-    )
-    assert report["episodes"] == 1 and report["latency_ms"]["commands"] > 10
+    report = _fly_low(low_scenario, tmp_path / "run", policy=str(ckpt), episodes=1)
+    assert report.episodes == 1 and report.latency_ms["commands"] > 10
     (log_path,) = sorted((tmp_path / "run" / "companion").glob("*f000.mcap"))
     assert read_log(log_path, topics=["/camera/image"]).topic("/camera/image")
     replay = replay_log(log_path, PolicyRuntime(load_policy_file(ckpt), str(ckpt)))
-    assert replay.errors == [] and replay.commands == report["latency_ms"]["commands"]
+    assert replay.errors == [] and replay.commands == report.latency_ms["commands"]
     assert replay.max_abs_diff <= 1e-5

@@ -133,8 +133,8 @@ def test_board_install_flies_its_packaged_model_against_the_sitl(board_venv, tmp
             progress=False,
         )
     )
-    assert report["episodes"] == 1 and report["success_rate"] == 1.0, report
-    assert report["per_episode"][0]["landing_error_m"] < 0.5
+    assert report.episodes == 1 and report.summary.success_rate == 1.0, report
+    assert report.per_episode[0].landing_error_m < 0.5
     log = (tmp_path / "fly" / "companion.log").read_text()
     assert f"policy {model}: runtime onnx (auto)" in log, log[-2000:]
 

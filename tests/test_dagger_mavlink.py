@@ -28,8 +28,8 @@ def test_sitl_log_is_a_training_record_that_relabel_labels(low_scenario, tmp_pat
             policy="expert", episodes=1, seed=3, scenario=low_scenario, out=str(tmp_path / "f")
         )
     )
-    (row,) = report["per_episode"]
-    log_path = Path(row["log"])
+    (row,) = report.per_episode
+    log_path = Path(row.log)
     (rep,) = relabel([log_path], tmp_path / "labels")
     assert rep.ok and rep.steps > 20, rep
     (ep,), errors = load_episodes([(log_path, Path(rep.labels))], with_images=False)
@@ -61,9 +61,9 @@ def test_fly_many_flies_any_subset_of_a_seed_across_instances(low_scenario, tmp_
     cfg = FlyConfig(policy="expert", seed=9, scenario=low_scenario, out=str(tmp_path / "many"))
     done: list[int] = []
     report = fly_many(cfg, [0, 1, 3], instances=2, chunk=2, on_done=done.append)
-    assert sorted(done) == [1, 2] and report["runs"] == 2 and report["instances"] == 2
-    assert [r["episode"] for r in report["per_episode"]] == [0, 1, 3]
-    assert report["episodes"] == 3 and report["success_rate"] == 1.0
+    assert sorted(done) == [1, 2] and report.runs == 2 and report.instances == 2
+    assert [r.episode for r in report.per_episode] == [0, 1, 3]
+    assert report.episodes == 3 and report.summary.success_rate == 1.0
     sitl = tmp_path / "many" / "sitl"
     assert sorted(p.name for p in sitl.glob("*.mcap")) == [
         "sitl_seed9_ep0000.mcap",
@@ -73,9 +73,9 @@ def test_fly_many_flies_any_subset_of_a_seed_across_instances(low_scenario, tmp_
     assert all(completed_episode(p) for p in sitl.glob("*.mcap"))
     # episode 3 flown alone (its SITL started at --first-episode 3) is episode 3 of the seed
     alone = fly(replace_cfg(cfg, tmp_path / "alone", first_episode=3, episodes=1))
-    (a,) = alone["per_episode"]
-    (b,) = [r for r in report["per_episode"] if r["episode"] == 3]
-    assert a["landing_error_m"] == pytest.approx(b["landing_error_m"], abs=1e-9)
+    (a,) = alone.per_episode
+    (b,) = [r for r in report.per_episode if r.episode == 3]
+    assert a.landing_error_m == pytest.approx(b.landing_error_m, abs=1e-9)
     start = read_log(sitl / "sitl_seed9_ep0003.mcap", topics=["/episode/scenario"])
     assert start.topic("/episode/scenario")[0]["episode"] == 3
 

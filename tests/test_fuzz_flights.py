@@ -29,6 +29,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.flightlog import read_log
 from training.exec.fly import FlyConfig, fly, free_udp_port
+from training.reports import FlyReport
 
 pytestmark = pytest.mark.slow
 
@@ -99,7 +100,7 @@ class Flood(threading.Thread):
             self.done_at = time.monotonic()
 
 
-def _fly(tmp: Path, name: str, ports: tuple[int, int, int], gcs: int) -> dict:
+def _fly(tmp: Path, name: str, ports: tuple[int, int, int], gcs: int) -> FlyReport:
     return fly(
         FlyConfig(
             policy=str(SHIPPED),
@@ -186,15 +187,15 @@ def test_a_flood_of_malformed_datagrams_on_every_port_harms_no_flight(tmp_path):
     # by the kernel, 1-69 ATTITUDE/DISTANCE_SENSOR samples lost in each of the 12 flights the
     # flood overlapped, all 12 landed; the other 12 equal to the calm run. At 6,000 datagrams a
     # second the camera's frames were dropped too and two flights failed safe.)
-    assert flooded["success_rate"] == baseline["success_rate"] == 1.0
+    assert flooded.summary.success_rate == baseline.summary.success_rate == 1.0
     logs = sorted((tmp_path / "flood" / "companion").glob("*_f*.mcap"))
-    lost = [_telemetry_lost(log) for log in logs[: len(flooded["per_episode"])]]
-    for a, b, n in zip(baseline["per_episode"], flooded["per_episode"], lost, strict=True):
+    lost = [_telemetry_lost(log) for log in logs[: len(flooded.per_episode)]]
+    for a, b, n in zip(baseline.per_episode, flooded.per_episode, lost, strict=True):
         if n == 0:
-            assert a["landing_error_m"] == b["landing_error_m"], (a, b)
-            assert a["touchdown_speed_m_s"] == b["touchdown_speed_m_s"], (a, b)
+            assert a.landing_error_m == b.landing_error_m, (a, b)
+            assert a.touchdown_speed_m_s == b.touchdown_speed_m_s, (a, b)
         else:
-            assert b["success"] and b["touchdown_speed_m_s"] <= 0.6, (b, n)
+            assert b.success and b.touchdown_speed_m_s <= 0.6, (b, n)
     if kernel_drops is not None:  # and only the kernel lost telemetry
         assert sum(lost) == 0 or kernel_drops > 0, (lost, kernel_drops)
     # refusals counted: the companion's report ... (how many of the 100 000 a process reads
@@ -226,8 +227,8 @@ def test_a_flood_of_malformed_datagrams_on_every_port_harms_no_flight(tmp_path):
                     k: max(m[k] for m in status)
                     for k in ("errors_comm", "drop_rate_comm", "errors_count1", "errors_count2")
                 },
-                "landing_error_m": [r["landing_error_m"] for r in flooded["per_episode"]],
-                "calm_landing_error_m": [r["landing_error_m"] for r in baseline["per_episode"]],
+                "landing_error_m": [r.landing_error_m for r in flooded.per_episode],
+                "calm_landing_error_m": [r.landing_error_m for r in baseline.per_episode],
                 "telemetry_samples_lost": lost,
                 "kernel_udp_receive_buffer_drops": kernel_drops,
             }

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -28,6 +29,9 @@ from sitl_sim.mavlink.link_impairment import (
     link_config_from_table,
 )
 from sitl_sim.scenario import scenario_from_dict
+
+if TYPE_CHECKING:
+    from training.reports import FlyReport
 
 REPO = Path(__file__).resolve().parent.parent
 _INITIAL = {
@@ -379,9 +383,9 @@ def test_link_drops_a_stale_heartbeat_by_sequence_number():
 # --------------------------------------------------------------------------- flight cards
 
 
-def _fly(low_scenario: str, tmp_path, episodes: int, *link_flags: str) -> dict:
+def _fly(low_scenario: str, tmp_path, episodes: int, *link_flags: str) -> tuple[FlyReport, dict]:
     """``visland fly --realtime`` (the expert from 5-6 m) through the given ``--link-*`` flags
-    of the SITL; the report, with the companion's own report as ``companion``."""
+    of the SITL; the report, and the companion's own report."""
     import json
 
     from training.exec.fly import FlyConfig, fly
@@ -398,22 +402,23 @@ def _fly(low_scenario: str, tmp_path, episodes: int, *link_flags: str) -> dict:
             sitl_args=link_flags,
         )
     )
-    report["companion"] = json.loads((tmp_path / "fly" / "companion.json").read_text())
-    return report
+    return report, json.loads((tmp_path / "fly" / "companion.json").read_text())
 
 
 def test_card_companion_flies_through_ten_percent_loss_and_50_ms_jitter_to_touchdown(
     low_scenario, tmp_path
 ):
-    report = _fly(low_scenario, tmp_path, 2, "--link-loss-prob", "0.1", "--link-jitter-ms", "50")
-    assert report["episodes"] == 2 and report["success_rate"] == 1.0, report["per_episode"]
-    for row in report["per_episode"]:
-        assert row["landed"] and row["touchdown_vertical_speed_m_s"] <= 1.0
+    report, companion = _fly(
+        low_scenario, tmp_path, 2, "--link-loss-prob", "0.1", "--link-jitter-ms", "50"
+    )
+    assert report.episodes == 2 and report.summary.success_rate == 1.0, report.per_episode
+    for row in report.per_episode:
+        assert row.landed and row.touchdown_vertical_speed_m_s <= 1.0
     # The companion flew both to touchdown itself: no failsafe (600 ms staleness limit). The
     # last flight may end "aborted" when the run stops before its disarm HEARTBEAT arrives, and
     # a next flight may have begun waiting when the SITL exits: the flown ones are counted.
-    flights = [f for f in report["companion"]["flights"] if f["policy_commands"] > 0]
-    assert len(flights) == 2, report["companion"]["flights"]
+    flights = [f for f in companion["flights"] if f["policy_commands"] > 0]
+    assert len(flights) == 2, companion["flights"]
     for flight in flights:
         assert flight["failsafe_reason"] is None, flight
         assert any("touchdown (range + IMU)" in e for e in flight["events"]), flight["events"]
@@ -429,7 +434,7 @@ def test_card_companion_flies_through_ten_percent_loss_and_50_ms_jitter_to_touch
         assert rep.errors == [] and rep.commands == flight["policy_commands"]
         assert rep.max_abs_diff <= 1e-5
     # and the link did impair every stream, both ways
-    streams = report["link_impairment"]
+    streams = report.link_impairment
     for name in ("mavlink_tx", "mavlink_rx", "camera_tx"):
         st = streams[name]
         assert st["lost"] > 0 and st["delayed"] == st["offered"] - st["lost"], (name, st)
@@ -442,18 +447,18 @@ def test_card_link_dead_mid_flight_sitl_failsafe_lands_and_the_companion_notices
 ):
     from companion.flightlog import read_log
 
-    report = _fly(low_scenario, tmp_path, 1, "--link-cut-at-s", "1.5")
-    (row,) = report["per_episode"]
-    flight = read_log(row["log"])
+    report, companion = _fly(low_scenario, tmp_path, 1, "--link-cut-at-s", "1.5")
+    (row,) = report.per_episode
+    flight = read_log(row.log)
     texts = [e["text"] for e in flight.topic("/events")]
     assert any(t.startswith("link cut at flight time 1.50") for t in texts), texts
     assert any(t.startswith("Failsafe: offboard setpoints lost") for t in texts), texts
     modes = [m["mode"] for m in flight.topic("/autopilot/command")]
     assert modes[0] == "OFFBOARD" and modes[-1] == "AUTO.LAND"
-    assert row["landed"] and row["touchdown_vertical_speed_m_s"] <= 1.0
-    cut = row["link_impairment"]["streams"]
+    assert row.landed and row.touchdown_vertical_speed_m_s <= 1.0
+    cut = row.link_impairment["streams"]
     assert all(cut[s]["outage"] > 0 for s in ("mavlink_tx", "mavlink_rx", "camera_tx")), cut
-    (comp,) = report["companion"]["flights"]
+    (comp,) = companion["flights"]
     reason = comp["failsafe_reason"] or ""
     assert reason.startswith(("camera_stale", "telemetry_stale")), comp
 
@@ -486,7 +491,8 @@ def test_twenty_real_time_landings_through_a_lossy_link(tmp_path, policy):
     companion = json.loads((tmp_path / "fly" / "companion.json").read_text())
     flown = [f for f in companion["flights"] if f["policy_commands"] > 0]
     clean = [f for f in flown if f["failsafe_reason"] is None]
-    print(json.dumps({k: report[k] for k in ("success_rate", "landing_error_m", "wall_s")}))
+    s = report.summary
+    print(f"success rate {s.success_rate}, landing error {s.landing_error_m}, {report.wall_s} s")
     print(f"companion flights without failsafe: {len(clean)}/{len(flown)}")
-    assert report["success_rate"] >= 0.95, report["per_episode"]
+    assert s.success_rate >= 0.95, report.per_episode
     assert len(clean) >= 0.95 * 20, [f["failsafe_reason"] for f in flown]

@@ -95,7 +95,7 @@ def logs(tmp_path_factory, low_scenario: str) -> dict[str, Path]:
             policy="cascade", episodes=1, seed=0, scenario=str(scenario), out=str(root / "fly")
         )
     )
-    assert report["success_rate"] == 1.0
+    assert report.summary.success_rate == 1.0
     onboard = sorted((root / "fly" / "companion").glob("*.mcap"), key=lambda p: p.stat().st_size)
     return {
         "rollout": rollout,

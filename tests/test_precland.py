@@ -317,12 +317,12 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
             sitl_args=("--lockstep-timeout-s", "5"),
         )
     )
-    assert report["companion_mode"] == "landing-target" and report["episodes"] == 3
-    assert report["success_rate"] == 1.0, report["per_episode"]
-    assert report["landing_error_m"]["mean"] <= 0.5, report["landing_error_m"]
-    assert report["latency_ms"] == {"commands": 0}  # no setpoint was ever sent
-    for row in report["per_episode"]:
-        flight = read_log(row["log"])
+    assert report.companion_mode == "landing-target" and report.episodes == 3
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert report.summary.landing_error_m.mean <= 0.5, report.summary.landing_error_m
+    assert report.latency_ms == {"commands": 0}  # no setpoint was ever sent
+    for row in report.per_episode:
+        flight = read_log(row.log)
         modes = {m["mode"] for m in flight.topic("/autopilot/command")}
         assert modes == {"AUTO.PRECLAND"}
         result = flight.topic("/episode/result")[-1]

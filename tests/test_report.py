@@ -66,10 +66,10 @@ def test_per_episode_records_where_the_landing_error_was_measured(low_scenario):
     finally:
         env.close()
     row = out.row()
-    assert row["landed"] and len(row["touchdown_ne_m"]) == 2
-    assert math.hypot(*row["touchdown_ne_m"]) == pytest.approx(row["landing_error_m"], abs=1e-12)
-    assert np.allclose(row["touchdown_ne_m"], rest[:2], atol=1e-3)
-    assert json.loads(json.dumps(row))["touchdown_ne_m"] == row["touchdown_ne_m"]
+    assert row.landed and len(row.touchdown_ne_m) == 2
+    assert math.hypot(*row.touchdown_ne_m) == pytest.approx(row.landing_error_m, abs=1e-12)
+    assert np.allclose(row.touchdown_ne_m, rest[:2], atol=1e-3)
+    assert json.loads(row.to_json())["touchdown_ne_m"] == list(row.touchdown_ne_m)
 
     # a flight that cannot land in 1 s: the position at the timeout, as landing_error_m uses
     short = dataclasses.replace(load_sim(), episode_timeout_s=1.0)
@@ -80,9 +80,9 @@ def test_per_episode_records_where_the_landing_error_was_measured(low_scenario):
     finally:
         env.close()
     row = out.row()
-    assert not row["landed"] and not row["success"]
-    assert row["touchdown_ne_m"] == pytest.approx(list(at_timeout[:2]), abs=1e-12)
-    assert math.hypot(*row["touchdown_ne_m"]) == pytest.approx(row["landing_error_m"], abs=1e-12)
+    assert not row.landed and not row.success
+    assert row.touchdown_ne_m == pytest.approx(tuple(at_timeout[:2]), abs=1e-12)
+    assert math.hypot(*row.touchdown_ne_m) == pytest.approx(row.landing_error_m, abs=1e-12)
 
 
 # ----------------------------------------------------------------------------- a small real run

@@ -431,13 +431,38 @@ def test_pose_frames_in_the_worlds_looks_are_seeded_and_differ_from_nominal():
 
 
 def _cond(success: float, mean: float | None, mx: float | None, touch: float, n: int = 50):
-    return {
-        "episodes": n,
-        "success_rate": success,
-        "timeouts": 0,
-        "landing_error_m": {"mean": mean, "max": mx},
-        "touchdown_speed_m_s": {"mean": touch},
-    }
+    """A suite condition's report with the figures the targets and tables read."""
+    from training.reports import EvalReport, LandingSummary, Stats
+
+    def stats(mean: float | None = None, mx: float | None = None) -> Stats:
+        return Stats(min=None, max=mx, mean=mean, std=None)
+
+    summary = LandingSummary(
+        landing_error_m=stats(mean, mx),
+        touchdown_speed_m_s=stats(touch),
+        touchdown_vertical_speed_m_s=stats(),
+        tilt_deg=stats(),
+        time_s=stats(),
+        success_rate=success,
+        timeouts=0,
+    )
+    return EvalReport(
+        policy="p",
+        transport="inprocess",
+        seed=0,
+        scenario="s.toml",
+        episodes=n,
+        summary=summary,
+        policy_stats={},
+        wall_s=0.0,
+        per_episode=(),
+    )
+
+
+def _suite(conditions: dict):
+    from training.reports import SuiteReport
+
+    return SuiteReport(suite="s.toml", policy="p", seed=0, episodes=50, conditions=conditions)
 
 
 def test_suite_targets_and_which_model_read_the_reports():
@@ -455,12 +480,11 @@ def test_suite_targets_and_which_model_read_the_reports():
         "heavy_vehicle",
         "light_vehicle",
     ]
-    good = {"conditions": {n: _cond(1.0, 0.1, 0.3, 0.4) for n in names}}
-    good["conditions"]["nominal"]["episodes"] = 300
+    good = _suite({n: _cond(1.0, 0.1, 0.3, 0.4, 300 if n == "nominal" else 50) for n in names})
     table, met, total = suite_standing(good)
     per_condition = sum(1 for t in SUITE_TARGETS if t.condition != "*")
     assert (met, total) == (per_condition + len(names), per_condition + len(names))
-    bad = {"conditions": {**good["conditions"], "mars": _cond(0.0, None, None, 0.4)}}
+    bad = _suite({**good.conditions, "mars": _cond(0.0, None, None, 0.4)})
     table, met, total = suite_standing(bad)
     assert met == total - 2  # Mars success and Mars mean error (no touchdown: n/a)
     assert "| mars: success ≥ 99 % | 0.0 % | **no** |" in table
@@ -468,7 +492,7 @@ def test_suite_targets_and_which_model_read_the_reports():
     side = suite_comparison(good, bad, ("robust.pt", "paper.pt"))
     assert "| mars | 100.0 % (50) | 0.100 m | 0.300 m | 0.400 m/s | 0.0 % (50) | n/a |" in side
     # the baseline is better only where it lands more often or as often and >= 10 % closer
-    base = {"conditions": {**good["conditions"], "nominal": _cond(1.0, 0.05, 0.2, 0.4, 300)}}
+    base = _suite({**good.conditions, "nominal": _cond(1.0, 0.05, 0.2, 0.4, 300)})
     text = _which_model(good, base, "robust.pt", "paper.pt")
     assert "better in: nominal (100.0 % vs 100.0 %, mean 0.05 m vs 0.1 m)" in text
     assert "not better in any" in _which_model(good, good, "robust.pt", "paper.pt")

@@ -14,6 +14,7 @@ from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import load_scenario
 from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
+from training.reports import EvalReport
 from training.suite import load_suite, plot_suite, run_suite
 
 LOW_WIND = """
@@ -34,19 +35,20 @@ def low_file(tmp_path) -> Path:
     return _write(tmp_path / "low.toml", f"[initial_state]\n{LOW_INITIAL_STATE}")
 
 
-def _rows(report: dict) -> str:
-    return json.dumps(report["per_episode"], sort_keys=True)  # NaN-safe equality
+def _suite_file(tmp_path: Path, conditions: str, **suite: int) -> Path:
+    """``suite.toml``: a ``[suite]`` table of ``suite``'s keys, then ``conditions``."""
+    head = "".join(f"{key} = {value}\n" for key, value in suite.items())
+    return _write(tmp_path / "suite.toml", f"[suite]\n{head}\n{conditions}")
+
+
+def _rows(report: EvalReport) -> str:
+    return json.dumps(report.to_dict()["per_episode"], sort_keys=True)  # NaN-safe equality
 
 
 def test_suite_conditions_fly_exactly_as_evaluate(tmp_path, low_file):
-    suite_path = _write(
-        tmp_path / "suite.toml",
-        f"""
-[suite]
-episodes = 5
-seed = 4242
-
-[conditions.from_file]
+    suite_path = _suite_file(
+        tmp_path,
+        f"""[conditions.from_file]
 scenario = "{low_file}"
 
 [conditions.inline_wind.scenario.initial_state]
@@ -56,14 +58,16 @@ planet = "earth"
 [conditions.inline_wind.scenario.wind]
 {LOW_WIND}
 """,
+        episodes=5,
+        seed=4242,
     )
     suite = load_suite(suite_path)
     assert [c.name for c in suite.conditions] == ["from_file", "inline_wind"]
     assert suite.conditions[1].scenario.wind is not None
     report = run_suite(suite, "expert", episodes=2, seed=77, render_camera=False, progress=False)
-    assert report["suite"] == str(suite_path)
-    assert (report["episodes"], report["seed"]) == (2, 77)
-    assert list(report["conditions"]) == ["from_file", "inline_wind"]
+    assert report.suite == str(suite_path)
+    assert (report.episodes, report.seed) == (2, 77)
+    assert list(report.conditions) == ["from_file", "inline_wind"]
 
     wind_file = _write(
         tmp_path / "wind.toml",
@@ -80,13 +84,11 @@ planet = "earth"
                 progress=False,
             )
         )
-        got = report["conditions"][name]
-        assert got["episodes"] == 2 and got["seed"] == 77
+        got = report.conditions[name]
+        assert got.episodes == 2 and got.seed == 77
         assert _rows(got) == _rows(direct), name
-        assert got["success_rate"] == direct["success_rate"]
-    assert report["conditions"]["inline_wind"]["scenario"] == (
-        f"{suite_path}: [conditions.inline_wind]"
-    )
+        assert got.summary.success_rate == direct.summary.success_rate
+    assert report.conditions["inline_wind"].scenario == (f"{suite_path}: [conditions.inline_wind]")
 
     png = plot_suite(report, tmp_path / "out" / "suite.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -223,25 +225,22 @@ def test_cli_plot_without_suite_is_a_usage_error():
 
 
 def test_a_condition_may_have_its_own_episode_count(tmp_path, low_file):
-    suite_path = _write(
-        tmp_path / "suite.toml",
-        f"""
-[suite]
-episodes = 1
-
-[conditions.many]
+    suite_path = _suite_file(
+        tmp_path,
+        f"""[conditions.many]
 scenario = "{low_file}"
 episodes = 2
 
 [conditions.default]
 scenario = "{low_file}"
 """,
+        episodes=1,
     )
     suite = load_suite(suite_path)
     assert [c.episodes for c in suite.conditions] == [2, None]
     report = run_suite(suite, "expert", render_camera=False, progress=False)
-    assert [r["episodes"] for r in report["conditions"].values()] == [2, 1]
+    assert [r.episodes for r in report.conditions.values()] == [2, 1]
     # --episodes overrides every condition, its own count included
     report = run_suite(suite, "expert", episodes=1, render_camera=False, progress=False)
-    assert [r["episodes"] for r in report["conditions"].values()] == [1, 1]
+    assert [r.episodes for r in report.conditions.values()] == [1, 1]
     assert load_suite(REPO / "configs/suites/standard.toml").conditions[0].episodes == 300

@@ -141,13 +141,13 @@ def bench_companion(
             companion_args=("--runtime", runtime),
         )
     )
-    logs = sorted((Path(report["out"]) / "companion").glob("*.mcap"))
+    logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
     res: dict[str, Any] = {
         "policy": policy,
         "runtime": runtime,
         "episodes": episodes,
         "seed": seed,
-        "success_rate": report["success_rate"],
+        "success_rate": report.summary.success_rate,
         "run": str(run),
         **latency_stats(list(logs)),
     }

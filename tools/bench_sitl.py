@@ -168,13 +168,13 @@ def bench_sitl(cfg: SitlBenchConfig | None = None) -> dict[str, Any]:
     return {
         "config": asdict(cfg),
         "render": render,
-        "success_rate": report["success_rate"],
+        "success_rate": report.summary.success_rate,
         "flight_sim_s": sim_s,
         "frames": frames,
         "realtime_factor": rtf,
         "ms_per_frame": 1e3 * wall / frames if frames else 0.0,
         "realtime_factor_cpu": sim_s / cpu if cpu > 0 else 0.0,
-        "realtime_factor_end_to_end": sim_s / report["wall_s"],
+        "realtime_factor_end_to_end": sim_s / report.wall_s,
         "sitl": _process(sitl, frames),
         "companion": _process(companion, frames),
         "in_process": {

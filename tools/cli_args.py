@@ -68,15 +68,15 @@ def add_deprecated_alias(
 
 
 def print_json(obj: Any) -> None:
-    """One JSON document on stdout; NaN (e.g. no touchdown) is null: "not defined"."""
+    """One JSON document on stdout (a typed report's :meth:`~training.record.Record.to_json`);
+    NaN (e.g. no touchdown) is null: "not defined"."""
     from companion.flightlog import jsonable
+    from training.record import Record
 
-    print(json.dumps(jsonable(obj), indent=2))
+    print(obj.to_json() if isinstance(obj, Record) else json.dumps(jsonable(obj), indent=2))
 
 
-def print_result(
-    result: dict[str, Any], as_json: bool, table: Callable[[dict[str, Any], TextIO], None]
-) -> None:
+def print_result(result: Any, as_json: bool, table: Callable[[Any, TextIO], None]) -> None:
     """``result`` as one JSON document (``--json``), else written by ``table`` to stdout."""
     if as_json:
         print_json(result)

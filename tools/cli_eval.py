@@ -143,19 +143,18 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from training.exec.choose import backend_from_args
 
     with backend_from_args(args, args.workers) as backend:
-        summary = collect(_flight_config(CollectConfig, args, backend))
+        report = collect(_flight_config(CollectConfig, args, backend))
     if args.json:
-        print_json(summary)
+        print_json(report)
     else:
         print(
-            f"{summary['flown_now']} flown now, {summary['already_complete']} already complete "
-            f"(seed {summary['seed']}, scenario {summary['scenario']}); logs in "
-            f"{summary['flights_dir']}"
+            f"{report.flown_now} flown now, {report.already_complete} already complete "
+            f"(seed {report.seed}, scenario {report.scenario}); logs in {report.flights_dir}"
         )
-        if summary["flown_now"]:
-            format_table({**summary, "episodes": summary["flown_now"]}, sys.stdout)
-    failed = summary.get("policy_stats", {}).get("failed", 0)
-    return 0 if summary["timeouts"] == 0 and not failed else 1
+        if report.flown_now:
+            format_table(report, sys.stdout)
+    failed = report.policy_stats.get("failed", 0)
+    return 0 if report.summary.timeouts == 0 and not failed else 1
 
 
 def _cmd_relabel(args: argparse.Namespace) -> int:

@@ -173,12 +173,12 @@ def cmd_fly(args: argparse.Namespace) -> int:
         print_json(report)
     else:
         format_table(report, sys.stdout)
-        lat = report["latency_ms"]
+        lat = report.latency_ms
         if lat.get("commands"):
             print(
                 f"  frame receipt -> setpoint sent: median {lat['median_ms']:.2f} ms, "
                 f"p99 {lat['p99_ms']:.2f} ms over {lat['commands']} commands; logs in "
-                f"{report['out']}"
+                f"{report.out}"
             )
     return 0
 

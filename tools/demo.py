@@ -301,7 +301,7 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
             out=str(out_dir),
             progress=cfg.progress,
         )
-    )
+    ).to_dict()  # the demo's report is fly's JSON object, its own keys added (demo.json)
     rows = report["per_episode"]
     report["policy_description"] = description
     report["policy_sha256"] = None if policy in ("expert", "cascade") else sha256_file(policy)

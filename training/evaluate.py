@@ -1,8 +1,9 @@
 """``visland eval`` and ``visland collect``: fly a policy over the scenario, report or record.
 
-The metrics are ``sitl_sim.metrics`` (one definition everywhere); the JSON has at least the keys
-DESIGN.md lists: episodes, transport, seed, landing_error_m {min, max, mean, std},
-touchdown_speed_m_s {...}, success_rate and per_episode rows.
+The metrics are ``sitl_sim.metrics`` (one definition everywhere); the reports are
+:mod:`training.reports`' records, whose JSON has at least the keys DESIGN.md lists: episodes,
+transport, seed, landing_error_m {min, max, mean, std}, touchdown_speed_m_s {...}, success_rate
+and per_episode rows.
 """
 
 from __future__ import annotations
@@ -13,11 +14,10 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from tqdm import tqdm
 
-from sitl_sim.metrics import summarize
 from sitl_sim.scenario import Scenario
 from training.exec.rollout import (
     EpisodeOutcome,
@@ -26,6 +26,14 @@ from training.exec.rollout import (
     log_name,
 )
 from training.exec.transport import Transport
+from training.reports import (
+    BackendInfo,
+    CollectReport,
+    EvalReport,
+    FlyReport,
+    LandingSummary,
+    Stats,
+)
 from training.seeds import EVAL_SEED
 
 if TYPE_CHECKING:
@@ -78,7 +86,7 @@ def _scenario_name(scenario: str | Scenario | None) -> str:
     return scenario or "configs/scenario.toml"
 
 
-def evaluate(cfg: EvalConfig) -> dict[str, Any]:
+def evaluate(cfg: EvalConfig) -> EvalReport:
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
     spec = RolloutSpec(
@@ -88,18 +96,18 @@ def evaluate(cfg: EvalConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     with _progress(cfg.episodes, cfg.progress, f"eval {cfg.policy}") as bar:
         outcomes = backend.episodes(spec, list(range(cfg.episodes)), lambda _: bar.update())
-    results = [o.result for o in outcomes]
-    return {
-        "policy": cfg.policy,
-        "transport": Transport.INPROCESS.value,
-        "seed": cfg.seed,
-        "scenario": _scenario_name(cfg.scenario),
-        **summarize(results),
-        "policy_stats": _totals(outcomes),
-        "wall_s": time.perf_counter() - t0,
-        "backend": backend.describe(),
-        "per_episode": [o.row() for o in outcomes],
-    }
+    return EvalReport(
+        policy=cfg.policy,
+        transport=Transport.INPROCESS.value,
+        seed=cfg.seed,
+        scenario=_scenario_name(cfg.scenario),
+        episodes=len(outcomes),
+        summary=LandingSummary.of([o.result for o in outcomes]),
+        policy_stats=_totals(outcomes),
+        wall_s=time.perf_counter() - t0,
+        backend=BackendInfo.from_dict(backend.describe(), "backend"),
+        per_episode=tuple(o.row() for o in outcomes),
+    )
 
 
 @dataclass(frozen=True)
@@ -118,7 +126,7 @@ class CollectConfig:
     """Where the episodes fly (None: this host, ``workers`` processes)."""
 
 
-def collect(cfg: CollectConfig) -> dict[str, Any]:
+def collect(cfg: CollectConfig) -> CollectReport:
     """Fly the expert and write one flight log per episode; resumable (skips complete logs)."""
     flights = Path(cfg.out) / "flights"
     flights.mkdir(parents=True, exist_ok=True)
@@ -132,53 +140,51 @@ def collect(cfg: CollectConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     with _progress(len(todo), cfg.progress, f"collect {cfg.policy}") as bar:
         outcomes = backend.episodes(spec, todo, lambda _: bar.update()) if todo else []
-    summary = {
-        "policy": cfg.policy,
-        "seed": cfg.seed,
-        "scenario": _scenario_name(cfg.scenario),
-        "episodes": cfg.episodes,
-        "flown_now": len(todo),
-        "already_complete": len(done),
-        "flights_dir": str(flights),
-        **{k: v for k, v in summarize([o.result for o in outcomes]).items() if k != "episodes"},
-        "policy_stats": _totals(outcomes),
-        "wall_s": time.perf_counter() - t0,
-        "backend": backend.describe(),
-        "per_episode": [o.row() for o in outcomes],
-    }
-    (Path(cfg.out) / f"collect_s{cfg.seed}.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    report = CollectReport(
+        policy=cfg.policy,
+        seed=cfg.seed,
+        scenario=_scenario_name(cfg.scenario),
+        episodes=cfg.episodes,
+        flown_now=len(todo),
+        already_complete=len(done),
+        flights_dir=str(flights),
+        summary=LandingSummary.of([o.result for o in outcomes]),
+        policy_stats=_totals(outcomes),
+        wall_s=time.perf_counter() - t0,
+        backend=BackendInfo.from_dict(backend.describe(), "backend"),
+        per_episode=tuple(o.row() for o in outcomes),
+    )
+    # as json.dumps writes it (NaN as NaN, as this file always had it)
+    (Path(cfg.out) / f"collect_s{cfg.seed}.json").write_text(json.dumps(report.to_dict(), indent=2))
+    return report
 
 
-def format_table(report: dict[str, Any], out: TextIO) -> None:
-    """A human summary of an eval/collect report."""
+def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) -> None:
+    """A human summary of an eval, collect (the episodes flown now) or fly report."""
+    n = report.flown_now if isinstance(report, CollectReport) else report.episodes
+    s = report.summary
+    timeouts = s.timeouts
+    landed = n - timeouts if s.landed is None else s.landed
 
-    n = report.get("episodes") or 0
-    timeouts = report.get("timeouts", 0)
-    landed = report.get("landed", n - timeouts)
-
-    def row(name: str, key: str, unit: str, landed_only: bool = False) -> None:
-        s = report.get(key) or {}
-        if not s:
-            return
-        if s["mean"] is None or math.isnan(s["mean"]):  # nothing touched down: no statistic
+    def row(name: str, stats: Stats, unit: str, landed_only: bool = False) -> None:
+        if stats.mean is None or math.isnan(stats.mean):  # nothing touched down: no statistic
             why = f"all {n} episodes timed out" if landed_only and n else "no value"
             out.write(f"  {name:<22} n/a ({why})\n")
             return
         over = f" (over {landed} landed; {timeouts} timed out)" if landed_only and timeouts else ""
         out.write(
-            f"  {name:<22} min {s['min']:8.3f}  max {s['max']:8.3f}  mean {s['mean']:8.3f}"
-            f"  std {s['std']:8.3f} {unit}{over}\n"
+            f"  {name:<22} min {stats.min:8.3f}  max {stats.max:8.3f}  mean {stats.mean:8.3f}"
+            f"  std {stats.std:8.3f} {unit}{over}\n"
         )
 
-    scenario = report.get("scenario")
-    where = f", scenario {scenario}" if scenario else ""
-    out.write(f"{report.get('policy')}: {n} episodes, seed {report.get('seed')}{where}\n")
-    row("landing error", "landing_error_m", "m", landed_only=True)
-    row("touchdown speed", "touchdown_speed_m_s", "m/s", landed_only=True)
-    row("tilt at touchdown", "tilt_deg", "deg", landed_only=True)
-    row("time to touchdown", "time_s", "s")
+    where = f", scenario {report.scenario}" if report.scenario else ""
+    out.write(f"{report.policy}: {n} episodes, seed {report.seed}{where}\n")
+    row("landing error", s.landing_error_m, "m", landed_only=True)
+    row("touchdown speed", s.touchdown_speed_m_s, "m/s", landed_only=True)
+    row("tilt at touchdown", s.tilt_deg, "deg", landed_only=True)
+    row("time to touchdown", s.time_s, "s")
+    counters = {} if isinstance(report, FlyReport) else report.policy_stats
     out.write(
-        f"  success rate {100 * report['success_rate']:.1f} %   timeouts {report['timeouts']}"
-        f"   policy counters {report.get('policy_stats', {})}\n"
+        f"  success rate {100 * s.success_rate:.1f} %   timeouts {timeouts}"
+        f"   policy counters {counters}\n"
     )

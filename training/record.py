@@ -24,6 +24,7 @@ Field metadata (``dataclasses.field(metadata=...)``):
 from __future__ import annotations
 
 import dataclasses
+import json
 import types
 import typing
 from collections.abc import Sequence
@@ -157,6 +158,13 @@ class Record:
             cache = [(f, hints[f.name]) for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
             cls._record_fields = cache  # type: ignore[attr-defined]
         return cache
+
+    def to_json(self, indent: int | None = 2) -> str:
+        """The JSON document of :meth:`to_dict` (NaN and numpy values as ``jsonable`` writes
+        them: NaN is null, "not defined")."""
+        from companion.flightlog import jsonable
+
+        return json.dumps(jsonable(self.to_dict()), indent=indent)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object, keys in field order."""

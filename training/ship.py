@@ -18,6 +18,7 @@ from training.provenance import SHIPPED_MODEL
 from training.report.markdown import rollouts_text, table3
 from training.report.metrics import load_metrics
 from training.report.targets import fmt
+from training.reports import SuiteReport
 
 __all__ = ["ship"]
 
@@ -29,11 +30,11 @@ def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
         return ""
     from training.report.suite import suite_comparison, suite_standing
 
-    report = json.loads(Path(metrics["suite"]).read_text())
+    report = SuiteReport.load(metrics["suite"])
     baseline = None
     if metrics.get("suite_baseline"):
-        baseline = json.loads(Path(metrics["suite_baseline"]).read_text())
-    base_name = Path(baseline["policy"]).name if baseline else ""
+        baseline = SuiteReport.load(metrics["suite_baseline"])
+    base_name = Path(baseline.policy).name if baseline else ""
     standing, met, total = suite_standing(report)
     base_line = (
         f"The baseline is the paper-world model (`{base_name}`), flown on the same episodes."
@@ -42,8 +43,8 @@ def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
     )
     verdict = "All targets are met." if met == total else "Targets not met are marked **no**."
     which = _which_model(report, baseline, shipped, base_name) if baseline else ""
-    suite_name = metrics["profile"].get("eval_suite") or report["suite"]
-    return f"""## Results on the benchmark suite (`{suite_name}`, seed {report["seed"]})
+    suite_name = metrics["profile"].get("eval_suite") or report.suite
+    return f"""## Results on the benchmark suite (`{suite_name}`, seed {report.seed})
 
 {suite_comparison(report, baseline, (shipped, base_name))}
 
@@ -59,26 +60,24 @@ Each cell: success (episodes), mean and max landing error, mean touchdown speed.
 {which}"""
 
 
-def _which_model(
-    report: dict[str, Any], baseline: dict[str, Any], shipped: str, base_name: str
-) -> str:
+def _which_model(report: SuiteReport, baseline: SuiteReport, shipped: str, base_name: str) -> str:
     """Which model to fly where, from the two suite reports: the conditions where the baseline
     lands more often, or as often and at least 10 % closer on average."""
     better = []
-    for name, r in report["conditions"].items():
-        b = baseline["conditions"].get(name)
-        if b is None:
+    for name, report_r in report.conditions.items():
+        base_r = baseline.conditions.get(name)
+        if base_r is None:
             continue
-        ours_e = (r.get("landing_error_m") or {}).get("mean")
-        base_e = (b.get("landing_error_m") or {}).get("mean")
-        if b["success_rate"] > r["success_rate"] or (
-            b["success_rate"] == r["success_rate"]
+        r, b = report_r.summary, base_r.summary
+        ours_e, base_e = r.landing_error_m.mean, b.landing_error_m.mean
+        if b.success_rate > r.success_rate or (
+            b.success_rate == r.success_rate
             and ours_e is not None
             and base_e is not None
             and base_e < 0.9 * ours_e
         ):
             better.append(
-                f"{name} ({100 * b['success_rate']:.1f} % vs {100 * r['success_rate']:.1f} %, "
+                f"{name} ({100 * b.success_rate:.1f} % vs {100 * r.success_rate:.1f} %, "
                 f"mean {base_e if base_e is None else round(base_e, 3)} m vs "
                 f"{ours_e if ours_e is None else round(ours_e, 3)} m)"
             )

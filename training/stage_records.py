@@ -3,8 +3,8 @@
 
 Each ``stages/<stage>.json`` starts with ``stage`` and ``git_commit`` (the commit that ran it,
 ``<sha>+dirty`` for uncommitted code); the rest is the stage's own. ``metrics.json`` (the eval
-stage) holds the Table 3 rows (``training.evaluate.evaluate`` reports, per-episode rows of
-``training.exec.rollout.EpisodeOutcome.row``), the inference timing and a copy of the records of the
+stage) holds the Table 3 rows (``training.evaluate.evaluate``'s reports,
+:class:`training.reports.EvalReport`), the inference timing and a copy of the records of the
 stages before it.
 """
 
@@ -15,6 +15,7 @@ from typing import Any
 
 from training.profiles import Profile
 from training.record import Record
+from training.reports import EvalReport
 
 __all__ = [
     "STAGES",
@@ -22,16 +23,13 @@ __all__ = [
     "CollectRecord",
     "DaggerRecord",
     "DaggerRoundRecord",
-    "EpisodeRow",
     "EvalRecord",
-    "EvalRow",
     "FitRecord",
     "Metrics",
     "PerceptionRecord",
     "Rows",
     "StageRecord",
     "StageRecords",
-    "Stats",
     "ValidationScore",
     "VisionRecord",
     "record_type",
@@ -174,87 +172,18 @@ def record_type(stage: str) -> type[StageRecord]:
 
 
 @dataclass(frozen=True)
-class Stats(Record):
-    """min/max/mean/std of one metric over the episodes (null: no finite value)."""
-
-    min: float | None
-    max: float | None
-    mean: float | None
-    std: float | None
-
-
-@dataclass(frozen=True)
-class EpisodeRow(Record):
-    """One evaluation episode (``EpisodeOutcome.row``: ``sitl_sim.metrics.EpisodeResult``
-    inline, the policy's counters as ``policy_<name>`` keys)."""
-
-    seed: int
-    episode: int
-    landed: bool
-    time_s: float | None
-    landing_error_m: float | None
-    touchdown_speed_m_s: float | None
-    touchdown_vertical_speed_m_s: float | None
-    tilt_deg: float | None
-    success: bool
-    touchdown_ne_m: tuple[float, float] | None = field(
-        default=None, metadata={"omit_none": True, "what": "[north, east] in m"}
-    )
-    """Where the landing error was measured; absent in runs evaluated before it was recorded."""
-    steps: int = 0
-    log: str | None = None
-    policy_counts: dict[str, int] = field(default_factory=dict, metadata={"prefix": "policy_"})
-
-
-@dataclass(frozen=True)
-class BackendInfo(Record):
-    """Where a report's episodes flew (``training.exec.backend.Backend.describe``)."""
-
-    name: str
-    slots: int
-    retried: tuple[str, ...]
-    address: str | None = field(default=None, metadata={"omit_none": True})
-
-
-@dataclass(frozen=True)
-class EvalRow(Record):
-    """One Table 3 row: ``training.evaluate.evaluate``'s report of one policy."""
-
-    policy: str
-    transport: str
-    seed: int
-    scenario: str
-    episodes: int
-    landing_error_m: Stats
-    touchdown_speed_m_s: Stats
-    touchdown_vertical_speed_m_s: Stats
-    tilt_deg: Stats
-    time_s: Stats
-    success_rate: float | None
-    timeouts: int
-    policy_stats: dict[str, int]
-    wall_s: float
-    per_episode: tuple[EpisodeRow, ...]
-    backend: BackendInfo | None = field(default=None, metadata={"omit_none": True})
-    """Absent in runs evaluated before execution backends existed."""
-    landed: int | None = field(default=None, metadata={"omit_none": True})
-    """Episodes the landing-error, touchdown-speed and tilt statistics cover (the rest timed
-    out); absent in runs evaluated before timeouts were left out of them."""
-
-
-@dataclass(frozen=True)
 class Rows(Record):
     """The Table 3 rows, in order."""
 
-    expert: EvalRow
-    bc: EvalRow
-    dagger: EvalRow
-    vision: EvalRow
+    expert: EvalReport
+    bc: EvalReport
+    dagger: EvalReport
+    vision: EvalReport
 
-    def items(self) -> list[tuple[str, EvalRow]]:
+    def items(self) -> list[tuple[str, EvalReport]]:
         return [(name, getattr(self, name)) for name in ("expert", "bc", "dagger", "vision")]
 
-    def __getitem__(self, name: str) -> EvalRow:
+    def __getitem__(self, name: str) -> EvalReport:
         return getattr(self, name)
 
 

@@ -157,6 +157,11 @@ class LogRecord:
         return tuple(name for name, _, _ in _layout(cls))
 
     @classmethod
+    def required_field_names(cls) -> tuple[str, ...]:
+        """The keys every message has (no default), in order."""
+        return tuple(name for name, _, required in _layout(cls) if required)
+
+    @classmethod
     def json_schema(cls) -> dict[str, Any]:
         """The jsonschema of this record's messages, derived from its fields."""
         hints = typing.get_type_hints(cls)

@@ -365,9 +365,10 @@ class EpisodeScenarioRecord(LogRecord):
 
 @dataclass(**RECORD)
 class EpisodeResultRecord(LogRecord):
-    """``/episode/result``, last in the file: ``sitl_sim.metrics.EpisodeResult``'s fields
-    (``time_s``: touchdown or timeout), and in the SITL's log the episode, whether it was
-    aborted, the link counters and the precision land's part."""
+    """``/episode/result``, last in the file: the episode's result, the fields every message
+    has (``time_s``: touchdown or timeout; ``sitl_sim.metrics.EpisodeResult`` is this record
+    with the rest absent, scored), and in the SITL's log the episode, whether it was aborted,
+    the link counters and the precision land's part."""
 
     SCHEMA = SCHEMA_EPISODE_RESULT
     episode: int | Absent = ABSENT

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from expert.relabel import RelabelReport
     from training.exec.fly import FlyConfig
     from training.exec.rollout import EpisodeOutcome, RolloutSpec
+    from training.reports import FlyReport
 
 __all__ = ["Backend", "BackendError", "LocalBackend"]
 
@@ -80,7 +81,7 @@ class Backend(ABC):
         out: Path,
         sitl_dir: Path,
         on_done: Callable[[int], None] | None = None,
-    ) -> tuple[list[dict[str, Any]], list[str]]:
+    ) -> tuple[list[FlyReport], list[str]]:
         """Each ``(first, count)`` run through one SITL + companion pair
         (:func:`training.exec.fly.fly_run`: the pair's files in ``out/ep<first>/``, the SITL's
         flight logs in ``sitl_dir``). Returns the reports of the runs that finished and one

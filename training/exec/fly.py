@@ -14,7 +14,6 @@ and on Ctrl-C. Ports are picked free per run, so runs can go side by side.
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import socket
@@ -27,14 +26,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from companion.contract.records import ABSENT, EpisodeResultRecord
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
-from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.metrics import EpisodeResult
 from training.companion_process import sim_companion_args
 from training.exec.transport import Transport
 from training.provenance import REPO, SHIPPED_MODEL
+from training.reports import EpisodeRow, FlyReport, LandingSummary
 from training.seeds import EVAL_SEED
 
 __all__ = [
@@ -175,28 +176,31 @@ def sitl_log_name(seed: int, index: int) -> str:
     return f"sitl_seed{seed}_ep{index:04d}.mcap"
 
 
-def _results(
-    sitl_dir: Path, seed: int, indices: range
-) -> list[tuple[int, EpisodeResult, str, dict[str, Any]]]:
-    """Per finished episode: index, result, log path and extras of the record (the impaired
-    link's counts, ``link_impairment``, where the run had one)."""
-    fields = EpisodeResult.__dataclass_fields__
+def _results(sitl_dir: Path, seed: int, indices: range) -> list[EpisodeRow]:
+    """The row of each finished episode: its ``/episode/result`` record (the SITL's log), with
+    the impaired link's counts where the run had one."""
     out = []
     for i in indices:
         path = sitl_dir / sitl_log_name(seed, i)
         if not path.exists():
             continue
-        rec = read_log(path, topics=[TOPIC_RESULT]).topic(TOPIC_RESULT)
-        if not rec or rec[-1].get("aborted"):
+        messages = read_log(path, topics=[TOPIC_RESULT]).topic(TOPIC_RESULT)
+        if not messages:
             continue
-        values = {k: rec[-1][k] for k in fields}
-        values = {k: (math.nan if v is None else v) for k, v in values.items()}
-        extra = {k: rec[-1][k] for k in ("link_impairment",) if k in rec[-1]}
-        out.append((i, EpisodeResult(**values), str(path), extra))
+        rec = EpisodeResultRecord.from_dict(messages[-1])
+        if rec.aborted is True:
+            continue
+        impairment = None if rec.link_impairment is ABSENT else dict(rec.link_impairment)
+        result = EpisodeResult.read(messages[-1])
+        out.append(
+            EpisodeRow(
+                seed=seed, episode=i, **result.to_dict(), log=str(path), link_impairment=impairment
+            )
+        )
     return out
 
 
-def fly(cfg: FlyConfig) -> dict[str, Any]:
+def fly(cfg: FlyConfig) -> FlyReport:
     """Run the episodes; returns the eval-style report (``transport = "mavlink"``).
 
     Raises:
@@ -321,59 +325,57 @@ def fly(cfg: FlyConfig) -> dict[str, Any]:
     flights = companion_report.get("flights", [])
     return fly_report(
         cfg,
-        [r for _, r, _, _ in rows],
+        rows,
         sorted(comp_dir.glob("*.mcap")),
         {
             k: sum(1 for f in flights if f.get("result") == k)
             for k in sorted({f.get("result") for f in flights})
         },
-        {"wall_s": wall, "out": str(out)},
-        [
-            {"seed": cfg.seed, "episode": i, **r.to_dict(), "log": path, **extra}
-            for i, r, path, extra in rows
-        ],
+        wall_s=wall,
+        out=str(out),
     )
 
 
 def fly_report(
     cfg: FlyConfig,
-    results: list[EpisodeResult],
+    rows: list[EpisodeRow],
     companion_logs: list[Path],
     companion_flights: dict[str, int],
-    extra: dict[str, Any],
-    per_episode: list[dict[str, Any]],
-) -> dict[str, Any]:
-    """The eval-style report of :func:`fly` and ``training.exec.fly_many`` (key order kept)."""
-    return {
-        "policy": cfg.policy,
-        "transport": Transport.MAVLINK.value,
-        "seed": cfg.seed,
-        "scenario": cfg.scenario or "configs/scenario.toml",
-        "realtime": cfg.realtime,
-        "companion_mode": cfg.companion_mode,
-        "autopilot": cfg.autopilot,
-        **summarize(results),
-        "latency_ms": latency_stats(companion_logs),
-        "companion_flights": companion_flights,
-        **_link_totals(per_episode),
-        **extra,
-        "per_episode": per_episode,
-    }
+    **where: Any,
+) -> FlyReport:
+    """The report of :func:`fly` and ``training.exec.fly_many`` (``where``: ``wall_s``, ``out``
+    and, for many runs, ``instances``, ``runs``, ``backend``)."""
+    return FlyReport(
+        policy=cfg.policy,
+        transport=Transport.MAVLINK.value,
+        seed=cfg.seed,
+        scenario=cfg.scenario or "configs/scenario.toml",
+        realtime=cfg.realtime,
+        companion_mode=cfg.companion_mode,
+        autopilot=cfg.autopilot,
+        episodes=len(rows),
+        summary=LandingSummary.of([r.result() for r in rows]),
+        latency_ms=latency_stats(companion_logs),
+        companion_flights=companion_flights,
+        link_impairment=_link_totals(rows),
+        per_episode=tuple(rows),
+        **where,
+    )
 
 
-def _link_totals(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
-    """``{"link_impairment": {stream: {counter: sum}}}`` over the episodes that had an impaired
-    link (empty when none had)."""
+def _link_totals(rows: list[EpisodeRow]) -> dict[str, dict[str, int]] | None:
+    """``{stream: {counter: sum}}`` over the episodes that had an impaired link (None when
+    none had)."""
     totals: dict[str, dict[str, int]] = {}
-    for row in per_episode:
-        for stream, counts in row.get("link_impairment", {}).get("streams", {}).items():
+    for row in rows:
+        for stream, counts in (row.link_impairment or {}).get("streams", {}).items():
             acc = totals.setdefault(stream, {})
             for key, value in counts.items():
                 acc[key] = acc.get(key, 0) + value
-    return {"link_impairment": totals} if totals else {}
+    return totals or None
 
 
-def fly_run(cfg: FlyConfig, first: int, count: int, out: Path, sitl_dir: Path) -> dict[str, Any]:
+def fly_run(cfg: FlyConfig, first: int, count: int, out: Path, sitl_dir: Path) -> FlyReport:
     """Episodes ``first .. first + count - 1`` of ``cfg.seed`` through one SITL + companion
     pair: the pair's files in ``out/ep<first>/``, the SITL's flight logs in ``sitl_dir``
     (one unit of ``training.exec.fly_many``'s work, on whichever backend runs it).

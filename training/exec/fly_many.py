@@ -7,20 +7,16 @@ runs :func:`training.exec.fly.fly_run` for it.
 
 from __future__ import annotations
 
-import math
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
-from sitl_sim.metrics import EpisodeResult
 from training.exec.backend import Backend, LocalBackend
 from training.exec.fly import FlyConfig, FlyError, fly_report
+from training.reports import BackendInfo, FlyReport
 
 __all__ = ["fly_many"]
-
-_RESULT_FIELDS = tuple(EpisodeResult.__dataclass_fields__)
 
 
 def _chunks(indices: list[int], size: int) -> list[tuple[int, int]]:
@@ -41,7 +37,7 @@ def fly_many(
     chunk: int = 10,
     on_done: Callable[[int], None] | None = None,
     backend: Backend | None = None,
-) -> dict[str, Any]:
+) -> FlyReport:
     """Fly episodes ``indices`` of ``cfg.seed`` with SITL + companion pairs, each in lockstep
     on its own free ports: up to ``instances`` side by side on this host, or on ``backend``
     (e.g. a Ray cluster: one pair per task, where the cluster has room).
@@ -73,26 +69,19 @@ def fly_many(
     reports, failures = backend.fly_runs(cfg, runs, out, sitl_dir, on_done)
     if failures:
         raise FlyError(f"{len(failures)} of {len(runs)} runs failed:\n" + "\n".join(failures))
-    rows = sorted((r for rep in reports for r in rep["per_episode"]), key=lambda r: r["episode"])
-    results = [
-        EpisodeResult(**{k: (math.nan if r[k] is None else r[k]) for k in _RESULT_FIELDS})
-        for r in rows
-    ]
+    rows = sorted((r for rep in reports for r in rep.per_episode), key=lambda r: r.episode)
     flights: dict[str, int] = {}
     for rep in reports:
-        for k, v in rep["companion_flights"].items():
+        for k, v in rep.companion_flights.items():
             flights[k] = flights.get(k, 0) + v
     return fly_report(
         cfg,
-        results,
+        rows,
         sorted(out.glob("ep*/companion/*.mcap")),
         flights,
-        {
-            "instances": min(backend.slots, len(runs)),
-            "runs": len(runs),
-            "backend": backend.describe(),
-            "wall_s": time.monotonic() - t0,
-            "out": str(out),
-        },
-        rows,
+        instances=min(backend.slots, len(runs)),
+        runs=len(runs),
+        backend=BackendInfo.from_dict(backend.describe(), "backend"),
+        wall_s=time.monotonic() - t0,
+        out=str(out),
     )

@@ -440,10 +440,11 @@ class RayBackend(Backend):
                 _place(blob, ep / rel)
             for rel, blob in sitl_files.items():
                 _place(blob, Path(sitl_dir) / rel)
-            report["out"] = str(ep)
-            for row in report["per_episode"]:
-                row["log"] = str(Path(sitl_dir) / Path(row["log"]).name)
-            reports.append(report)
+            rows = tuple(
+                replace(row, log=str(Path(sitl_dir) / Path(row.log).name))
+                for row in report.per_episode
+            )
+            reports.append(replace(report, out=str(ep), per_episode=rows))
             if on_done is not None:
                 on_done(n)
 

@@ -26,6 +26,7 @@ from sitl_sim.flight_record import (
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.scenario import Scenario
 from training.provenance import git_commit
+from training.reports import EpisodeRow
 
 __all__ = [
     "EpisodeOutcome",
@@ -108,19 +109,17 @@ class EpisodeOutcome:
     ``result.landing_error_m`` was measured: at first ground contact, or at the timeout when
     the vehicle never landed (``result.landed`` False); its norm is the landing error."""
 
-    def row(self) -> dict[str, Any]:
-        extra = {}
-        if self.touchdown_ne_m is not None:
-            extra["touchdown_ne_m"] = [float(v) for v in self.touchdown_ne_m]
-        return {
-            "seed": self.seed,
-            "episode": self.episode_index,
+    def row(self) -> EpisodeRow:
+        where = self.touchdown_ne_m
+        return EpisodeRow(
+            seed=self.seed,
+            episode=self.episode_index,
             **self.result.to_dict(),
-            **extra,
-            "steps": self.steps,
-            "log": self.log_path,
-            **{f"policy_{k}": v for k, v in self.policy_stats.items()},
-        }
+            touchdown_ne_m=None if where is None else (float(where[0]), float(where[1])),
+            steps=self.steps,
+            log=self.log_path,
+            policy_counts=dict(self.policy_stats),
+        )
 
 
 def _policy_counts(policy) -> dict[str, int]:

@@ -60,7 +60,7 @@ def table3(metrics: Metrics) -> str:
         "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for key, label in ROWS.items():
-        r = rows[key]
+        r = rows[key].summary
         e, v = r.landing_error_m, r.touchdown_speed_m_s
         lines.append(
             f"| {label} | **ours** | {fmt(e.min)} | {fmt(e.max)} | {fmt(e.mean)} | "

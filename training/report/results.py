@@ -49,6 +49,7 @@ from training.report.markdown import (
 )
 from training.report.metrics import Provenance, ReportError, code_commit, load_metrics
 from training.report.targets import fmt, pct
+from training.reports import EvalReport, SuiteReport
 from training.stage_records import Metrics
 
 __all__ = [
@@ -192,7 +193,7 @@ def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
     profile keys it changed named in its column); empty without ablations or a suite."""
     if not runs or not metrics.suite:
         return ""
-    ours = json.loads(Path(metrics.suite).read_text())
+    ours = SuiteReport.load(metrics.suite)
     mine = metrics.profile.to_dict()
     columns = []
     for run in runs:
@@ -219,16 +220,15 @@ def ablation_section(metrics: Metrics, runs: tuple[Path, ...]) -> str:
         "| " + " | ".join(head) + " |",
         "|---|" + "---:|" * (len(head) - 1),
     ]
-    reports = [json.loads(Path(o.suite).read_text()) for _, o in columns]
+    reports = [SuiteReport.load(o.suite) for _, o in columns]
 
-    def cell(r: dict | None) -> str:
+    def cell(r: EvalReport | None) -> str:
         if r is None:
             return "—"
-        mean = (r.get("landing_error_m") or {}).get("mean")
-        return f"{pct(r['success_rate'])}, {fmt(mean)} m"
+        return f"{pct(r.summary.success_rate)}, {fmt(r.summary.landing_error_m.mean)} m"
 
-    for name, r in ours["conditions"].items():
-        cells = [name, cell(r)] + [cell(rep["conditions"].get(name)) for rep in reports]
+    for name, r in ours.conditions.items():
+        cells = [name, cell(r)] + [cell(rep.conditions.get(name)) for rep in reports]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n\n"
 
@@ -241,16 +241,13 @@ def suite_section(metrics: Metrics) -> str:
         return ""
     from training.report.suite import suite_comparison, suite_standing
 
-    report = json.loads(Path(metrics.suite).read_text())
-    baseline = (
-        json.loads(Path(metrics.suite_baseline).read_text()) if metrics.suite_baseline else None
-    )
+    report = SuiteReport.load(metrics.suite)
+    baseline = SuiteReport.load(metrics.suite_baseline) if metrics.suite_baseline else None
     ours = Path(metrics.stages.vision.checkpoint).name if metrics.stages.vision else "vision"
-    base = Path(baseline["policy"]).name if baseline else ""
+    base = Path(baseline.policy).name if baseline else ""
     standing_md, met, total = suite_standing(report)
     lines = [
-        f"## Benchmark suite — `{metrics.profile.eval_suite or report['suite']}`, "
-        f"seed {report['seed']}",
+        f"## Benchmark suite — `{metrics.profile.eval_suite or report.suite}`, seed {report.seed}",
         "",
         f"The run's vision policy (`{ours}`)"
         + (

@@ -3,7 +3,8 @@
 One :class:`Target` for both tables the project is judged by: the paper-world Table 3 rows of
 ``metrics.json`` (:data:`TARGETS`, read from the typed ``Rows``) and the conditions of the
 standard benchmark suite (:data:`SUITE_TARGETS`, read from a ``run_suite`` report's
-``conditions``). :func:`standing` is the one ``| target | value | met |`` table of both.
+``conditions``): each an :class:`~training.reports.EvalReport`, its ``summary`` checked.
+:func:`standing` is the one ``| target | value | met |`` table of both.
 """
 
 from __future__ import annotations
@@ -11,7 +12,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from training.reports import EvalReport
+    from training.stage_records import Rows
 
 __all__ = ["SUITE_TARGETS", "TARGETS", "Target", "fmt", "pct", "standing", "value_text"]
 
@@ -38,13 +43,11 @@ def value_text(v: float | None, unit: str) -> str:
     return pct(v) if unit == "%" else f"{fmt(v)} {unit}"
 
 
-def _field(obj: Any, key: str) -> Any:
-    """``obj[key]`` of a report's dict, or the attribute of a typed record; None if absent."""
-    if obj is None:
-        return None
-    if isinstance(obj, Mapping):
-        return obj.get(key)
-    return getattr(obj, key, None)
+def _report(table: Rows | Mapping[str, EvalReport], condition: str) -> EvalReport | None:
+    """The report of ``condition`` (a Table 3 row, a suite condition); None if absent."""
+    if isinstance(table, Mapping):
+        return table.get(condition)
+    return getattr(table, condition, None)
 
 
 _WHAT = {"success_rate": "success", "landing_error_m": "error"}
@@ -75,14 +78,19 @@ class Target:
         limit = f"{100 * self.limit:g} %" if self.unit == "%" else f"{self.limit:g} {self.unit}"
         return f"{label or self.condition}: {what} {'≤' if self.op == '<=' else '≥'} {limit}"
 
-    def value(self, table: Any, condition: str | None = None) -> float | None:
+    def value(
+        self, table: Rows | Mapping[str, EvalReport], condition: str | None = None
+    ) -> float | None:
         """The value in ``table`` (of ``condition``, default this target's); None if absent."""
-        v = _field(_field(table, condition or self.condition), self.metric)
+        report = _report(table, condition or self.condition)
+        if report is None:
+            return None
+        v = getattr(report.summary, self.metric)
         if self.stat is not None:
-            v = _field(v, self.stat)
+            v = getattr(v, self.stat)
         return None if v is None else float(v)
 
-    def met(self, table: Any, condition: str | None = None) -> bool:
+    def met(self, table: Rows | Mapping[str, EvalReport], condition: str | None = None) -> bool:
         """Whether the value in ``table`` meets the target (an absent or NaN value does not)."""
         v = self.value(table, condition)
         if v is None or not math.isfinite(v):
@@ -121,7 +129,7 @@ SUITE_TARGETS: tuple[Target, ...] = (
 
 def standing(
     targets: Iterable[Target],
-    table: Any,
+    table: Rows | Mapping[str, EvalReport],
     every: Iterable[str] = (),
     label: Callable[[str], str] = str,
 ) -> tuple[str, list[bool], list[str]]:

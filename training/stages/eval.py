@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from typing import Any
 
 import torch
 
-from companion.flightlog import jsonable
 from training.evaluate import EvalConfig
 from training.evaluate import evaluate as evaluate_policy
 from training.run_folder import Run
@@ -19,7 +19,6 @@ from training.stage_records import (
     BcRecord,
     DaggerRecord,
     EvalRecord,
-    EvalRow,
     Metrics,
     Rows,
     StageRecords,
@@ -63,10 +62,10 @@ def _fly_suite(r: Run, policy: str, name: str) -> str:
     report = run_suite(
         suite, policy, seed=p.eval_seed, render_camera=True, progress=r.progress, backend=r.backend
     )
-    report["policy_sha256"] = sha
+    report = replace(report, policy_sha256=sha)
     format_suite_table(report, sys.stderr)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(jsonable(report), indent=1))
+    tmp.write_text(report.to_json(indent=1))
     tmp.replace(path)
     return str(path)
 
@@ -96,10 +95,10 @@ def run(r: Run) -> EvalRecord:
             )
         )
         rows[row] = report
+        s = report.summary
         r.say(
-            f"eval {row}: mean error {report['landing_error_m']['mean']:.3f} m, "
-            f"max {report['landing_error_m']['max']:.3f} m, success "
-            f"{100 * report['success_rate']:.1f} %"
+            f"eval {row}: mean error {s.landing_error_m.mean:.3f} m, "
+            f"max {s.landing_error_m.max:.3f} m, success {100 * s.success_rate:.1f} %"
         )
     suite = suite_baseline = None
     if p.eval_suite is not None:
@@ -114,11 +113,11 @@ def run(r: Run) -> EvalRecord:
         git_commit=r.commit,
         eval_seed=p.eval_seed,
         episodes=p.eval_episodes,
-        rows=Rows(**{k: EvalRow.from_dict(jsonable(v), f"eval {k}") for k, v in rows.items()}),
+        rows=Rows(**rows),
         timing=inference_timing(vision),
         stages=StageRecords(**{s: r.done(s) for s in STAGES if s != "eval"}),
         suite=suite,
         suite_baseline=suite_baseline,
     )
-    path.write_text(json.dumps(jsonable(metrics.to_dict()), indent=2))
+    path.write_text(metrics.to_json())
     return r.finish(EvalRecord(stage="eval", git_commit=r.commit, metrics=str(path)))

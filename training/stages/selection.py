@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
+from training.reports import LandingSummary
 from training.run_folder import Run
 from training.stage_records import ValidationScore
 
@@ -15,10 +15,10 @@ __all__ = ["evaluate", "select", "validate"]
 
 def evaluate(
     run: Run, policy: str, episodes: int, seed: int, camera: bool, progress: bool
-) -> dict[str, Any]:
+) -> tuple[LandingSummary, dict[str, LandingSummary]]:
     """``training.evaluate.evaluate`` on this run's scenario and workers; across worlds, each
-    world flies its share of ``episodes`` on its seed and the report pools every episode
-    (``worlds``: each world's own report)."""
+    world flies its share of ``episodes`` on its seed. Returns the summary of every episode
+    flown, and across worlds each world's own (none with one world)."""
     from training.evaluate import EvalConfig
     from training.evaluate import evaluate as evaluate_policy
 
@@ -38,51 +38,30 @@ def evaluate(
         if n > 0
     }
     if len(reports) == 1:
-        return next(iter(reports.values()))
-    return pooled_report(policy, seed, reports)
-
-
-def pooled_report(policy: str, seed: int, reports: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """One report of every episode of several (per-world) reports: the statistics of the pooled
-    episodes, and the reports themselves under ``worlds``."""
-    from sitl_sim.metrics import EpisodeResult, summarize
-
-    fields = EpisodeResult.__dataclass_fields__
-    rows = [row for r in reports.values() for row in r["per_episode"]]
-    results = [EpisodeResult(**{k: row[k] for k in fields}) for row in rows]
-    return {
-        "policy": policy,
-        "seed": seed,
-        "scenario": "worlds",
-        **summarize(results),
-        "per_episode": rows,
-        "worlds": {
-            name: {k: v for k, v in r.items() if k != "per_episode"} for name, r in reports.items()
-        },
-    }
+        return next(iter(reports.values())).summary, {}
+    pooled = [row.result() for r in reports.values() for row in r.per_episode]
+    return LandingSummary.of(pooled), {name: r.summary for name, r in reports.items()}
 
 
 def validate(run: Run, checkpoint: str, camera: bool) -> ValidationScore:
     """Fly the validation episodes; score = mean error + 10 m per failed episode."""
     p = run.profile
-    rep = evaluate(run, checkpoint, p.validation_episodes, p.validation_seed, camera, False)
-    mean = rep["landing_error_m"]["mean"]  # over the landed episodes; NaN: none landed
+    rep, worlds = evaluate(run, checkpoint, p.validation_episodes, p.validation_seed, camera, False)
+    mean = rep.landing_error_m.mean  # over the landed episodes; NaN: none landed
     landed = mean is not None and math.isfinite(mean)
-    score = (mean if landed else 100.0) + 10.0 * (1.0 - rep["success_rate"])
-    per_world = "".join(
-        f"; {name} {100 * w['success_rate']:.0f} %" for name, w in rep.get("worlds", {}).items()
-    )
+    score = (mean if landed else 100.0) + 10.0 * (1.0 - rep.success_rate)
+    per_world = "".join(f"; {name} {100 * w.success_rate:.0f} %" for name, w in worlds.items())
     run.say(
         f"validation {Path(checkpoint).name}: score {score:.3f} (mean error "
         f"{mean if landed else float('nan'):.3f} m, success "
-        f"{100 * rep['success_rate']:.0f} %{per_world})"
+        f"{100 * rep.success_rate:.0f} %{per_world})"
     )
     return ValidationScore(
         checkpoint=checkpoint,
         score=score,
         mean_error_m=mean,
-        success_rate=rep["success_rate"],
-        touchdown_speed_mean_m_s=rep["touchdown_speed_m_s"]["mean"],
+        success_rate=rep.success_rate,
+        touchdown_speed_mean_m_s=rep.touchdown_speed_m_s.mean,
     )
 
 
