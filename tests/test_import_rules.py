@@ -100,13 +100,23 @@ def test_each_package_imports_only_what_its_allow_list_names(package):
     assert offending == []
 
 
-def test_the_allow_lists_catch_a_forbidden_import(tmp_path, monkeypatch):
-    """The check itself: a SITL file importing the companion's policy network is refused."""
+def _fake_sitl_file(tmp_path: Path, monkeypatch, name: str, text: str) -> Path:
+    """A repository at ``tmp_path`` (the checks read it as REPO) whose ``sitl_sim`` package
+    holds one file ``name``; returns the package folder."""
     monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
     pkg = tmp_path / "sitl_sim"
     pkg.mkdir()
-    (pkg / "bad.py").write_text(
-        "def f():\n    from companion.policy_net import load_policy\n    return load_policy\n"
+    (pkg / name).write_text(text)
+    return pkg
+
+
+def test_the_allow_lists_catch_a_forbidden_import(tmp_path, monkeypatch):
+    """The check itself: a SITL file importing the companion's policy network is refused."""
+    pkg = _fake_sitl_file(
+        tmp_path,
+        monkeypatch,
+        "bad.py",
+        "def f():\n    from companion.policy_net import load_policy\n    return load_policy\n",
     )
     prefixes, third_party = RULES["sitl_sim"]
     bad = [m for _, _, m in _imports(pkg) if not _allowed(m, prefixes, third_party)]
@@ -251,13 +261,13 @@ def test_no_class_has_more_than_one_project_base_class():
 
 def test_the_class_check_catches_a_mixin(tmp_path, monkeypatch):
     """The check itself: a class built from two project classes sharing ``self`` is found."""
-    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
-    pkg = tmp_path / "sitl_sim"
-    pkg.mkdir()
-    (pkg / "parts.py").write_text(
+    _fake_sitl_file(
+        tmp_path,
+        monkeypatch,
+        "parts.py",
         "class Builders:\n    pass\n\n\nclass Handlers:\n    pass\n\n\n"
         "class Sitl(Builders, Handlers):\n    pass\n\n\n"
-        "class PortError(Builders, OSError):\n    pass\n"
+        "class PortError(Builders, OSError):\n    pass\n",
     )
     classes = _project_classes()
     assert [n for n, (_, b) in classes.items() if sum(x in classes for x in b) > 1] == ["Sitl"]

@@ -14,13 +14,12 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from tqdm import tqdm
 
 from sitl_sim.scenario import Scenario
 from training.exec.rollout import (
-    EpisodeOutcome,
     RolloutSpec,
     completed_episode,
     log_name,
@@ -62,22 +61,36 @@ class EvalConfig:
     """Where the episodes fly (None: this host, ``workers`` processes)."""
 
 
-def _backend(backend: Backend | None, workers: int) -> Backend:
+def _fly(
+    spec: RolloutSpec,
+    indices: list[int],
+    backend: Backend | None,
+    workers: int,
+    progress: bool,
+    desc: str,
+) -> dict[str, Any]:
+    """Fly episodes ``indices`` of ``spec`` on ``backend`` (None: this host, ``workers``
+    processes); the in-process part of the report: the summary, the policy's counters summed,
+    the wall time, where they flew and one row per episode."""
     from training.exec.backend import LocalBackend
 
-    return backend if backend is not None else LocalBackend(workers)
-
-
-def _totals(outcomes: list[EpisodeOutcome]) -> dict[str, int]:
-    total: dict[str, int] = {}
+    backend = backend if backend is not None else LocalBackend(workers)
+    t0 = time.perf_counter()
+    with tqdm(
+        total=len(indices), desc=desc, unit="ep", file=sys.stderr, disable=not progress
+    ) as bar:
+        outcomes = backend.episodes(spec, indices, lambda _: bar.update()) if indices else []
+    totals: dict[str, int] = {}
     for o in outcomes:
         for k, v in o.policy_stats.items():
-            total[k] = total.get(k, 0) + v
-    return total
-
-
-def _progress(total: int, enabled: bool, desc: str):
-    return tqdm(total=total, desc=desc, unit="ep", file=sys.stderr, disable=not enabled)
+            totals[k] = totals.get(k, 0) + v
+    return {
+        "summary": LandingSummary.of([o.result for o in outcomes]),
+        "policy_stats": totals,
+        "wall_s": time.perf_counter() - t0,
+        "backend": BackendInfo.from_dict(backend.describe(), "backend"),
+        "per_episode": tuple(o.row() for o in outcomes),
+    }
 
 
 def _scenario_name(scenario: str | Scenario | None) -> str:
@@ -92,21 +105,15 @@ def evaluate(cfg: EvalConfig) -> EvalReport:
     spec = RolloutSpec(
         policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, render_camera=cfg.render_camera
     )
-    backend = _backend(cfg.backend, cfg.workers)
-    t0 = time.perf_counter()
-    with _progress(cfg.episodes, cfg.progress, f"eval {cfg.policy}") as bar:
-        outcomes = backend.episodes(spec, list(range(cfg.episodes)), lambda _: bar.update())
+    desc = f"eval {cfg.policy}"
+    flown = _fly(spec, list(range(cfg.episodes)), cfg.backend, cfg.workers, cfg.progress, desc)
     return EvalReport(
         policy=cfg.policy,
         transport=Transport.INPROCESS.value,
         seed=cfg.seed,
         scenario=_scenario_name(cfg.scenario),
-        episodes=len(outcomes),
-        summary=LandingSummary.of([o.result for o in outcomes]),
-        policy_stats=_totals(outcomes),
-        wall_s=time.perf_counter() - t0,
-        backend=BackendInfo.from_dict(backend.describe(), "backend"),
-        per_episode=tuple(o.row() for o in outcomes),
+        episodes=len(flown["per_episode"]),
+        **flown,
     )
 
 
@@ -136,10 +143,7 @@ def collect(cfg: CollectConfig) -> CollectReport:
     spec = RolloutSpec(
         policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, log_dir=str(flights)
     )
-    backend = _backend(cfg.backend, cfg.workers)
-    t0 = time.perf_counter()
-    with _progress(len(todo), cfg.progress, f"collect {cfg.policy}") as bar:
-        outcomes = backend.episodes(spec, todo, lambda _: bar.update()) if todo else []
+    flown = _fly(spec, todo, cfg.backend, cfg.workers, cfg.progress, f"collect {cfg.policy}")
     report = CollectReport(
         policy=cfg.policy,
         seed=cfg.seed,
@@ -148,11 +152,7 @@ def collect(cfg: CollectConfig) -> CollectReport:
         flown_now=len(todo),
         already_complete=len(done),
         flights_dir=str(flights),
-        summary=LandingSummary.of([o.result for o in outcomes]),
-        policy_stats=_totals(outcomes),
-        wall_s=time.perf_counter() - t0,
-        backend=BackendInfo.from_dict(backend.describe(), "backend"),
-        per_episode=tuple(o.row() for o in outcomes),
+        **flown,
     )
     # as json.dumps writes it (NaN as NaN, as this file always had it)
     (Path(cfg.out) / f"collect_s{cfg.seed}.json").write_text(json.dumps(report.to_dict(), indent=2))

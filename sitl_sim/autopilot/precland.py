@@ -383,6 +383,16 @@ class PrecisionLand:
             PreclandState.FALLBACK, now_s, f"Precision landing: {why}, landing normally", 4
         )
 
+    def _held_for(self, holds: bool, now_s: float, dwell_s: float) -> bool:
+        """Whether the state's condition, ``holds`` this cycle, has held longer than
+        ``dwell_s``: its first cycle starts the timer (``_timer_s``), a cycle without it
+        clears the timer."""
+        if not holds:
+            self._timer_s = None
+            return False
+        self._timer_s = now_s if self._timer_s is None else self._timer_s
+        return now_s - self._timer_s > dwell_s
+
     def update(self, now_s: float) -> PreclandSetpoint:
         """One navigator cycle (the SITL runs it at its 10 Hz control rate)."""
         p, nav = self.params, self.nav
@@ -396,36 +406,34 @@ class PrecisionLand:
                 self._switch(
                     PreclandState.HORIZONTAL_APPROACH, now_s, "Precision landing: target acquired"
                 )
-            elif np.linalg.norm(nav.pos_ned_m[:2] - self.approx_ne_m) < _APPROX_POINT_RADIUS_M:
-                self._timer_s = now_s if self._timer_s is None else self._timer_s
-                if now_s - self._timer_s > _START_POINT_S:
-                    if p.srch_tout_s > 0 and self.search_count < p.max_srch:
-                        self.search_count += 1
-                        self._switch(
-                            PreclandState.SEARCH,
-                            now_s,
-                            f"Precision landing: climbing to search altitude ({self.search_count})",
-                        )
-                    else:
-                        self._fallback(now_s, "no target")
-            else:
-                self._timer_s = None
+            elif self._held_for(
+                np.linalg.norm(nav.pos_ned_m[:2] - self.approx_ne_m) < _APPROX_POINT_RADIUS_M,
+                now_s,
+                _START_POINT_S,
+            ):
+                if p.srch_tout_s > 0 and self.search_count < p.max_srch:
+                    self.search_count += 1
+                    self._switch(
+                        PreclandState.SEARCH,
+                        now_s,
+                        f"Precision landing: climbing to search altitude ({self.search_count})",
+                    )
+                else:
+                    self._fallback(now_s, "no target")
         elif state is PreclandState.HORIZONTAL_APPROACH:
             if not valid:
                 self._lost(now_s, "in approach")
             else:
                 err = np.abs(nav.pos_ned_m[:2] - self.target_ne_m())
-                fresh = self.lte.age_s(now_s) <= _FRESH_FOR_DESCENT_S
-                if fresh and bool(np.all(err < p.hacc_rad_m)):
-                    self._timer_s = now_s if self._timer_s is None else self._timer_s
-                    if now_s - self._timer_s > _SETTLE_S:
-                        self._switch(
-                            PreclandState.DESCEND_ABOVE_TARGET,
-                            now_s,
-                            "Precision landing: over the target, descending",
-                        )
-                else:
-                    self._timer_s = None
+                over = self.lte.age_s(now_s) <= _FRESH_FOR_DESCENT_S and bool(
+                    np.all(err < p.hacc_rad_m)
+                )
+                if self._held_for(over, now_s, _SETTLE_S):
+                    self._switch(
+                        PreclandState.DESCEND_ABOVE_TARGET,
+                        now_s,
+                        "Precision landing: over the target, descending",
+                    )
         elif state is PreclandState.DESCEND_ABOVE_TARGET:
             near = nav.altitude_m < p.fappr_alt_m
             if near and self.lte.age_s(now_s) > _FINAL_APPROACH_STALE_S:
@@ -435,18 +443,14 @@ class PrecisionLand:
             elif not valid:
                 self._lost(now_s, "in descent")
         elif state is PreclandState.SEARCH:
-            if valid:
-                self._timer_s = now_s if self._timer_s is None else self._timer_s
-                if now_s - self._timer_s > _SEARCH_SEEN_S:
-                    self._switch(
-                        PreclandState.HORIZONTAL_APPROACH,
-                        now_s,
-                        "Precision landing: target found in search",
-                    )
-            else:
-                self._timer_s = None
-                if now_s - self._entered_s > p.srch_tout_s:
-                    self._fallback(now_s, "search timed out")
+            if self._held_for(valid, now_s, _SEARCH_SEEN_S):
+                self._switch(
+                    PreclandState.HORIZONTAL_APPROACH,
+                    now_s,
+                    "Precision landing: target found in search",
+                )
+            elif not valid and now_s - self._entered_s > p.srch_tout_s:
+                self._fallback(now_s, "search timed out")
         return self._setpoint(now_s)
 
     def _setpoint(self, now_s: float) -> PreclandSetpoint:

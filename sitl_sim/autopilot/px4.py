@@ -30,7 +30,7 @@ import enum
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -420,30 +420,17 @@ class Autopilot:
         """What MAV_CMD_NAV_LAND selects."""
         return FlightMode.LAND
 
-    def setpoint_from_message(
-        self,
-        type_mask: int,
-        q: tuple[float, float, float, float] | list[float],
-        body_rates: tuple[float, float, float],
-        thrust: float,
-        thrust_body: tuple[float, float, float] | None,
-        time_s: float,
-    ) -> Setpoint | None:
-        """A SET_ATTITUDE_TARGET read as this autopilot reads it (None: silently ignored).
+    def setpoint_from_message(self, *target: Any) -> Setpoint | None:
+        """A SET_ATTITUDE_TARGET read as this autopilot reads it (None: silently ignored):
+        ``target`` is :func:`setpoint_from_target`'s arguments but the last, the thrust kept
+        from the previous setpoint, which this autopilot holds (``type_mask``, ``q``,
+        ``body_rates``, ``thrust``, ``thrust_body``, ``time_s``).
 
         Raises:
             SetpointRejected: see :func:`setpoint_from_target`.
         """
         prev = self.setpoint
-        return setpoint_from_target(
-            type_mask,
-            q,
-            body_rates,
-            thrust,
-            thrust_body,
-            time_s,
-            prev.thrust_norm if prev is not None else None,
-        )
+        return setpoint_from_target(*target, prev.thrust_norm if prev is not None else None)
 
     def flight_command(self, now_s: float, truth) -> Command | None:
         """This autopilot's own command for the physics step, or None for the SITL's

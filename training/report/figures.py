@@ -177,7 +177,10 @@ def _plt():
     return plt
 
 
-def _save(fig: Any, path: Path, prov: Provenance) -> Path:
+def _save(fig: Any, path: Path, prov: Provenance, footer_h: float) -> Path:
+    """Lay ``fig`` out above a band ``footer_h`` high (figure fraction), write the provenance
+    footer in it, save the PNG and close the figure."""
+    fig.tight_layout(rect=(0, footer_h, 1, 1))
     fig.text(0.005, 0.003, prov.footer(), fontsize=6, color="0.35", ha="left", va="bottom")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=80, pil_kwargs={"optimize": True})
@@ -214,8 +217,7 @@ def _finish_time_panels(fig: Any, axes: Any, title: str, path: Path, prov: Prove
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    return _save(fig, path, prov)
+    return _save(fig, path, prov, 0.02)
 
 
 def plot_inputs(traces: dict[str, Trace], title: str, path: Path, prov: Provenance) -> Path:
@@ -316,8 +318,7 @@ def plot_scatter(metrics: Metrics, path: Path, prov: Provenance) -> Path:
         f"(seed {metrics.eval_seed}); dashed circle = 1 m success radius",
         fontsize=10,
     )
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    return _save(fig, path, prov)
+    return _save(fig, path, prov, 0.02)
 
 
 def plot_hist(metrics: Metrics, path: Path, prov: Provenance) -> Path:
@@ -369,8 +370,7 @@ def plot_hist(metrics: Metrics, path: Path, prov: Provenance) -> Path:
         f"{lo:g} m are counted in the first bin",
         fontsize=10,
     )
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    return _save(fig, path, prov)
+    return _save(fig, path, prov, 0.03)
 
 
 def loss_series(run: Path) -> dict[str, list[tuple[int, float]]]:
@@ -440,5 +440,4 @@ def plot_loss(
         plt.close(fig)
         return None
     fig.suptitle("Controller training loss over DAgger rounds (paper Figure 5)", fontsize=10)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    return _save(fig, path, prov)
+    return _save(fig, path, prov, 0.03)
