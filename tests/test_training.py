@@ -503,7 +503,16 @@ def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
 
     def finish_dagger(scores: list[ValidationScore]) -> None:
         first = scores[0].checkpoint
-        run.finish(DaggerRecord("dagger", run.commit, 2, first, first, tuple(scores)))
+        run.finish(
+            DaggerRecord(
+                "dagger",
+                run.commit,
+                checkpoint=first,
+                selected=first,
+                validation=tuple(scores),
+                rounds=2,
+            )
+        )
 
     run = Run(tmp_path / "run", PROFILES["quick"], progress=False, say=lambda _: None)
     try:

@@ -27,6 +27,7 @@ __all__ = [
     "FitRecord",
     "Metrics",
     "PerceptionRecord",
+    "PickRecord",
     "Rows",
     "StageRecord",
     "StageRecords",
@@ -100,13 +101,21 @@ class ValidationScore(Record):
 
 
 @dataclass(frozen=True)
-class DaggerRecord(StageRecord):
-    """``dagger``: the rounds run and the validation pick among BC and every round."""
+class PickRecord(StageRecord):
+    """A stage that ends by picking its best candidate on validation flights
+    (``training.stages.selection.select``): the pick, copied to ``checkpoints/<stage>.pt``, the
+    candidate it is and every candidate's score; the stage's own keys follow."""
 
-    rounds: int
     checkpoint: str
     selected: str
     validation: tuple[ValidationScore, ...]
+
+
+@dataclass(frozen=True)
+class DaggerRecord(PickRecord):
+    """``dagger``: the validation pick among BC and every round, and the rounds run."""
+
+    rounds: int
 
 
 @dataclass(frozen=True)
@@ -130,15 +139,12 @@ class PerceptionRecord(StageRecord):
 
 
 @dataclass(frozen=True)
-class VisionRecord(StageRecord):
-    """``vision``: the fits (vision BC, then each round), how its rounds flew (None without
-    rounds) and the validation pick."""
+class VisionRecord(PickRecord):
+    """``vision``: the validation pick, the fits (vision BC, then each round) and how its
+    rounds flew (None without rounds)."""
 
     fits: tuple[FitRecord, ...]
     rollouts: str | None
-    checkpoint: str
-    selected: str
-    validation: tuple[ValidationScore, ...]
 
 
 @dataclass(frozen=True)
