@@ -54,7 +54,6 @@ from companion.contract.topics import (
     TOPIC_EVENTS,
     TOPIC_IMAGE,
     TOPIC_MAVLINK_IN,
-    mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter, read_log
 from companion.telemetry import TelemetryStore, assemble_observation
@@ -65,14 +64,6 @@ __all__ = [
     "latency_stats",
     "replay_log",
 ]
-
-
-def _jsonable_msg(msg: Any) -> dict[str, Any]:
-    d = msg.to_dict()
-    for key, value in d.items():
-        if isinstance(value, bytes | bytearray):
-            d[key] = value.decode("utf-8", errors="replace")
-    return d
 
 
 class CompanionLog:
@@ -94,49 +85,57 @@ class CompanionLog:
         self.path = self.writer.path
         self._clock = clock
         self.t0 = clock()
-        self._pending: list[tuple[str, str, float, dict[str, Any]]] = []
+        self._pending: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
         self.deferring = False
 
     def rel(self, monotonic_s: float) -> float:
         return monotonic_s - self.t0
 
-    def _put(self, topic: str, schema: str, t: float, body: dict[str, Any]) -> None:
-        item = (topic, schema, max(0.0, self.rel(t)), body)
+    def _put(self, write: Callable[..., None], *args: Any) -> None:
+        """``write(*args)`` (a writer method, its log time first after the topic) now, or
+        queued while :attr:`deferring`."""
         if self.deferring:
-            self._pending.append(item)
+            self._pending.append((write, args))
         else:
-            self.writer.write(*item[:3], item[3])
+            write(*args)
 
     def flush_pending(self) -> None:
         """Write what was queued while answering a frame (receipt order kept)."""
         self.deferring = False
         pending, self._pending = self._pending, []
-        for topic, schema, t, body in pending:
-            self.writer.write(topic, schema, t, body)
+        for write, args in pending:
+            write(*args)
 
     def _put_record(self, topic: str, t: float, record: LogRecord) -> None:
-        self._put(topic, record.SCHEMA, t, record.to_dict())
+        self._put(self.writer.write_record, topic, max(0.0, self.rel(t)), record)
 
     def message(self, msg: Any, rx_s: float) -> None:
-        name = msg.get_type()
+        """A message from the autopilot as received (its fields are read when the write runs:
+        a received message is never changed), with ``rx_s``."""
         self._put(
-            TOPIC_MAVLINK_IN + name,
-            mavlink_schema(name),
-            rx_s,
-            {**_jsonable_msg(msg), "rx_s": rx_s},
+            self.writer.write_mavlink,
+            TOPIC_MAVLINK_IN + msg.get_type(),
+            max(0.0, self.rel(rx_s)),
+            msg,
+            {"rx_s": rx_s},
         )
 
     def frame(self, frame: ReceivedFrame) -> None:
-        t_ns = self.writer.log_time_ns(max(0.0, self.rel(frame.rx_s)))
+        """A camera frame as received (encoded when the write runs: a received image is never
+        changed)."""
+        self._put(self._write_frame, frame)
+
+    def _write_frame(self, frame: ReceivedFrame) -> None:
+        t = max(0.0, self.rel(frame.rx_s))
         record = RawImageRecord.mono8(
             frame.image,
             frame.frame_id,
-            t_ns,
+            self.writer.log_time_ns(t),
             frame_number=frame.frame_id,
             capture_time_s=frame.time_s,
             rx_s=frame.rx_s,
         )
-        self._put_record(TOPIC_IMAGE, frame.rx_s, record)
+        self.writer.write_image_record(TOPIC_IMAGE, t, record)
 
     def observation(self, t: float, record: CompanionObservationRecord) -> None:
         self._put_record(TOPIC_COMPANION_OBSERVATION, t, record)

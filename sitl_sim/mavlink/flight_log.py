@@ -37,7 +37,6 @@ from companion.contract.topics import (
     TOPIC_OBSERVATION,
     TOPIC_RESULT,
     TOPIC_RX_ERRORS,
-    mavlink_schema,
 )
 from companion.flightlog import FlightLogWriter
 
@@ -50,14 +49,8 @@ if TYPE_CHECKING:
 __all__ = ["FlightLog"]
 
 
-def _jsonable_msg(msg: Any) -> dict[str, Any]:
-    d = msg.to_dict()
-    for key, value in d.items():
-        if isinstance(value, bytes | bytearray):
-            d[key] = value.decode("utf-8", errors="replace")
-    if "secret_key" in d:  # SETUP_SIGNING: a secret never goes into a log
-        d["secret_key"] = "<redacted>"
-    return d
+_SECRETS = ("secret_key",)
+"""Fields whose value never goes into a log (SETUP_SIGNING's key): written as ``<redacted>``."""
 
 
 @dataclass(eq=False, repr=False)
@@ -120,26 +113,31 @@ class FlightLog:
             self.write_record(TOPIC_LINK_STATS, LinkStatsRecord(**stats))
 
     def inbound(self, inbound: Inbound) -> None:
+        """A message received, with its sender and link (its fields read when the write runs:
+        a received message is never changed)."""
         if self._writer is None:
             return
         msg = inbound.msg
-        name = msg.get_type()
-        self.write(
-            TOPIC_MAVLINK_IN + name,
-            mavlink_schema(name),
+        self._writer.write_mavlink(
+            TOPIC_MAVLINK_IN + msg.get_type(),
+            self.clock.time_s,
+            msg,
             {
-                **_jsonable_msg(msg),
                 "src_system": msg.get_srcSystem(),
                 "src_component": msg.get_srcComponent(),
                 "signed": inbound.signed,
                 "link": inbound.link,
             },
+            _SECRETS,
         )
 
     def outbound(self, msg: Any) -> None:
+        """A message sent (its fields read when the write runs: a sent message is never
+        changed)."""
         if self._writer is not None:
-            name = msg.get_type()
-            self.write(TOPIC_MAVLINK_OUT + name, mavlink_schema(name), _jsonable_msg(msg))
+            self._writer.write_mavlink(
+                TOPIC_MAVLINK_OUT + msg.get_type(), self.clock.time_s, msg, None, _SECRETS
+            )
 
     def commands(
         self,

@@ -91,6 +91,11 @@ class QueuedWriter:
         """:meth:`FlightLogWriter.write`, queued."""
         self._queue.put(self._writer.write, args)
 
+    def write_mavlink(self, *args: Any) -> None:
+        """:meth:`FlightLogWriter.write_mavlink`, queued (the message's fields are read when
+        it runs)."""
+        self._queue.put(self._writer.write_mavlink, args)
+
     def write_record(self, *args: Any) -> None:
         """``FlightLogWriter.write_record`` (a typed record), queued."""
         self._queue.put(self._writer.write_record, args)
