@@ -17,10 +17,10 @@ import pytest
 from helpers import visland
 
 from sitl_sim.config import CONFIG_DIR
-from sitl_sim.metrics import EpisodeResult
+from sitl_sim.metrics import EpisodeResult, summarize
 from tools.cli import _parser
 from training.evaluate import format_table
-from training.reports import EvalReport, LandingSummary
+from training.reports import EvalReport
 from training.seeds import EVAL_SEED
 
 REPO = Path(__file__).resolve().parent.parent
@@ -63,17 +63,10 @@ def test_eval_refuses_a_scenario_out_of_physical_bounds_naming_file_key_expected
 
 
 def _report(*results: EpisodeResult) -> EvalReport:
-    return EvalReport(
-        policy="p",
-        transport="inprocess",
-        seed=1,
-        scenario="s.toml",
-        episodes=len(results),
-        summary=LandingSummary.of(results),
-        policy_stats={},
-        wall_s=0.0,
-        per_episode=(),
-    )
+    """An eval report of ``results``, read as ``visland eval --json`` would be."""
+    head = {"policy": "p", "transport": "inprocess", "seed": 1, "scenario": "s.toml"}
+    tail = {"policy_stats": {}, "wall_s": 0.0, "per_episode": []}
+    return EvalReport.from_dict({**head, **summarize(list(results)), **tail}, "test")
 
 
 def test_a_timed_out_flight_never_enters_the_landing_error_mean():
