@@ -13,11 +13,13 @@ import sys
 from io import StringIO
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import visland
 
 from sitl_sim.config import CONFIG_DIR
 from sitl_sim.metrics import EpisodeResult, summarize
+from sitl_sim.physics.dynamics import ContactEvent
 from tools.cli import _parser
 from training.evaluate import format_table
 from training.reports import EvalReport
@@ -70,14 +72,9 @@ def _report(*results: EpisodeResult) -> EvalReport:
 
 
 def test_a_timed_out_flight_never_enters_the_landing_error_mean():
-    landed = EpisodeResult(
-        landed=True,
-        time_s=20.0,
-        landing_error_m=0.4,
-        touchdown_speed_m_s=0.3,
-        touchdown_vertical_speed_m_s=0.3,
-        tilt_deg=2.0,
-        success=True,
+    # touchdown 0.4 m north of the pad centre at 0.3 m/s straight down, tilted 2 deg
+    landed = EpisodeResult.from_contact(
+        ContactEvent(20.0, np.array([0.4, 0.0, 0.0]), np.array([0.0, 0.0, 0.3]), math.radians(2))
     )
     timeout = EpisodeResult.timeout(90.0, [30.0, 40.0, -10.0], [0.0, 0.0, 0.0])
     report = _report(landed, timeout)
