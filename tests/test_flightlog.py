@@ -186,20 +186,28 @@ def test_message_text_is_the_converted_messages_json_exactly():
         assert _encode(k * 0.004, msg) == reference
 
 
-def _write_all(path, append: bool, messages) -> bytes:
+def _write_all(path, lean: bool, messages) -> bytes:
     writer = FlightLogWriter(path, {"config": {"a": 1}}, reproducible=True)
-    assert writer._append is not None  # mcap 1.6.0 is laid out as the appender expects
-    if not append:
-        writer._append = None  # mcap's own add_message
+    assert writer._append is not None  # mcap 1.6.0 is laid out as mcap_chunks expects
+    assert "_Writer__finalize_chunk" in vars(writer._writer)
+    if not lean:  # mcap's own add_message and chunk finalisation
+        writer._append = None
+        del writer._writer._Writer__finalize_chunk
     for topic, t, body in messages:
         writer.write(topic, "test.Body", t, body)
     writer.close()
     return path.read_bytes()
 
 
-def test_lean_message_append_writes_mcaps_bytes(tmp_path):
-    """The writer's own Message records (statistics, chunk index, chunk size) give the file
-    mcap's add_message gives, byte for byte, across many chunks and channels."""
+def test_lean_message_append_and_chunks_write_mcaps_bytes(tmp_path, monkeypatch):
+    """The writer's own Message records (statistics, chunk index, chunk size) and chunks
+    (compressed at level 1) give the file mcap's Writer gives at that level, byte for byte,
+    across many chunks and channels."""
+    import zstandard
+    from mcap import writer as mcap_writer
+
+    level_1 = zstandard.ZstdCompressor(level=1)
+    monkeypatch.setattr(mcap_writer.zstandard, "compress", level_1.compress)
     rng = np.random.default_rng(3)
     messages = [
         (f"/t{int(rng.integers(0, 5))}", 0.004 * k, {"x": float(rng.normal()), "pad": "p" * 900})
