@@ -66,11 +66,11 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract.datagrams import (
     MAX_DATAGRAM_BYTES,
-    RCVBUF_BYTES,
     RX_DATAGRAMS_PER_POLL,
     frame_start,
 )
 from companion.contract.signing import UNSIGNED_ALLOWED
+from companion.link.datagrams import parse_datagram, size_receive_buffer, whole_datagrams
 
 mavutil.set_dialect("common")  # v20.common, whatever MAVLINK_DIALECT said
 
@@ -269,7 +269,7 @@ class MavlinkConnection:
         as it does); ``write`` goes to the peer alone once known."""
         port = conn.port
         write_plain = conn.write
-        _size_receive_buffer(port)
+        size_receive_buffer(port)
 
         def recv(n: int | None = None) -> bytes | str:
             mav = conn.mav
@@ -394,8 +394,10 @@ class MavlinkConnection:
         number of messages delivered."""
         self._maybe_reopen()
         self._rx_budget = RX_DATAGRAMS_PER_POLL
-        n = 0
-        while self.conn is not None:
+        n, whole = 0, whole_datagrams(self.conn)  # udpin, as a rule: a datagram at a time
+        if whole:
+            n = self._poll_datagrams(self.conn, on_message)
+        while self.conn is not None and not whole:
             self._rx_fed = False
             try:
                 msg = self.conn.recv_msg()
@@ -419,6 +421,35 @@ class MavlinkConnection:
                 n += 1
         self._tick()
         return n
+
+    def _poll_datagrams(self, conn: Any, on_message: Callable[[Any, float], None]) -> int:
+        """:meth:`poll` a datagram at a time (:func:`~companion.link.datagrams.parse_datagram`:
+        the messages of pymavlink's ``recv_msg`` loop, in a third of its time)."""
+        counters, n = self.counters, 0
+        while True:
+            try:
+                data = self._next_datagram(conn.port)
+            except OSError as exc:
+                self._port_error(exc)
+                return n
+            if data is None:
+                return n
+            conn.clients.add(self._datagram_from)  # as recv does
+            conn.clients_last_alive[self._datagram_from] = time.time()
+            msgs, cut = parse_datagram(conn.mav, data)
+            for msg in msgs:
+                conn.post_message(msg)  # as recv_msg does
+                rx = self.clock()
+                if msg.get_type() == "BAD_DATA":
+                    counters.rx_bad_data += 1
+                elif self._accept(msg, rx):
+                    counters.rx_messages += 1
+                    on_message(msg, rx)
+                    n += 1
+                    if self.conn is not conn:  # the port broke meanwhile: the rest is lost
+                        return n
+            if cut:  # an incomplete frame, which over UDP never completes (as recv says)
+                counters.rx_bad_data += 1
 
     def _stale(self, msg: Any, key: tuple[int, int]) -> bool:
         """Whether ``msg`` is a stale HEARTBEAT (see :data:`STALE_SEQ_WINDOW`); keeps the newest
@@ -550,21 +581,3 @@ class MavlinkConnection:
         mav.total_packets_sent += 1
         mav.total_bytes_sent += len(buf)
         return handed
-
-
-def _size_receive_buffer(sock: socket.socket) -> None:
-    """Ask for :data:`RCVBUF_BYTES` of receive buffer; say once when the OS gives less (Linux
-    caps the request at ``net.core.rmem_max``: ``sysctl -w net.core.rmem_max=4194304``)."""
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
-        got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-    except OSError as exc:
-        log.warning("MAVLink socket: SO_RCVBUF not set (%s)", exc)
-        return
-    if got < RCVBUF_BYTES:  # Linux reports twice what it grants (its bookkeeping overhead)
-        log.warning(
-            "MAVLink socket: receive buffer %d bytes, asked for %d (net.core.rmem_max caps it;"
-            " a flood on the port then costs telemetry sooner)",
-            got,
-            RCVBUF_BYTES,
-        )
