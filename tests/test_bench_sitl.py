@@ -30,6 +30,8 @@ def test_bench_sitl_json_has_the_pair_the_floor_and_both_processes_parts(
             "3",
             "--scenario",
             low_scenario,
+            "--repeats",
+            "2",
         ]
     )
     out = capsys.readouterr().out
@@ -47,5 +49,9 @@ def test_bench_sitl_json_has_the_pair_the_floor_and_both_processes_parts(
         assert set(proc["parts_ms_per_frame"]) == set(PARTS) | {"other"}
         assert abs(sum(proc["shares"].values()) - 1.0) < 1e-6
         assert proc["window_wall_s"] > 0 and proc["cpu_ms_per_frame"] > 0
+    runs = res["runs"]  # two pairs flew: every run's figures, the best and the median's
+    assert len(runs["each"]) == 2 and {runs["best_run"], runs["median_run"]} <= {0, 1}
+    rtf = runs["realtime_factor"]
+    assert rtf["best"] >= rtf["median"] == res["realtime_factor"] > 0
     assert res["sitl"]["shares"]["physics"] > 0  # the SITL steps the physics ...
     assert res["companion"]["shares"]["policy"] > 0  # ... and the companion flies the expert

@@ -22,7 +22,9 @@ moves when other work shares the machine: the figure to compare before/after a c
 process: the share of the window's wall time in ``physics``, ``render``, ``policy``,
 ``encode_decode`` (MAVLink, camera packets and flight-log writing; also split as ``mavlink``,
 ``camera``, ``log``), ``wait`` (blocked on the other process) and ``other``, and milliseconds
-per frame of each. ``vs_in_process`` = the pair's real-time factor over the floor's.
+per frame of each. ``vs_in_process`` = the pair's real-time factor over the floor's. With
+``repeats`` the pair flies that many times: the figures are the median run's, ``runs`` holds
+each run's headline figures and their best and median.
 """
 
 from __future__ import annotations
@@ -59,6 +61,10 @@ class SitlBenchConfig:
     """Render the camera (None: as ``visland fly`` does, only for a vision policy)."""
     out: str | None = None
     """Run folder for both processes' logs (None: a temporary folder, removed after)."""
+    repeats: int = 1
+    """Times the pair flies the episodes (each run its own pair of processes): the figures are
+    the median run's (by real-time factor), ``runs`` has every run's and the best and median
+    (a busy machine slows some runs; the best is the least disturbed)."""
 
 
 def _in_process(cfg: SitlBenchConfig, frames: int, render: bool) -> float:
@@ -146,11 +152,20 @@ def bench_sitl(cfg: SitlBenchConfig | None = None) -> dict[str, Any]:
     cfg = cfg or SitlBenchConfig()
     if cfg.episodes < 1:
         raise ValueError(f"episodes = {cfg.episodes}; expected >= 1")
-    if cfg.out is None:
-        with tempfile.TemporaryDirectory(prefix="visland_bench_sitl_") as tmp:
-            run = _fly(cfg, Path(tmp))
-    else:
-        run = _fly(cfg, Path(cfg.out))
+    if cfg.repeats < 1:
+        raise ValueError(f"repeats = {cfg.repeats}; expected >= 1")
+    runs = []
+    for k in range(cfg.repeats):
+        if cfg.out is None:
+            with tempfile.TemporaryDirectory(prefix="visland_bench_sitl_") as tmp:
+                runs.append(_fly(cfg, Path(tmp)))
+        else:
+            out = Path(cfg.out) if cfg.repeats == 1 else Path(cfg.out) / f"run{k}"
+            runs.append(_fly(cfg, out))
+    figures = [_run_figures(run) for run in runs]
+    order = sorted(range(len(runs)), key=lambda i: figures[i]["realtime_factor"])
+    median = order[len(order) // 2]  # of an even count, the better of the middle two
+    run = runs[median]
     sitl, companion, report = run["sitl"], run["companion"], run["fly"]
     frames = int(sitl["counts"].get("frames", 0))
     sim_s = sitl["counts"].get("sim_s", 0.0)
@@ -183,6 +198,33 @@ def bench_sitl(cfg: SitlBenchConfig | None = None) -> dict[str, Any]:
             "pilot": "CascadeLander (privileged, in process)",
         },
         "vs_in_process": rtf / floor_rtf,
+        "runs": {
+            "median_run": median,
+            "best_run": order[-1],
+            "each": figures,
+            **{
+                key: {
+                    "best": figures[order[-1]][key],
+                    "median": figures[median][key],
+                }
+                for key in figures[0]
+            },
+        },
+    }
+
+
+def _run_figures(run: dict[str, Any]) -> dict[str, float]:
+    """One run's headline figures (``runs`` of :func:`bench_sitl`)."""
+    sitl, companion = run["sitl"], run["companion"]
+    frames = int(sitl["counts"].get("frames", 0))
+    sim_s, wall = sitl["counts"].get("sim_s", 0.0), sitl["window_wall_s"]
+    cpu = sitl["window_cpu_s"] + companion["window_cpu_s"]
+    return {
+        "realtime_factor": sim_s / wall if wall > 0 else 0.0,
+        "ms_per_frame": 1e3 * wall / frames if frames else 0.0,
+        "realtime_factor_cpu": sim_s / cpu if cpu > 0 else 0.0,
+        "sitl_cpu_ms_per_frame": 1e3 * sitl["window_cpu_s"] / frames if frames else 0.0,
+        "companion_cpu_ms_per_frame": 1e3 * companion["window_cpu_s"] / frames if frames else 0.0,
     }
 
 
@@ -199,6 +241,14 @@ def format_sitl_bench(res: dict[str, Any]) -> str:
         f"({res['in_process']['realtime_factor']:.1f}x) -> the pair at "
         f"{100 * res['vs_in_process']:.0f} % of it",
     ]
+    runs = res.get("runs")
+    if runs is not None and len(runs["each"]) > 1:
+        rtf, ms = runs["realtime_factor"], runs["ms_per_frame"]
+        lines.append(
+            f"{len(runs['each'])} runs: best {rtf['best']:.1f}x ({ms['best']:.2f} ms per frame), "
+            f"median {rtf['median']:.1f}x ({ms['median']:.2f} ms per frame); the figures here "
+            "are the median run's"
+        )
     for name in ("sitl", "companion"):
         p = res[name]
         shares = ", ".join(f"{k} {100 * v:.0f} %" for k, v in p["shares"].items())

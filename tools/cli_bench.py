@@ -146,6 +146,7 @@ def _bench_sitl(args: argparse.Namespace) -> int:
                 episodes=args.episodes or 2,
                 seed=args.seed,
                 scenario=args.scenario,
+                repeats=args.repeats,
             )
         )
     except FlyError as exc:
