@@ -8,7 +8,8 @@ optional ``[vehicle]`` section (:mod:`sitl_sim.physics.airframe`) scales the veh
 episode;
 ``[visual]`` (:mod:`sitl_sim.render.visual`) draws ground families or ground pictures, sun, pad
 size and colour and camera effects; ``[pad]`` (:mod:`sitl_sim.render.pad_section`) picks the pad
-design;
+design and how it moves (on a rover, on a ship's deck); ``[terrain]``
+(:mod:`sitl_sim.site.terrain`) tilts the ground and adds relief, rocks and craters;
 ``[sensors]`` (:mod:`sitl_sim.physics.sensor_faults`) adds sensor faults; ``[link]``
 (:mod:`sitl_sim.mavlink.link_impairment`) impairs the MAVLink SITL's real-time link (loss, delay,
 jitter, duplicates, reordering, outages).
@@ -38,6 +39,7 @@ from sitl_sim.physics.sensor_faults import SensorFaultsConfig
 from sitl_sim.physics.wind import WindConfig
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.visual import VisualConfig
+from sitl_sim.site.terrain import TerrainConfig
 from sitl_sim.table import Section, check_section, choice, keys_markdown, read_values, span
 
 __all__ = [
@@ -72,7 +74,8 @@ class Scenario:
     """Ranges ``(lo, hi)`` of the initial state (the ``[initial_state]`` keys), the sampler,
     the planet, and the optional sections: the wind (None: still air), the airframe factors of
     ``[vehicle]`` (None: the vehicle file as is), the look of ``[visual]`` (None: the nominal
-    ground and camera), the pad of ``[pad]`` (None: the paper's pad), the sensor faults (None:
+    ground and camera), the pad of ``[pad]`` (None: the paper's pad, still), the ground's relief
+    of ``[terrain]`` (None: flat), the sensor faults (None:
     the sensors of the sim config, no faults) and the link impairment (None: a perfect link;
     only the real-time MAVLink SITL has a link to impair)."""
 
@@ -112,6 +115,7 @@ class Scenario:
     wind: WindConfig | None = None
     visual: VisualConfig | None = None
     pad: PadConfig | None = None
+    terrain: TerrainConfig | None = None
     vehicle: AirframeConfig | None = None
     sensors: SensorFaultsConfig | None = None
     link: LinkConfig | None = None
@@ -123,6 +127,11 @@ class Scenario:
                 "expected > 0 (the vehicle starts in the air)"
             )
         check_section(self)
+        if self.terrain is not None and self.pad is not None and self.pad.motion == "deck":
+            raise ConfigError(
+                f"{self.source}: [terrain] with [pad] motion = 'deck'; expected one of them (a "
+                "deck floats on water: the ground is the sea, flat at its mean level)"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -142,6 +151,7 @@ _OPTIONAL: dict[str, type[Section]] = {
     "vehicle": AirframeConfig,
     "visual": VisualConfig,
     "pad": PadConfig,
+    "terrain": TerrainConfig,
     "sensors": SensorFaultsConfig,
     "link": LinkConfig,
 }
@@ -161,12 +171,11 @@ def scenario_keys_markdown() -> str:
         "docs/scenario_keys.md`; do not edit (a test compares it with the declarations).\n\n"
         "A key left out takes its default; `required` keys have none. A section left out is "
         "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, the "
-        "paper's pad, no sensor faults, a perfect link). A `file list` is one file name or a "
-        "list of them, relative to the scenario file (else to the repository root). Unknown "
-        "keys, wrong types and values out of range are `ConfigError`s naming the file, "
-        "`[section] key`, what was expected and what was "
-        "found. A `span` is `[lo, hi]`, drawn per episode (uniform); a single number `x` "
-        "means `[x, x]`.\n\n"
+        "paper's pad still on flat ground, no sensor faults, a perfect link). A `file list` is "
+        "one file name or a list of them, relative to the scenario file (else to the "
+        "repository root). Unknown keys, wrong types and values out of range are `ConfigError`s "
+        "naming the file, `[section] key`, what was expected and what was found. A `span` is "
+        "`[lo, hi]`, drawn per episode (uniform); a single number `x` means `[x, x]`.\n\n"
     )
     classes = {"initial_state": Scenario, "world": WorldSection, **_OPTIONAL}
     return keys_markdown(((name, classes[name]) for name in SECTIONS), intro)

@@ -30,6 +30,7 @@ from sitl_sim.render.ground import GroundMap, PadGeometry, nominal_ground
 from sitl_sim.render.scene import Camera, Renderer, make_renderer
 from sitl_sim.render.visual import CameraEffects, VisualSample
 from sitl_sim.scenario import InitialState
+from sitl_sim.site.site import Site
 from sitl_sim.world import EpisodeWorld
 
 __all__ = ["CameraFrame", "Simulator"]
@@ -153,7 +154,7 @@ class Simulator:
         )
         self.attitude_sensor = AttitudeSensor(self.sim.attitude, np.random.default_rng(att_ss))
         self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss), faults)
-        self.camera = self._camera(world.visual, np.random.default_rng(cam_ss))
+        self.camera = self._camera(world.visual, np.random.default_rng(cam_ss), world.site)
         hover = self.phys.hover_rotor_thrust_n
         self._x = make_state(
             pos_ned_m=initial.pos_ned_m,
@@ -181,7 +182,9 @@ class Simulator:
             self._poses = deque(maxlen=self._latency_steps + 1)
             self._record_pose()
 
-    def _camera(self, visual: VisualSample | None, rng: np.random.Generator) -> Camera | None:
+    def _camera(
+        self, visual: VisualSample | None, rng: np.random.Generator, site: Site | None = None
+    ) -> Camera | None:
         """The episode's camera: its ground and pad shown on the renderer, its light and
         effects (the nominal ground, full light and none without ``[visual]``)."""
         if self.scene is None:
@@ -191,9 +194,9 @@ class Simulator:
             self._visual = (visual, ground)
         ground = self._visual[1]
         if visual is None:
-            self.scene.configure(ground, PadGeometry())
+            self.scene.configure(ground, PadGeometry(), site)
             return Camera(self.scene, self.sim.camera, rng)
-        self.scene.configure(ground, visual.pad())
+        self.scene.configure(ground, visual.pad(), site, visual.sun)
         effects = CameraEffects(visual, self.sim.camera, visual.light)
         return Camera(self.scene, self.sim.camera, rng, light=visual.light, effects=effects)
 
@@ -313,7 +316,7 @@ class Simulator:
             step = self._step_count - self._latency_steps
             time_s = step * self.sim.physics_dt_s
         if self.camera is not None:
-            image = self.camera.capture(pos, quat, rate)
+            image = self.camera.capture(pos, quat, rate, time_s)
         else:
             cam = self.sim.camera
             image = np.zeros((cam.height_px, cam.width_px), dtype=np.uint8)

@@ -7,6 +7,8 @@ terrain families, sensor fault rates, ...); :func:`episode_world` draws the valu
 ``(seed, index, SECTION_STREAM)`` (a distinct constant per section:
 :data:`sitl_sim.physics.wind.WIND_STREAM`, :data:`sitl_sim.physics.airframe.AIRFRAME_STREAM`,
 :data:`sitl_sim.render.visual.VISUAL_STREAM`, :data:`sitl_sim.render.pad_section.PAD_STREAM`,
+:data:`~sitl_sim.render.pad_section.PAD_MOTION_STREAM`,
+:data:`sitl_sim.site.terrain.TERRAIN_STREAM`,
 :data:`sitl_sim.physics.sensor_faults.SENSORS_STREAM`), so adding a section to a scenario never
 changes what another section draws, and the same (seed, episode) is the same world in every
 process (the gymnasium env, the MAVLink SITL, parallel evaluation workers, resumed runs).
@@ -17,16 +19,19 @@ so the nominal scenario flies exactly the world it always did.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 from sitl_sim.config import VehicleConfig
 from sitl_sim.physics.airframe import AirframeScales, draw_airframe
 from sitl_sim.physics.sensor_faults import SensorFaults
 from sitl_sim.physics.wind import WindModel
-from sitl_sim.render.ground import PadGeometry
+from sitl_sim.render.ground import PadGeometry, PadTexture
+from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.pads import PadDesign
 from sitl_sim.render.visual import VisualConfig, VisualSample
 from sitl_sim.scenario import Scenario
+from sitl_sim.site.site import Site
 
 __all__ = ["EpisodeWorld", "episode_world"]
 
@@ -44,7 +49,9 @@ class EpisodeWorld:
     ``[pad]`` drew; the renderers get it through ``visual`` (:meth:`VisualSample.pad
     <sitl_sim.render.visual.VisualSample.pad>`): a scenario with ``[pad]`` and no ``[visual]``
     gets the nominal look (full light, no effect: the same images) carrying the design, unless
-    the design is the nominal pad itself.
+    the design is the nominal pad itself. ``site`` is the landing site (:mod:`sitl_sim.site`:
+    the ground's relief of ``[terrain]``, the pad's motion and vehicle of ``[pad]``); None when
+    neither draws anything (flat ground, a still pad at height 0), the nominal site.
     """
 
     wind: WindModel | None = None
@@ -52,6 +59,7 @@ class EpisodeWorld:
     visual: VisualSample | None = None
     sensors: SensorFaults | None = None
     pad: PadDesign | None = None
+    site: Site | None = None
 
     def vehicle(self, base: VehicleConfig) -> VehicleConfig:
         """The episode's vehicle: ``base`` (the vehicle file) itself without ``[vehicle]``,
@@ -60,7 +68,8 @@ class EpisodeWorld:
 
     def record(self) -> dict:
         """What was drawn, for the episode's log records and ``info`` (``airframe``,
-        ``visual``, ``pad``; absent sections left out, so nominal records are unchanged). The
+        ``visual``, ``pad``, ``site``; absent sections left out, so nominal records are
+        unchanged). The
         wind is logged as it blows, in the ground truth."""
         out: dict = {}
         if self.airframe is not None:
@@ -73,6 +82,8 @@ class EpisodeWorld:
                 "file": str(self.pad.path) if self.pad.path else None,
                 "size_m": list(self.pad.size_m),
             }
+        if self.site is not None:
+            out["site"] = self.site.record()
         return out
 
 
@@ -91,4 +102,29 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
         if scenario.sensors is not None
         else None
     )
-    return EpisodeWorld(wind=wind, airframe=airframe, visual=visual, sensors=sensors, pad=pad)
+    site = _site(scenario, seed, index, visual.pad() if visual is not None else PadGeometry())
+    return EpisodeWorld(
+        wind=wind, airframe=airframe, visual=visual, sensors=sensors, pad=pad, site=site
+    )
+
+
+def _site(scenario: Scenario, seed: int, index: int, pad: PadGeometry | PadTexture) -> Site | None:
+    """The episode's landing site (None: flat ground and a still pad at height 0, nominal):
+    the terrain drawn first (a rover follows it, a still pad lies on its slope), then the
+    motion; the vehicle is sized to the pad the renderers draw."""
+    cfg = scenario.pad
+    if scenario.terrain is None and (cfg is None or cfg.still_on_ground):
+        return None
+    if isinstance(pad, PadTexture):
+        size = (pad.size_m[1], pad.size_m[0])  # (along north: forward, across)
+    else:
+        size = (pad.side_m, pad.side_m)
+    clear_m = 0.5 * math.hypot(1.4 * size[0] + 0.6, size[1] + 0.6)
+    terrain = scenario.terrain.draw(seed, index, clear_m) if scenario.terrain is not None else None
+    motion = (cfg or PadConfig()).draw_motion(
+        seed,
+        index,
+        ground=terrain.ground if terrain is not None else None,
+        ground_gradient=terrain.gradient if terrain is not None else (0.0, 0.0),
+    )
+    return Site(motion, terrain, size)

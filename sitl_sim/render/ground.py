@@ -190,7 +190,7 @@ def _png(rgb: np.ndarray, kind: str) -> Path:
     path = Path(tempfile.gettempdir()) / f"visland_{kind}_{_digest(rgb)}.png"
     if not path.exists():
         tmp = path.with_suffix(f".{os.getpid()}.tmp.png")
-        Image.fromarray(np.ascontiguousarray(rgb), "RGB").save(tmp)
+        Image.fromarray(np.ascontiguousarray(rgb), "RGB").save(tmp, compress_level=1)
         tmp.replace(path)  # atomic: parallel workers never read a half-written file
     return path
 

@@ -29,11 +29,15 @@ import numpy as np
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_to_rotation
+from sitl_sim.render.fast_site import BODY_TO_IMAGE as _BODY_TO_IMAGE
+from sitl_sim.render.fast_site import FastSite
 from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture, luma, nominal_ground
+from sitl_sim.render.site_look import SiteLook
+from sitl_sim.render.terrain import Sun
+from sitl_sim.site.site import Site
 
 __all__ = ["FastRenderer", "camera_intrinsics", "plane_homography"]
 
-_BODY_TO_IMAGE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 _PAD_TEXELS_PER_M = 100  # 1 cm texels: the pad's edges stay sharp down to touchdown
 
 
@@ -59,30 +63,50 @@ def plane_homography(
 
 class FastRenderer:
     """Renders a :class:`GroundMap` and a :class:`PadGeometry` to mono8 (no pybullet), under
-    the reference scene's full, overhead light (the camera applies the episode's light level)."""
+    the reference scene's full, overhead light (the camera applies the episode's light level);
+    with a landing site (:mod:`sitl_sim.site`), its slope, relief, rocks, vehicle and the pad
+    where it is at the frame's time (:mod:`sitl_sim.render.fast_site`)."""
 
     def __init__(
-        self, ground: GroundMap | None = None, pad: PadGeometry | PadTexture | None = None
+        self,
+        ground: GroundMap | None = None,
+        pad: PadGeometry | PadTexture | None = None,
+        site: Site | None = None,
+        sun: Sun | None = None,
     ) -> None:
         self._k_cache: tuple[CameraConfig, np.ndarray] | None = None
-        self.configure(ground or nominal_ground(), pad or PadGeometry())
+        self._site: FastSite | None = None
+        self.configure(ground or nominal_ground(), pad or PadGeometry(), site, sun)
 
-    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None:
-        """Show ``ground`` and ``pad`` from now on (a new episode's world)."""
+    def configure(
+        self,
+        ground: GroundMap,
+        pad: PadGeometry | PadTexture,
+        site: Site | None = None,
+        sun: Sun | None = None,
+    ) -> None:
+        """Show ``ground`` and ``pad`` from now on (a new episode's world), on ``site`` (None:
+        the pad still on flat ground) lit by ``sun`` (None: overhead)."""
         self.ground = ground
         self.pad = pad
         self._ground_mono = ground.mono
+        self._set_layers(pad)
+        self._site = FastSite(SiteLook(ground, site, sun), self._layers) if site else None
+
+    def _set_layers(self, pad: PadGeometry | PadTexture) -> None:
         if isinstance(pad, PadTexture):
-            # one layer: (grey, inside) per texel, warped together
-            inside = np.full(pad.mono.shape, 255, np.uint8)
-            self._layers = [(np.dstack([pad.mono, inside]), pad.texel_to_ne, pad.top_m, None)]
+            # one layer: inside << 8 | grey per texel in one uint16 channel (OpenCV warps one
+            # channel several times faster than two)
+            packed = pad.mono.astype(np.uint16) | np.uint16(0x100)
+            self._layers = [(packed, pad.texel_to_ne, pad.top_m, None)]
             return
         square, square_to_ne = _pad_layer(pad, cross=False)
         cross, cross_to_ne = _pad_layer(pad, cross=True)
         # TinyRenderer turns a float colour into bytes by truncation (0.25 -> 63)
         greys = [luma((np.array(c) * 255.0).astype(np.uint8)) for c in (pad.green_rgb, pad.red_rgb)]
-        # label -> grey level: 0 = ground (painted separately), 1 = green, 2 = red
-        grey = np.array([0, *greys], dtype=np.uint8)
+        # label -> grey level: 0 = ground (painted separately), 1 = green, 2 = red (a LUT)
+        grey = np.zeros(256, dtype=np.uint8)
+        grey[1:3] = greys
         self._layers = [
             (square, square_to_ne, pad.square_top_m, grey),
             (cross, cross_to_ne, pad.cross_top_m, grey),
@@ -93,11 +117,14 @@ class FastRenderer:
             self._k_cache = (cfg, camera_intrinsics(cfg))
         return self._k_cache[1]
 
-    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
-        """Noise-free mono8 image (height, width), row 0 = body forward."""
+    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig, time_s: float = 0.0) -> np.ndarray:
+        """Noise-free mono8 image (height, width), row 0 = body forward; ``time_s``: the sim
+        time the frame shows (where a moving pad is)."""
         k = self._k(cfg)
         rot = quat_to_rotation(quat_wxyz)
         size = (cfg.width_px, cfg.height_px)
+        if self._site is not None:
+            return self._site.render(k, pos_ned_m, rot, size, time_s)
         g = self.ground
         h_ground = plane_homography(k, pos_ned_m, rot, 0.0) @ g.texel_to_ne
         image = cv2.warpPerspective(
@@ -116,12 +143,10 @@ class FastRenderer:
             layer = cv2.warpPerspective(
                 texels, h, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
             )
-            if grey is None:  # a picture: (grey, inside)
-                mask = layer[..., 1] != 0
-                image[mask] = layer[..., 0][mask]
+            if grey is None:  # a picture: inside << 8 | grey
+                np.copyto(image, layer.astype(np.uint8), where=layer >= 0x100)
             else:  # labels: 0 = none, else the grey of grey[label]
-                mask = layer != 0
-                image[mask] = grey[layer[mask]]
+                np.copyto(image, cv2.LUT(layer, grey), where=layer != 0)
         return image
 
     def close(self) -> None:

@@ -33,9 +33,13 @@ from sitl_sim.render.ground import (
     luma,
     nominal_ground,
 )
+from sitl_sim.render.scene_site import SiteBodies
+from sitl_sim.render.site_look import SiteLook
 
 if TYPE_CHECKING:
+    from sitl_sim.render.terrain import Sun
     from sitl_sim.render.visual import CameraEffects
+    from sitl_sim.site.site import Site
 
 __all__ = ["Camera", "PadGeometry", "Renderer", "Scene", "make_renderer", "ned_to_scene"]
 
@@ -79,9 +83,17 @@ class Renderer(Protocol):
     """What the camera renders from: :class:`Scene` (pybullet, the reference) or
     :class:`sitl_sim.render.render_fast.FastRenderer`; both draw the same ground map and pad."""
 
-    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None: ...
+    def configure(
+        self,
+        ground: GroundMap,
+        pad: PadGeometry | PadTexture,
+        site: Site | None = None,
+        sun: Sun | None = None,
+    ) -> None: ...
 
-    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray: ...
+    def render(
+        self, pos_ned_m, quat_wxyz, cfg: CameraConfig, time_s: float = 0.0
+    ) -> np.ndarray: ...
 
     def close(self) -> None: ...
 
@@ -107,7 +119,8 @@ class Scene:
     The nominal ground is a 600 m box textured with :func:`~sitl_sim.render.ground.nominal_ground`
     (pybullet's own box UVs); a periodic ground map (:mod:`sitl_sim.render.terrain`) is a mesh of
     quads cut at the tile edges, each with uvs spanning its part of the tile, so texel (col, row)
-    lies exactly where the map's ``texel_to_ne`` says.
+    lies exactly where the map's ``texel_to_ne`` says. A landing site (:mod:`sitl_sim.site`) adds
+    its slope, relief, rocks, vehicle and moving pad (:mod:`sitl_sim.render.scene_site`).
     """
 
     GROUND_HALF_SIDE_M = GROUND_HALF_SIDE_M
@@ -121,6 +134,8 @@ class Scene:
             raise SimError("pybullet: could not open a DIRECT client")
         self.ground: GroundMap | None = None
         self.pad: PadGeometry | PadTexture | None = None
+        self._site: SiteBodies | None = None
+        self._site_key: tuple | None = None
         try:
             self.configure(ground or nominal_ground(), pad or PadGeometry())
         except Exception:
@@ -131,14 +146,30 @@ class Scene:
     def client_id(self) -> int:
         return self._client
 
-    def configure(self, ground: GroundMap, pad: PadGeometry | PadTexture) -> None:
-        """Show ``ground`` and ``pad`` from now on (rebuilds the bodies if they changed)."""
-        if ground is self.ground and pad == self.pad:
+    def configure(
+        self,
+        ground: GroundMap,
+        pad: PadGeometry | PadTexture,
+        site: Site | None = None,
+        sun: Sun | None = None,
+    ) -> None:
+        """Show ``ground`` and ``pad`` from now on (rebuilds the bodies if they changed), on
+        ``site`` (None: the pad still on flat ground) lit by ``sun`` (None: overhead)."""
+        key = None
+        if site is not None:
+            key = (id(site), None if sun is None else (sun.elevation_deg, sun.azimuth_deg))
+        if ground is self.ground and pad == self.pad and key == self._site_key:
             return
         pb.resetSimulation(physicsClientId=self._client)
         self.ground = ground
         self.pad = pad
-        self._build()
+        self._site_key = key
+        self._site = None
+        if site is None:
+            self._build()
+            return
+        look = SiteLook(ground, site, sun)
+        self._site = SiteBodies(pb, self._client, look, pad, self._build_ground)
 
     def _box(self, half_extents, rgba, z_top: float) -> int:
         c = self._client
@@ -153,6 +184,10 @@ class Scene:
         )
 
     def _build(self) -> None:
+        self._build_ground()
+        self._build_pad()
+
+    def _build_ground(self) -> None:
         c = self._client
         h = self.GROUND_HALF_SIDE_M
         if self.ground.periodic and self.ground.tile_m > 0.0:
@@ -165,6 +200,8 @@ class Scene:
         if tex < 0:
             raise SimError("pybullet: could not load the ground texture")
         pb.changeVisualShape(ground, -1, textureUniqueId=tex, physicsClientId=c)
+
+    def _build_pad(self) -> None:
         pad = self.pad
         if isinstance(pad, PadTexture):
             self._textured_pad(pad)
@@ -293,12 +330,17 @@ class Scene:
             raise SimError("pybullet: could not create the ground mesh")
         return pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=c)
 
-    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
-        """Noise-free mono8 image (height, width) from a camera at the vehicle's pose."""
-        return luma(self.render_rgb(pos_ned_m, quat_wxyz, cfg))
+    def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig, time_s: float = 0.0) -> np.ndarray:
+        """Noise-free mono8 image (height, width) from a camera at the vehicle's pose, at sim
+        time ``time_s`` (where a moving pad is)."""
+        return luma(self.render_rgb(pos_ned_m, quat_wxyz, cfg, time_s))
 
-    def render_rgb(self, pos_ned_m, quat_wxyz, cfg: CameraConfig) -> np.ndarray:
+    def render_rgb(
+        self, pos_ned_m, quat_wxyz, cfg: CameraConfig, time_s: float = 0.0
+    ) -> np.ndarray:
         """Noise-free colour image (height, width, 3) uint8, row 0 = body forward."""
+        if self._site is not None:
+            self._site.place(time_s)
         rot = quat_to_rotation(quat_wxyz)
         eye = ned_to_scene(pos_ned_m)
         look = ned_to_scene(rot[:, 2])  # body +z (down) in the scene
@@ -375,8 +417,11 @@ class Camera:
         """Pinhole focal length in pixels (square pixels, ``fov_deg`` across the height)."""
         return 0.5 * self._cfg.height_px / math.tan(math.radians(self._cfg.fov_deg) / 2)
 
-    def capture(self, pos_ned_m, quat_wxyz, rate_frd_rad_s=(0.0, 0.0, 0.0)) -> np.ndarray:
-        img = self._scene.render(pos_ned_m, quat_wxyz, self._cfg)
+    def capture(
+        self, pos_ned_m, quat_wxyz, rate_frd_rad_s=(0.0, 0.0, 0.0), time_s: float = 0.0
+    ) -> np.ndarray:
+        """The frame from the vehicle's pose at sim time ``time_s`` (where a moving pad is)."""
+        img = self._scene.render(pos_ned_m, quat_wxyz, self._cfg, time_s)
         if self._light != 1.0:
             img = cv2.convertScaleAbs(img, alpha=self._light)
         if self._effects is not None:

@@ -20,6 +20,8 @@ image, pad included. Families:
 ``grass``       mottled green turf with darker clumps and dry patches (close to the pad's green)
 ``asphalt``     dark grey fine-grained asphalt with repair patches and cracks
 ``gravel``      grey-brown gravel: dense small stones
+``water``       the sea: dark blue-grey, wind waves and swell catching the light, flecks of foam
+                (a ship's deck, ``[pad] motion = "deck"``, floats on it)
 """
 
 from __future__ import annotations
@@ -197,6 +199,27 @@ def _gravel(rng: np.random.Generator, n: int):
     return np.array([132.0, 122.0, 108.0]) * (1.0 + tone)[..., None], height
 
 
+def _water(rng: np.random.Generator, n: int):
+    # wave trains about a wind direction (whole waves per tile: it stays periodic), 4-14 m long,
+    # steep enough for the sun to pick out their faces, on a fine chop; foam on the highest crests
+    rows, cols = np.mgrid[0:n, 0:n] / n
+    wind = rng.uniform(0.0, 2 * math.pi)
+    height = 0.03 * _spectral(rng, n, 2.0)
+    for _ in range(7):
+        heading = wind + rng.normal(0.0, 0.35)
+        waves = rng.uniform(n * TEXEL_M / 14.0, n * TEXEL_M / 4.0)  # per tile
+        kx, ky = round(waves * math.cos(heading)), round(waves * math.sin(heading))
+        length = n * TEXEL_M / max(math.hypot(kx, ky), 1.0)
+        phase = 2 * math.pi * (kx * cols + ky * rows) + rng.uniform(0.0, 2 * math.pi)
+        height += 0.09 * length / (2 * math.pi) * rng.uniform(0.4, 1.0) * np.sin(phase)
+    crest = (height - height.mean()) / (height.std() + 1e-12)
+    foam = np.clip(crest - 2.0, 0.0, None) * np.clip(_spectral(rng, n, 2.4) - 0.3, 0.0, 1.0)
+    tone = 0.95 + 0.05 * _spectral(rng, n, 2.5)
+    rgb = np.array([30.0, 55.0, 70.0]) * tone[..., None]
+    rgb = rgb + np.clip(foam, 0.0, 0.8)[..., None] * (np.array([215.0, 222.0, 226.0]) - rgb)
+    return rgb, height
+
+
 FAMILIES: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.ndarray]]] = {
     "regolith": _regolith,
     "mars_rocks": _mars_rocks,
@@ -204,6 +227,7 @@ FAMILIES: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.nd
     "grass": _grass,
     "asphalt": _asphalt,
     "gravel": _gravel,
+    "water": _water,
 }
 """The named ground families of ``[visual] terrain``."""
 
