@@ -42,7 +42,7 @@ from companion.config import (
     open_camera_and_link,
 )
 from companion.contract.companion_records import CompanionSummaryRecord
-from companion.contract.perf import LoopPerf
+from companion.contract.perf import LoopPerf, pin_to_cpus
 from companion.flight import FlightContext
 from companion.link import LinkError, mavlink
 from companion.offboard import FlightController
@@ -342,6 +342,7 @@ def run_from_args(
         cfg = config_from_args(args)
         if not cfg.policy:
             raise CompanionError("--policy is required (a checkpoint path)")
+        pin_to_cpus("companion")  # VISLAND_COMPANION_CPUS
         if resolve_policy is None:
             from companion.runtime import load_policy_file
 

@@ -106,3 +106,23 @@ def test_a_queued_log_reads_back_as_one_written_on_the_spot(tmp_path):
 def test_max_pending_must_be_positive():
     with pytest.raises(ValueError, match="max_pending = 0"):
         LogQueue(LoopPerf(), max_pending=0)
+
+
+def test_pin_to_cpus_reads_the_pairs_variables(monkeypatch):
+    import os
+
+    from companion.contract.perf import CPUS_ENV, pin_to_cpus
+
+    monkeypatch.delenv(CPUS_ENV["sitl"], raising=False)
+    assert pin_to_cpus("sitl") is None  # unset: the kernel places the process
+    before = os.sched_getaffinity(0)
+    try:
+        monkeypatch.setenv(CPUS_ENV["companion"], f" {min(before)} ")
+        assert pin_to_cpus("companion") == (min(before),)
+        assert os.sched_getaffinity(0) == {min(before)}
+        for bad in ("x", "0-", str(os.cpu_count() or 1)):
+            monkeypatch.setenv(CPUS_ENV["sitl"], bad)
+            with pytest.raises(ValueError, match="VISLAND_SITL_CPUS"):
+                pin_to_cpus("sitl")
+    finally:
+        os.sched_setaffinity(0, before)

@@ -16,7 +16,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["PARTS", "PERF_LINE_PREFIX", "LoopPerf", "parse_perf_line"]
+__all__ = ["CPUS_ENV", "PARTS", "PERF_LINE_PREFIX", "LoopPerf", "parse_perf_line", "pin_to_cpus"]
+
+CPUS_ENV = {"sitl": "VISLAND_SITL_CPUS", "companion": "VISLAND_COMPANION_CPUS"}
+"""The environment variables that pin a process of the pair to CPUs (:func:`pin_to_cpus`), e.g.
+``VISLAND_SITL_CPUS=0 VISLAND_COMPANION_CPUS=1 visland bench sitl``: in lockstep the SITL's
+datagrams wake the companion, which the kernel may then run on the SITL's CPU, beside an idle
+one (each telemetry datagram's handling taken from the SITL's time); pinned apart, neither
+waits for the other's CPU. Unset (the default): the kernel places both."""
 
 PARTS = ("physics", "render", "policy", "mavlink", "camera", "log", "wait")
 """The parts of a loop pass: ``physics`` (rigid body + rate loop), ``render`` (the camera
@@ -155,3 +162,35 @@ def parse_perf_line(text: str) -> dict[str, Any] | None:
             except ValueError:
                 return None
     return None
+
+
+def pin_to_cpus(process: str) -> tuple[int, ...] | None:
+    """Pin this process to the CPUs that ``CPUS_ENV[process]`` lists (``0``, ``1,3``, ``0-2``);
+    the CPUs pinned to, or None when the variable is unset or empty.
+
+    Raises:
+        ValueError: the variable is not a CPU list, or names CPUs this machine lacks.
+    """
+    import os
+
+    name = CPUS_ENV[process]
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return None
+    cpus: set[int] = set()
+    try:
+        for part in text.split(","):
+            first, dash, last = part.partition("-")
+            low = int(first)
+            high = int(last) if dash else low
+            if high < low:
+                raise ValueError(f"range {part!r} runs backwards")
+            cpus.update(range(low, high + 1))
+        os.sched_setaffinity(0, cpus)
+    except (ValueError, OSError) as exc:
+        last_cpu = (os.cpu_count() or 1) - 1
+        raise ValueError(
+            f"{name}={text!r}: expected CPU numbers of this machine (0..{last_cpu}) such as 0, "
+            f"1,3 or 0-2 ({exc})"
+        ) from None
+    return tuple(sorted(cpus))

@@ -67,7 +67,7 @@ import numpy as np
 
 from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
-from companion.contract.perf import PERF_LINE_PREFIX, LoopPerf
+from companion.contract.perf import PERF_LINE_PREFIX, LoopPerf, pin_to_cpus
 from companion.contract.records import EventKind
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
@@ -549,6 +549,10 @@ def run_sitl(
         SitlPortInUseError: the MAVLink port is taken.
         SimError: any configuration error.
     """
+    try:
+        cpus = pin_to_cpus("sitl")  # VISLAND_SITL_CPUS
+    except ValueError as exc:
+        raise SitlError(str(exc)) from None
     sitl = MavlinkSitl(config, land_controller_factory)
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
@@ -556,7 +560,7 @@ def run_sitl(
             previous[sig] = signal.signal(sig, lambda *_: sitl.stop())
     try:
         log.info(
-            "SITL on udp %s:%d -> %s:%d, camera -> %s:%d, %s",
+            "SITL on udp %s:%d -> %s:%d, camera -> %s:%d, %s%s",
             config.host,
             sitl.endpoint.address[1],
             config.remote_host,
@@ -564,15 +568,11 @@ def run_sitl(
             config.camera_host,
             config.camera_port,
             "lockstep" if config.lockstep else f"real time x{config.speed}",
+            "" if cpus is None else f", pinned to CPUs {cpus}",
         )
-        if sitl.gcs_endpoint is not None:
-            log.info(
-                "ground-station link on udp %s:%d -> %s:%d",
-                config.host,
-                sitl.gcs_endpoint.address[1],
-                config.gcs_remote_host,
-                config.gcs_remote_port,
-            )
+        if (gcs := sitl.gcs_endpoint) is not None:
+            to = (config.host, gcs.address[1], config.gcs_remote_host, config.gcs_remote_port)
+            log.info("ground-station link on udp %s:%d -> %s:%d", *to)
         results = sitl.run()
     finally:
         for sig, handler in previous.items():
