@@ -91,6 +91,8 @@ class Companion:
             raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
         self.store = TelemetryStore()
         self.camera, self.link = open_camera_and_link(cfg)
+        if hasattr(self.camera, "follow"):  # camera_roi: cut each frame where the policy looks
+            self.camera.follow(self.runtime)
         self._stop = threading.Event()
         self._stop_reason = ""
         self.flight = None

@@ -85,6 +85,16 @@ class CompanionConfig:
     camera_rate_hz: float = option(
         10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
     )
+    camera_roi: bool = option(
+        False,
+        "real camera: cut the policy's image from the full-resolution frame around the pad the "
+        "estimator predicts, resampled to 128 px (companion.roi; offboard mode), instead of the "
+        "centred 45 deg crop",
+    )
+    camera_roi_pad_m: float = option(1.0, "camera_roi: the pad's width (m) the window is sized for")
+    camera_roi_span_px: float = option(
+        24.0, "camera_roi: the pad's width in the policy's 128 px image while tracking"
+    )
     mode: str = option(
         "offboard",
         "offboard: fly the policy's commands (SET_ATTITUDE_TARGET); landing-target: run only "
@@ -165,6 +175,15 @@ class CompanionConfig:
                 check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
             except CameraError as exc:
                 raise CompanionError(f"camera {self.camera!r}: {exc}") from None
+        if self.camera_roi and (not self.camera.startswith("opencv:") or self.mode != "offboard"):
+            raise CompanionError(
+                f"camera_roi = true: expected an opencv: camera in offboard mode, got camera = "
+                f"{self.camera!r}, mode = {self.mode!r} (SITL frames are 128 px already)"
+            )
+        for key in ("camera_roi_pad_m", "camera_roi_span_px"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and 0 < value <= (128 if key.endswith("px") else 100)):
+                raise CompanionError(f"{key} = {value}; expected a number > 0 (px <= 128)")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the signing key redacted."""
@@ -295,6 +314,11 @@ def open_configured_camera(cfg: CompanionConfig):
             "rotate_deg": cfg.camera_rotate_deg,
             "rate_hz": cfg.camera_rate_hz,
         }
+    if cfg.camera_roi:  # full frames, cut to the policy's window (RoiCameraSource.follow)
+        from companion.roi import RoiCameraSource
+
+        pad, span = cfg.camera_roi_pad_m, cfg.camera_roi_span_px
+        return RoiCameraSource(cfg.camera[len("opencv:") :], pad_m=pad, span_px=span, **opts)
     return open_camera(cfg.camera, **opts)
 
 

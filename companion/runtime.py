@@ -95,6 +95,13 @@ class PolicyRuntime:
         self.steps = 0
         self._ready = True
 
+    def next_state(self) -> PolicyState:
+        """The state the next :meth:`step` starts from (a flight not started yet: its initial
+        state); a region-of-interest camera cuts the next frame with its window."""
+        if not self._ready:
+            self.reset()
+        return self._state
+
     def step(self, observation: Observation, groundtruth: GroundTruth | None) -> StepResult:
         if not self._ready:
             self.reset()

@@ -3,7 +3,9 @@
 * action ``float32[4] = [thrust_norm, p, q, r]`` — the Command contract (thrust fraction of
   T_max, 25 N for the vehicle file, FRD body rates in rad/s), one per camera frame (10 Hz);
 * observation ``dict``: ``image`` (128, 128) uint8, ``attitude_rad`` (3,), ``rate_frd_rad_s``
-  (3,), ``range_m`` (1,) (``-1`` when the radar reports invalid), ``accel_frd_m_s2`` (3,);
+  (3,), ``range_m`` (1,) (``-1`` when the radar reports invalid), ``accel_frd_m_s2`` (3,); a
+  ``[camera]`` larger than 128 x 128 renders at full resolution and hands on the window the
+  simulator is aimed at (:mod:`sitl_sim.full_res`; default the centred 45° view);
 * ``info["groundtruth"]``: ``pos_ned_m``, ``vel_ned_m_s``, ``quat_wxyz``, ``rate_frd_rad_s``
   (+ ``wind_ned_m_s`` in wind) (privileged: for experts, labels and metrics, never in the
   observation);
@@ -39,6 +41,7 @@ from gymnasium import spaces
 
 from companion.contract import IMAGE_SIZE_PX, Command, ContractError, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
+from sitl_sim.full_res import make_simulator
 from sitl_sim.gym_registration import ENV_ID
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.physics.airframe import AirframeScales, check_airframe_can_hover
@@ -84,7 +87,7 @@ class LandingEnv(gym.Env):
         if self.scenario.vehicle is not None:
             check_airframe_can_hover(self.scenario.vehicle, self.vehicle, self.scenario.world)
         self.render_mode = render_mode
-        self._sim = Simulator(self.vehicle, self.sim_config, render=render_camera)
+        self._sim = make_simulator(self.vehicle, self.sim_config, render=render_camera)
         rc = self.vehicle.rate_controller
         hi = np.array([1.0, *rc.max_rate_rad_s], dtype=np.float32)
         lo = np.array([0.0, *(-r for r in rc.max_rate_rad_s)], dtype=np.float32)

@@ -5,7 +5,9 @@
   (:mod:`tools.pad_info`);
 - ``print``: the pad at true scale, a PDF tiled across pages or one PNG (:mod:`tools.pad_print`);
 - ``check``: the model's CNN on a photograph of the laid-out pad taken from above — is it
-  detected, and where (:func:`pad_check`).
+  detected, and where (:func:`pad_check`);
+- ``acquire``: from how high the model acquires the pad on a full-resolution camera, with and
+  without the region of interest around the predicted pad (:mod:`tools.bench_roi`).
 
 A pad is a pad file (``configs/pads/NAME.toml``) or the name of a shipped one (``paper``,
 ``helipad_1m``, ``quadrant_2m``). A bad pad file, ground image or photograph is an error naming
@@ -150,13 +152,38 @@ def _cmd_pad_check(args: argparse.Namespace) -> int:
     return 0 if res["detected"] else 1
 
 
+def _cmd_pad_acquire(args: argparse.Namespace) -> int:
+    from tools.bench_roi import AcquireConfig, acquire, format_acquire
+
+    width, _, height = args.camera.partition("x")
+    if not (width.isdigit() and height.isdigit()):
+        raise SystemExit(f"visland pad acquire: --camera {args.camera!r}; expected WIDTHxHEIGHT")
+    cfg = AcquireConfig(
+        pad=args.pad,
+        checkpoint=args.checkpoint,
+        width_px=int(width),
+        height_px=int(height),
+        hfov_deg=args.camera_hfov_deg,
+        altitudes_m=tuple(args.altitudes),
+        frames=args.frames,
+        grounds=tuple(args.grounds),
+        span_px=args.span_px,
+        tile_px=args.tile_px,
+        seed=args.seed,
+        flights=args.flights,
+        scenario=args.scenario,
+    )
+    print_result(acquire(cfg), args.json, format_acquire)
+    return 0
+
+
 def register_pad(sub: argparse._SubParsersAction) -> None:
     """Add ``pad`` (``info``, ``print``, ``check``) to the ``visland`` subcommands."""
     from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
     from tools.pad_print import PAPERS
 
     pad_help = "pad file (configs/pads/NAME.toml) or a shipped pad's name"
-    pd = sub.add_parser("pad", help="make the landing pad: info, print, check")
+    pd = sub.add_parser("pad", help="make the landing pad: info, print, check, acquire")
     pd_sub = pd.add_subparsers(dest="what", required=True)
     pi = pd_sub.add_parser(
         "info",
@@ -224,3 +251,42 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     )
     pc.add_argument("--json", action="store_true", help="print one JSON object")
     pc.set_defaults(func=_cmd_pad_check)
+    _register_acquire(pd_sub, pad_help)
+
+
+def _register_acquire(pd_sub: argparse._SubParsersAction, pad_help: str) -> None:
+    from tools.bench_roi import AcquireConfig
+
+    d = AcquireConfig()
+    pa = pd_sub.add_parser(
+        "acquire",
+        help="from how high the model acquires the pad on a full-resolution camera (rendered "
+        "frames): the 45 deg crop (no ROI) vs the region of interest around the pad",
+    )
+    pa.add_argument("--pad", default=d.pad, help=pad_help)
+    pa.add_argument(
+        "--checkpoint", default=None, help="vision checkpoint (default: the shipped model)"
+    )
+    pa.add_argument("--camera", default=f"{d.width_px}x{d.height_px}", help="WIDTHxHEIGHT px")
+    pa.add_argument(
+        "--camera-hfov-deg", type=float, default=d.hfov_deg, help="horizontal field of view"
+    )
+    pa.add_argument(
+        "--altitudes", type=float, nargs="+", default=list(d.altitudes_m), help="metres"
+    )
+    pa.add_argument("--frames", type=int, default=d.frames, help="frames per altitude, ground")
+    pa.add_argument("--grounds", nargs="+", default=list(d.grounds), help="nominal or families")
+    pa.add_argument(
+        "--span-px", type=float, default=d.span_px, help="the pad's width in the track window"
+    )
+    pa.add_argument("--tile-px", type=int, default=d.tile_px, help="search tile side (px)")
+    pa.add_argument("--seed", type=int, default=d.seed, help="poses, noise and flights' seed")
+    pa.add_argument(
+        "--flights",
+        type=int,
+        default=d.flights,
+        help="also fly this many episodes of --scenario on each camera (native, crop, roi)",
+    )
+    pa.add_argument("--scenario", default=d.scenario, help="--flights: the scenario file")
+    pa.add_argument("--json", action="store_true", help="print one JSON object")
+    pa.set_defaults(func=_cmd_pad_acquire)

@@ -32,6 +32,7 @@ from companion.policy_net.geometry import (
     position_from_bearing,
     rotation_zyx,
 )
+from companion.roi import RoiConfig, RoiState
 
 __all__ = ["PolicyCore", "PolicyState", "attitude_at"]
 
@@ -57,6 +58,9 @@ class PolicyState:
     """Time stamp of the newest radar reading used as an altitude fix: over a real link the
     reading at hand is often the previous one again (DISTANCE_SENSOR late or lost), and a
     reading is measured once."""
+    roi: RoiState | None = None
+    """With ``PolicyCore.roi``: the full-resolution window this step's frame is cut with
+    (:mod:`companion.roi`); the step maps the CNN's bearing through it and sets the next."""
 
 
 _MAX_CAMERA_LAG_S = 0.5
@@ -141,6 +145,9 @@ class PolicyCore(ABC):
     """
 
     config: NetConfig
+    roi: RoiConfig | None = None
+    """A full-resolution camera's region of interest (:mod:`companion.roi`); None: the 128 px
+    45° image as it comes (the default, every shipped flight)."""
 
     def _init_core(self) -> None:
         self._estimator = PadEstimator(self.config)
@@ -169,7 +176,8 @@ class PolicyCore(ABC):
 
     def initial_state(self) -> PolicyState:
         est = None if self.privileged else self._estimator.initial_state()
-        return PolicyState(lstm=self.zero_state(), estimator=est)
+        roi = None if self.privileged or self.roi is None else self.roi.start()
+        return PolicyState(lstm=self.zero_state(), estimator=est, roi=roi)
 
     def features(
         self, observation: Observation, groundtruth: Any, state: PolicyState
@@ -336,7 +344,11 @@ class PolicyCore(ABC):
         Split from :meth:`features` so training can batch the CNN over a recorded flight and
         still run exactly this code for the rest. The times are the Observation's (used with
         ``latency_compensation``), ``hover_thrust_norm`` its hover thrust (``hover_input``).
+        With an ROI state, ``raw`` is the CNN's output on the window and is mapped to the
+        camera's bearing first.
         """
+        if state.roi is not None:
+            raw = state.roi.window.to_camera(raw)
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
         dt = None  # the step's own time (its ATTITUDE's), not the image's: a repeated image
         if math.isfinite(attitude_time_s):  # still comes one period after the previous step
@@ -379,6 +391,13 @@ class PolicyCore(ABC):
             vis,
             self.config.hover_feature(hover_thrust_norm),
         )
+        if state.roi is not None and self.roi is not None:
+            var_ne = np.array([est.cov[0][0, 0], est.cov[1][0, 0]])
+            estimate = (est.x[:, 0], est.x[:, 1], var_ne, est.initialised)
+            roi = self.roi.next_state(
+                state.roi, seen, estimate, rotation_zyx(*attitude_rad), self.config.control_dt_s
+            )
+            state = replace(state, roi=roi)
         return feats, replace(state, estimator=est, last_perception=raw)
 
     def act(
