@@ -48,6 +48,52 @@ _SUB = 16  # fillConvexPoly's fixed point (4 bits)
 _EDGE = 0.8  # tan of the largest angle off the optical axis the parallax is judged at
 
 
+def _inset(pts: list, by: float = 0.5) -> list | None:
+    """A convex polygon (list of (x, y) pixels) with every edge moved ``by`` inward: OpenCV
+    fills the pixels within half a pixel of a polygon, TinyRenderer those whose centre is inside
+    it. None when nothing is left. Plain floats: a face has a handful of corners."""
+    m = len(pts)
+    area2 = sum(pts[i][0] * pts[i - 1][1] - pts[i - 1][0] * pts[i][1] for i in range(m))
+    if abs(area2) < 1e-9:
+        return None
+    sign = -1.0 if area2 > 0.0 else 1.0
+    lines = []  # per edge: a point of its moved line, its direction, its inward normal
+    for i in range(m):
+        (x0, y0), (x1, y1) = pts[i], pts[(i + 1) % m]
+        ex, ey = x1 - x0, y1 - y0
+        length = math.hypot(ex, ey)
+        if length < 1e-9:
+            continue
+        nx, ny = -ey / length * sign, ex / length * sign
+        lines.append((x0 + by * nx, y0 + by * ny, ex, ey, nx, ny))
+    if len(lines) < 3:
+        return None
+    out = []
+    for i in range(len(lines)):  # vertex i: where the moved lines i - 1 and i meet
+        bx, by_, ex, ey = lines[i][:4]
+        px, py, pex, pey = lines[i - 1][:4]
+        det = pex * ey - pey * ex
+        if abs(det) < 1e-12:
+            return None
+        t = ((bx - px) * ey - (by_ - py) * ex) / det
+        out.append((px + t * pex, py + t * pey))
+    # every new corner inside every moved line: else the polygon was thinner than a pixel
+    # somewhere and turned inside out
+    for bx, by_, _, _, nx, ny in lines:
+        for x, y in out:
+            if (x - bx) * nx + (y - by_) * ny < -1e-6:
+                return None
+    return out
+
+
+def _fill(image: np.ndarray, pix: list, grey: int) -> None:
+    """Fill the pixels whose centre lies inside the convex polygon ``pix`` ((x, y) list)."""
+    inner = _inset([(min(max(x, -1e4), 1e4), min(max(y, -1e4), 1e4)) for x, y in pix])
+    if inner is not None:
+        pts = np.rint(np.array(inner) * _SUB).astype(np.int32)
+        cv2.fillConvexPoly(image, pts, grey, cv2.LINE_8, 4)
+
+
 def _clip(poly: np.ndarray, values: np.ndarray) -> np.ndarray:
     """The part of a convex polygon (m, d) where ``values`` (m,) >= 0 (Sutherland-Hodgman)."""
     out = []
@@ -110,63 +156,89 @@ class _Vehicle:
     """Solids' faces as arrays (pad frame): shared vertices, per face its vertex indices (padded
     to the longest face by repeating its first), normal, colour and ``normal . first vertex``,
     in drawing order. Dot products are the same in the pad frame as in NED, so which faces look
-    at the camera and how the sun lights them need no per-vertex work."""
+    at the camera and how the sun lights them need no per-vertex work. A face inside another
+    solid (a wheel's top under the bed) or under its own (a bottom) is never seen: left out."""
 
     def __init__(self, solids) -> None:
         vertices, faces, normals, rgb = [], [], [], []
-        for solid in solids:
+        self.solid_of: list[int] = []  # each face's solid (its index in ``solids``)
+        for number, solid in enumerate(solids):
             base = sum(len(v) for v in vertices)
             ring = len(solid.outline)
             sides = solid.faces()
             vertices += [sides[0][0], sides[1][0]]  # the top ring, the bottom ring
-            faces += [base + np.arange(ring), base + ring + np.arange(ring)]
-            for i in range(ring):
-                j = (i + 1) % ring
-                faces.append(base + np.array([i, ring + i, ring + j, j]))
-            normals += [f[1] for f in sides]
-            rgb += [solid.top_rgb if f[2] else solid.rgb for f in sides]
-        self.empty = not faces
-        if self.empty:
+            rings = [base + np.arange(ring), None]
+            rings += [
+                base + np.array([i, ring + i, ring + (i + 1) % ring, (i + 1) % ring])
+                for i in range(ring)
+            ]
+            others = [o.planes() for o in solids if o is not solid]
+            for (verts, normal, is_top), idx in zip(sides, rings, strict=True):
+                if idx is None or any(np.all(verts @ n.T < d - 1e-9) for n, d in others):
+                    continue
+                faces.append(idx)
+                self.solid_of.append(number)
+                normals.append(normal)
+                rgb.append(solid.top_rgb if is_top else solid.rgb)
+        self.count = len(faces)
+        if not faces:
             return
         self.vertices = np.vstack(vertices)
         width = max(len(f) for f in faces)
-        self.faces = faces
+        self.faces = [f.tolist() for f in faces]
         self.padded = np.array([np.concatenate([f, np.full(width - len(f), f[0])]) for f in faces])
         self.normals = np.array(normals)
         self.offsets = np.einsum("ij,ij->i", self.normals, self.vertices[self.padded[:, 0]])
-        self.rgb = [tuple(float(c) for c in v) for v in rgb]
+        self.rgb = np.array(rgb)
+        # faces under a solid's top and within its outline: hidden from a camera above it
+        self.roofs = []
+        for number, solid in enumerate(solids):
+            planes, offsets = solid.planes()
+            planes, offsets = planes[:-2, :2], offsets[:-2]  # the outline's edges
+            under = np.array(
+                [
+                    bool(
+                        self.solid_of[f] != number
+                        and np.all(self.vertices[idx, :2] @ planes.T <= offsets + 1e-6)
+                        and np.all(self.vertices[idx, 2] >= solid.z_top - 1e-9)
+                    )
+                    for f, idx in enumerate(self.faces)
+                ]
+            )
+            if under.any():
+                self.roofs.append((planes, offsets, solid.z_top, under))
 
     def draw(self, image, k, to_cam, cam, p, r, gradient, sun, faces: range) -> None:
         """Fill ``faces`` (a range of face indices: the solids under the pad, or above it)
         where they look at the camera."""
-        if self.empty or not len(faces):
+        if not len(faces):
             return
         local_cam = r.T @ (cam - p)
-        facing = (
+        facing = np.zeros(self.count, bool)
+        facing[faces.start : faces.stop] = (
             self.normals[faces.start : faces.stop] @ local_cam
             > self.offsets[faces.start : faces.stop]
         )
+        for planes, offsets, top, under in self.roofs:
+            if local_cam[2] < top and np.all(planes @ local_cam[:2] <= offsets):
+                facing &= ~under  # the camera looks down on this solid's top: all under it hidden
         if not facing.any():
             return
         gn, ge = gradient
-        m = to_cam @ r
-        rel = self.vertices @ m.T + to_cam @ (p - cam)
-        up = r.T @ np.array([gn, ge, 1.0])
-        above = -(self.vertices @ up) - (gn * p[0] + ge * p[1] + p[2])
+        rel = self.vertices @ (to_cam @ r).T + to_cam @ (p - cam)
+        above = -(self.vertices @ (r.T @ np.array([gn, ge, 1.0]))) - (gn * p[0] + ge * p[1] + p[2])
         ok = ((above >= 0.0) & (rel[:, 2] >= _NEAR_M))[self.padded].all(axis=1)
-        cos_sun = self.normals @ (r.T @ sun[0])
+        light = (AMBIENT + DIFFUSE * np.clip(self.normals @ (r.T @ sun[0]), 0.0, None)) / sun[1]
+        # the colour as pybullet's TinyRenderer takes it: a float per channel truncated to a
+        # byte, then the camera's luma
+        rgb = (np.minimum(self.rgb * light[:, None], 1.0) * 255.0).astype(np.int64)
+        greys = ((rgb @ np.array(LUMA_Q8) + 128) >> 8).tolist()
         pix = rel @ k.T
-        pix = np.rint(np.clip(pix[:, :2] / np.maximum(pix[:, 2:3], _NEAR_M), -1e4, 1e4) * _SUB)
-        pix = pix.astype(np.int32)
-        for f in np.flatnonzero(facing) + faces.start:
-            light = (AMBIENT + DIFFUSE * max(0.0, float(cos_sun[f]))) / sun[1]
-            # the colour as pybullet's TinyRenderer takes it: a float per channel truncated to
-            # a byte, then the camera's luma
-            cr, cg, cb = (int(min(1.0, c * light) * 255.0) for c in self.rgb[f])
-            grey = (LUMA_Q8[0] * cr + LUMA_Q8[1] * cg + LUMA_Q8[2] * cb + 128) >> 8
+        pix = (pix[:, :2] / np.maximum(pix[:, 2:3], _NEAR_M)).tolist()
+        for f in np.flatnonzero(facing).tolist():
             idx = self.faces[f]
             if ok[f]:
-                cv2.fillConvexPoly(image, pix[idx], grey, cv2.LINE_8, 4)
+                _fill(image, [pix[i] for i in idx], greys[f])
                 continue
             # partly under the ground (the water) or behind the near plane: cut there
             poly = _clip(rel[idx], above[idx])
@@ -174,8 +246,7 @@ class _Vehicle:
                 poly = _clip(poly, poly[:, 2] - _NEAR_M)
             if len(poly) < 3:
                 continue
-            pts = np.clip((poly @ k.T)[:, :2] / poly[:, 2:3], -1e4, 1e4)
-            cv2.fillConvexPoly(image, np.rint(pts * _SUB).astype(np.int32), grey, cv2.LINE_8, 4)
+            _fill(image, ((poly @ k.T)[:, :2] / poly[:, 2:3]).tolist(), greys[f])
 
 
 class FastSite:
@@ -209,11 +280,11 @@ class FastSite:
         self._grid: _RayGrid | None = None
         self._still = None if site.moves else site.motion.frame(0.0)
         lower = sorted((s for s in site.vehicle if s.z_top >= 0.0), key=lambda s: -s.z_top)
-        upper = [s for s in site.vehicle if s.z_top < 0.0]
+        upper = sorted((s for s in site.vehicle if s.z_top < 0.0), key=lambda s: -s.z_top)
         self._vehicle = _Vehicle([*lower, *upper])
-        split = sum(len(s.outline) + 2 for s in lower)
+        split = sum(1 for i in self._vehicle.solid_of if i < len(lower))
         self._lower = range(split)
-        self._upper = range(split, sum(len(s.outline) + 2 for s in site.vehicle))
+        self._upper = range(split, self._vehicle.count)
         self._sun = (look.sun.toward_ned, look.sun.flat_light)
 
     # ------------------------------------------------------------------ the frame

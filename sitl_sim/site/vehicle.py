@@ -5,7 +5,7 @@ on (the roof, the deck, the platform's top). A :class:`Solid` is a convex polygo
 extruded from ``z_top`` down to ``z_bottom``; a vehicle is a tuple of them, sized from the pad:
 
 - :func:`rover` — a flatbed whose top holds the pad with a margin, ``height`` above the ground,
-  a cab ahead (a little lower, a dark windscreen), four dark wheels standing out of its sides;
+  a cab standing on it ahead of the pad (a dark windscreen on its roof), four dark wheels;
 - :func:`hull` — a ship: a deck (the pad aft, a pointed bow ahead) ``height`` above the water,
   its sides reaching 1 m below it, and a small deckhouse ahead of the pad;
 - :func:`platform` — a block under a still pad raised ``height`` above the ground.
@@ -106,39 +106,36 @@ HOUSE_RGB = (0.85, 0.85, 0.83)
 
 def rover(pad_length_m: float, pad_width_m: float, height_m: float) -> tuple[Solid, ...]:
     """A rover (a flatbed truck for a 4 m pad): a bed whose top (``height_m`` above the ground)
-    holds the pad with a margin, a cab ahead of it a little lower with a dark windscreen, and
-    four dark wheels that stand out of its sides."""
-    length = 1.25 * pad_length_m + 0.3
+    holds the pad with a margin, a cab standing on the bed ahead of the pad with a dark
+    windscreen on its roof, and four dark wheels under the bed, flush with its sides.
+
+    Each solid stands on another or lies under it within its outline, so drawing them lowest
+    first is right from any view above the ground (the fast renderer's painter's order)."""
     width = pad_width_m + 0.3
     cab = max(0.8, 0.35 * pad_length_m)
-    front = 0.5 * length
-    wheel_r = min(0.45 * height_m, 0.2 * length)
+    rear = -(0.5 * pad_length_m + 0.15)
+    cab_back = 0.5 * pad_length_m + 0.25
+    front = cab_back + cab
+    wheel_r = min(0.4 * height_m, 0.15 * (front - rear))
     body_bottom = height_m - max(0.6 * wheel_r, 0.05)
-    cab_top = min(0.15, 0.2 * height_m)
     wheel_w = max(0.15, 0.1 * width)
-    y_out = 0.5 * width + 0.12
-    bed = _rect(-0.5 * length, front, -0.5 * width, 0.5 * width)
+    bed = _rect(rear, front, -0.5 * width, 0.5 * width)
+    cab_top = -min(0.45, 0.3 * height_m + 0.1)
+    screen = _rect(front - 0.4 * cab, front - 0.05, -0.42 * width, 0.42 * width)
     solids = [
         Solid("body", bed, 0.0, body_bottom, ROVER_RGB, ROOF_RGB),
         Solid(
             "cab",
-            _rect(front, front + cab, -0.5 * width, 0.5 * width),
+            _rect(cab_back, front, -0.5 * width, 0.5 * width),
             cab_top,
-            body_bottom,
+            0.0,
             ROVER_RGB,
             ROVER_RGB,
         ),
-        Solid(
-            "windscreen",
-            _rect(front + 0.6 * cab, front + 0.95 * cab, -0.45 * width, 0.45 * width),
-            cab_top - 0.01,
-            cab_top,
-            GLASS_RGB,
-            GLASS_RGB,
-        ),
+        Solid("windscreen", screen, cab_top - 0.01, cab_top, GLASS_RGB, GLASS_RGB),
     ]
-    axles = (-0.5 * length + 1.1 * wheel_r, front + cab - 1.1 * wheel_r)
-    for ax in axles:
+    y_out = 0.5 * width - 0.01  # just inside the bed's side: the bed's face is in front
+    for ax in (rear + 1.2 * wheel_r, front - 1.2 * wheel_r):
         for sy in (-1.0, 1.0):
             y0, y1 = sorted((sy * (y_out - wheel_w), sy * y_out))
             solids.append(
