@@ -6,10 +6,12 @@ A 640 x 480 camera has 3.4 times as many pixels across the same angle, thrown aw
 area resize of :func:`companion.camera.fit_to_policy`. With ROI on, the policy chooses, after
 every step, the window of the full frame its next image is cut from — as a tracker does:
 
-* **search** (no horizontal estimate yet, or the pad unseen for ``lost_frames``): the policy's
-  own 45° view (exactly ``fit_to_policy``'s crop, bit for bit), every other frame; in between,
-  one tile of ``tile_px`` full-resolution pixels after another (nearest the image centre first)
-  across the whole frame, so a pad too small for the resampled view is still found in a tile;
+* **search** (no horizontal estimate yet, or the pad unseen for ``lost_frames``): one tile of
+  ``tile_px`` full-resolution pixels after another (nearest the image centre first) across the
+  whole frame, so a pad too small for the resampled view is found at the camera's own
+  resolution; the policy's 45° view (exactly ``fit_to_policy``'s crop, bit for bit) instead
+  when the radar's altitude makes the pad wider than half a tile, and every other frame while
+  the altitude is not known;
 * **track**: a square centred on the estimator's predicted pad (position + velocity x one
   control period, through the attitude) and sized so the pad spans ``span_px`` of the 128 px
   window, at least ``min_side_px`` (at most 2x upsampling), at least the pad plus ``sigma_k``
@@ -186,7 +188,8 @@ class RoiConfig:
         span_px: the pad's width in the 128 px window while tracking.
         min_side_px: the smallest window, full-resolution pixels.
         tile_px: a search tile's side, full-resolution pixels.
-        search: ``tiles`` (the 45° view every other frame, tiles in between) or ``view``.
+        search: ``tiles`` (tiles, or the 45° view when the pad is too big for them) or
+            ``view`` (always the 45° view).
         lost_frames: frames without the pad before the search starts again.
         sigma_k: the track window holds the pad ``sigma_k`` standard deviations of the
             estimate either side.
@@ -283,12 +286,18 @@ class RoiConfig:
 
         return sorted(out, key=lambda w: (dist(w), w.y0, w.x0))
 
-    def search_window(self, step: int) -> RoiWindow:
-        """The window of search step ``step`` (the view, or the view and the tiles in turn)."""
-        if self.search == "view" or step % 2 == 0:
-            return self.view()
+    def search_window(self, step: int, altitude_m: float | None = None) -> RoiWindow:
+        """The window of search step ``step``: a tile; the 45° view when the pad at
+        ``altitude_m`` spans more than half a tile; without an altitude the view and the tiles
+        in turn."""
         tiles = self.tiles()
-        return tiles[(step // 2) % len(tiles)]
+        if self.search == "view":
+            return self.view()
+        if altitude_m is None or not (math.isfinite(altitude_m) and altitude_m > 0.0):
+            return self.view() if step % 2 == 0 else tiles[(step // 2) % len(tiles)]
+        if self.fx_px * self.pad_m / altitude_m > self.tile_px / 2.0:
+            return self.view()
+        return tiles[step % len(tiles)]
 
     def track_window(
         self,
@@ -334,6 +343,9 @@ class RoiConfig:
             dt_s: time to the next frame (the control period).
         """
         unseen = 0 if seen else state.unseen + 1
+        altitude = None
+        if estimate is not None and bool(estimate[3][2]):
+            altitude = -float(estimate[0][2])
         if estimate is not None and unseen < self.lost_frames:
             pos, vel, var_ne, init = estimate
             if bool(np.all(init)):
@@ -344,7 +356,7 @@ class RoiConfig:
                 if window is not None:
                     return RoiState(window, 0, unseen)
         step = state.search_step + 1 if state.window.kind != "track" else 0
-        return RoiState(self.search_window(step), step, unseen)
+        return RoiState(self.search_window(step, altitude), step, unseen)
 
 
 # --------------------------------------------------------------------------- a real camera

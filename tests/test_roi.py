@@ -136,6 +136,13 @@ def test_search_then_track_then_search_again():
         st = cfg.next_state(st, False, no_estimate, rot, 0.1)
         seq.append(st.window)
     assert seq == [tiles[0], cfg.view(), tiles[1], cfg.view()]
+    # with the radar's altitude: the tiles only while the pad fits half a tile, else the view
+    high = (np.array([0.0, 0.0, -30.0]), np.zeros(3), np.zeros(2), np.array([0, 0, 1], bool))
+    low = (np.array([0.0, 0.0, -6.0]), np.zeros(3), np.zeros(2), np.array([0, 0, 1], bool))
+    searching = cfg.next_state(st, False, high, rot, 0.1)
+    assert searching.window == tiles[searching.search_step % len(tiles)]
+    assert cfg.next_state(searching, False, high, rot, 0.1).window.kind == "tile"
+    assert cfg.next_state(searching, False, low, rot, 0.1).window == cfg.view()
     # the pad found: 30 m above it, 2 m south of it, drifting north at 1 m/s
     found = (np.array([-2.0, 0.0, -30.0]), np.array([1.0, 0.0, 0.0]), np.full(2, 0.04), np.ones(3))
     st = cfg.next_state(st, True, found, rot, 0.1)
@@ -146,7 +153,7 @@ def test_search_then_track_then_search_again():
         st = cfg.next_state(st, False, found, rot, 0.1)
         assert st.window.kind == "track" and st.unseen == k
     st = cfg.next_state(st, False, found, rot, 0.1)  # lost for lost_frames: search again
-    assert st.window == cfg.view() and st.search_step == 0
+    assert st.window == tiles[0] and st.search_step == 0
 
 
 def test_bad_roi_settings_name_the_key():

@@ -12,9 +12,10 @@ sensor noise. The model's CNN (:meth:`perceive`) then looks at each frame as:
 * ``track`` — the ROI window around the pad as the estimator would predict it (the true pad
   plus a Gaussian horizontal error of ``predict_sigma_m``, the window sized for that
   uncertainty): the pad held once found (:meth:`companion.roi.RoiConfig.track_window`);
-* ``search`` — the ROI's search, no estimate yet: found if the 45° view (the crop) or any of
-  the tiles that hold the whole pad detects it (a sweep visits each); ``false_alarms`` counts
-  detections in tiles without the pad (three tiles per frame).
+* ``search`` — the ROI's search, no estimate yet (:meth:`companion.roi.RoiConfig.search_window`
+  at the true altitude): found if any of the tiles that hold the whole pad detects it (a sweep
+  visits each), or where the pad is wider than half a tile, if the 45° view (the crop) does;
+  ``false_alarms`` counts detections in tiles without the pad (three tiles per frame).
 
 With ``flights``, the same model also flies episodes of ``scenario`` (a 1 m pad from 30-50 m)
 in process on each camera — ``native``, ``crop`` and ``roi`` (the full policy loop: search,
@@ -229,8 +230,10 @@ def acquire(cfg: AcquireConfig) -> dict[str, Any]:
                 u, v = cx + fx * tr0, cy - fx * tf0
                 half = 0.5 * fx * pad_m / body[2]
                 holding = [t for t in tiles if _tile_holds(t, u, v, half)]
-                best = in_view  # the search's every other frame is the 45° view (the crop)
-                for tile in holding if best is None else ():
+                # the search's window at this altitude: the view (the crop) or the tiles
+                use_view = roi.search_window(0, float(body[2])).kind == "view"
+                best = in_view if use_view else None
+                for tile in () if use_view else holding:
                     er, ef, vis = tile.to_camera(np.array(look(cut(frame, tile))))
                     if vis >= threshold:
                         best = _angle_deg(tr0, tf0, er, ef)
@@ -252,7 +255,7 @@ def acquire(cfg: AcquireConfig) -> dict[str, Any]:
         "search": {
             "tiles": len(tiles),
             "tile_px": cfg.tile_px,
-            "sweep_frames": 2 * len(tiles),
+            "sweep_frames": len(tiles),
             "false_alarms": int(false_alarms[0]),
             "tiles_without_pad": int(false_alarms[1]),
         },
@@ -406,7 +409,7 @@ def format_acquire(res: dict[str, Any], out: TextIO) -> None:
     s = res["search"]
     print(
         f"  search: {s['tiles']} tiles of {s['tile_px']} px (a sweep: {s['sweep_frames']} "
-        f"frames, the 45 deg view every other); false alarms {s['false_alarms']} of "
+        f"frames); false alarms {s['false_alarms']} of "
         f"{s['tiles_without_pad']} tiles without the pad",
         file=out,
     )
