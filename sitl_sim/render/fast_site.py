@@ -45,6 +45,7 @@ ROCK_SLICES = 3
 _STEP_PX = 8  # the relief's ray grid: one ray every 8 pixels
 _NEAR_M = 0.02  # pybullet's near plane
 _SUB = 16  # fillConvexPoly's fixed point (4 bits)
+_TILES = 4  # a periodic ground is warped from 4 x 4 tiles of it
 _EDGE = 0.8  # tan of the largest angle off the optical axis the parallax is judged at
 
 
@@ -190,6 +191,9 @@ class _Vehicle:
         self.normals = np.array(normals)
         self.offsets = np.einsum("ij,ij->i", self.normals, self.vertices[self.padded[:, 0]])
         self.rgb = np.array(rgb)
+        self.following = np.roll(self.padded, -1, axis=1)  # each corner's next one
+        self._luma = np.array(LUMA_Q8)
+        self.split = self.count  # the first face above the pad (set by the caller)
         # faces under a solid's top and within its outline: hidden from a camera above it
         self.roofs = []
         for number, solid in enumerate(solids):
@@ -208,21 +212,19 @@ class _Vehicle:
             if under.any():
                 self.roofs.append((planes, offsets, solid.z_top, under))
 
-    def draw(self, image, k, to_cam, cam, p, r, gradient, sun, faces: range) -> None:
-        """Fill ``faces`` (a range of face indices: the solids under the pad, or above it)
-        where they look at the camera."""
-        if not len(faces):
+    def draw(self, image, k, to_cam, cam, p, r, gradient, sun, between) -> None:
+        """Fill the faces that look at the camera, the solids under the pad first, then
+        ``between()`` (the pad), then the solids above it."""
+        if not self.count:
+            between()
             return
         local_cam = r.T @ (cam - p)
-        facing = np.zeros(self.count, bool)
-        facing[faces.start : faces.stop] = (
-            self.normals[faces.start : faces.stop] @ local_cam
-            > self.offsets[faces.start : faces.stop]
-        )
+        facing = self.normals @ local_cam > self.offsets
         for planes, offsets, top, under in self.roofs:
             if local_cam[2] < top and np.all(planes @ local_cam[:2] <= offsets):
                 facing &= ~under  # the camera looks down on this solid's top: all under it hidden
         if not facing.any():
+            between()
             return
         gn, ge = gradient
         rel = self.vertices @ (to_cam @ r).T + to_cam @ (p - cam)
@@ -232,10 +234,19 @@ class _Vehicle:
         # the colour as pybullet's TinyRenderer takes it: a float per channel truncated to a
         # byte, then the camera's luma
         rgb = (np.minimum(self.rgb * light[:, None], 1.0) * 255.0).astype(np.int64)
-        greys = ((rgb @ np.array(LUMA_Q8) + 128) >> 8).tolist()
+        greys = ((rgb @ self._luma + 128) >> 8).tolist()
         pix = rel @ k.T
-        pix = (pix[:, :2] / np.maximum(pix[:, 2:3], _NEAR_M)).tolist()
+        pix = pix[:, :2] / np.maximum(pix[:, 2:3], _NEAR_M)
+        # faces of under half a pixel cover no pixel centre (or one): not worth their cost
+        x, y = pix[:, 0], pix[:, 1]
+        cross = x[self.padded] * y[self.following] - x[self.following] * y[self.padded]
+        facing &= (np.abs(cross.sum(axis=1)) >= 1.0) | ~ok
+        pix = pix.tolist()
+        pending = True  # the pad still to draw
         for f in np.flatnonzero(facing).tolist():
+            if pending and f >= self.split:
+                between()
+                pending = False
             idx = self.faces[f]
             if ok[f]:
                 _fill(image, [pix[i] for i in idx], greys[f])
@@ -247,6 +258,8 @@ class _Vehicle:
             if len(poly) < 3:
                 continue
             _fill(image, ((poly @ k.T)[:, :2] / poly[:, 2:3]).tolist(), greys[f])
+        if pending:
+            between()
 
 
 class FastSite:
@@ -265,9 +278,9 @@ class FastSite:
         self._base_border = cv2.BORDER_WRAP if look.base.periodic else cv2.BORDER_CONSTANT
         self._tiles = None
         if look.base.periodic and look.base.tile_m > 0.0:
-            # a square tile: 3 x 3 of it and a shift by whole tiles replace BORDER_WRAP (three
-            # times slower) while the view spans less than a tile either side of its centre
-            self._tiles = np.tile(look.base.mono, (3, 3))
+            # a square tile: TILES x TILES of it and a shift by whole tiles replace BORDER_WRAP
+            # (several times slower) while the view's ground fits in TILES - 1 tiles
+            self._tiles = np.tile(look.base.mono, (_TILES, _TILES))
         terrain = site.terrain
         self._gradient = terrain.gradient if terrain is not None else (0.0, 0.0)
         self._heights = None
@@ -282,9 +295,7 @@ class FastSite:
         lower = sorted((s for s in site.vehicle if s.z_top >= 0.0), key=lambda s: -s.z_top)
         upper = sorted((s for s in site.vehicle if s.z_top < 0.0), key=lambda s: -s.z_top)
         self._vehicle = _Vehicle([*lower, *upper])
-        split = sum(1 for i in self._vehicle.solid_of if i < len(lower))
-        self._lower = range(split)
-        self._upper = range(split, self._vehicle.count)
+        self._vehicle.split = sum(1 for i in self._vehicle.solid_of if i < len(lower))
         self._sun = (look.sun.toward_ned, look.sun.flat_light)
 
     # ------------------------------------------------------------------ the frame
@@ -298,10 +309,17 @@ class FastSite:
         else:
             image = self._relief(k, to_cam, cam, size)
         p, r = self._still if self._still is not None else self.look.site.motion.frame(time_s)
-        vehicle = (image, k, to_cam, cam, p, r, self._gradient, self._sun)
-        self._vehicle.draw(*vehicle, self._lower)
-        self._pad(image, proj, cam, p, r, size)
-        self._vehicle.draw(*vehicle, self._upper)
+        self._vehicle.draw(
+            image,
+            k,
+            to_cam,
+            cam,
+            p,
+            r,
+            self._gradient,
+            self._sun,
+            lambda: self._pad(image, proj, cam, p, r, size),
+        )
         return image
 
     def _slices(self, cam: np.ndarray) -> list[tuple[float, int]]:
@@ -348,23 +366,24 @@ class FastSite:
     def _base_warp(self, ground: np.ndarray, cam: np.ndarray, size) -> np.ndarray:
         """The ground beyond the region through the homography ``ground`` (plane -> pixel)."""
         to_ne = self._base.texel_to_ne
-        tiles = self._tiles
-        if tiles is not None and -cam[2] * _EDGE * 1.5 < self._base.tile_m:
+        h = ground @ to_ne
+        if self._tiles is not None:
+            # the texels under the image's corners, moved by whole tiles to the tiling's corner
+            w, hgt = size
+            corners = np.linalg.solve(h, np.array([[0, w, w, 0], [0, 0, hgt, hgt], [1, 1, 1, 1.0]]))
             rows, cols = self._base_mono.shape
-            # the texel under the camera, moved into the middle tile by whole tiles
-            col, row, _ = np.linalg.solve(to_ne, [cam[0], cam[1], 1.0])
-            shift = np.array(
-                [
-                    [1.0, 0.0, cols * (1 - math.floor(col / cols))],
-                    [0.0, 1.0, rows * (1 - math.floor(row / rows))],
-                    [0.0, 0.0, 1.0],
-                ]
-            )
-            h = ground @ to_ne @ np.linalg.inv(shift)
-            return cv2.warpPerspective(tiles, h, size, flags=cv2.INTER_NEAREST, borderValue=0)
+            if np.all(corners[2] * np.sign(corners[2, 0]) > 1e-9):  # all on the ground
+                col, row = corners[0] / corners[2], corners[1] / corners[2]
+                dc = -cols * math.floor((col.min() - 1.0) / cols)
+                dr = -rows * math.floor((row.min() - 1.0) / rows)
+                if col.max() + dc + 1.0 < _TILES * cols and row.max() + dr + 1.0 < _TILES * rows:
+                    shift = np.array([[1.0, 0.0, -dc], [0.0, 1.0, -dr], [0.0, 0.0, 1.0]])
+                    return cv2.warpPerspective(
+                        self._tiles, h @ shift, size, flags=cv2.INTER_NEAREST, borderValue=0
+                    )
         return cv2.warpPerspective(
             self._base_mono,
-            ground @ to_ne,
+            h,
             size,
             flags=cv2.INTER_NEAREST,
             borderMode=self._base_border,

@@ -310,6 +310,15 @@ class CameraEffects:
         self, image: np.ndarray, pos_ned_m, rot_body_to_ned: np.ndarray, rate_frd
     ) -> np.ndarray:
         s = self.sample
+        if (
+            self._haze_per_m == 0.0
+            and self._lens_maps is None
+            and s.motion_blur_s <= 0.0
+            and s.exposure_noise == 0.0
+            and s.brightness == 1.0
+            and s.contrast == 1.0
+        ):
+            return image  # no effect: the same bytes, without the round trip through floats
         img = image.astype(np.float32)
         if self._haze_per_m > 0.0:
             cos_down = (self._rays_body @ rot_body_to_ned[2]).reshape(img.shape)
