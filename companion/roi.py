@@ -10,8 +10,8 @@ every step, the window of the full frame its next image is cut from — as a tra
   ``tile_px`` full-resolution pixels after another (nearest the image centre first) across the
   whole frame, so a pad too small for the resampled view is found at the camera's own
   resolution; the policy's 45° view (exactly ``fit_to_policy``'s crop, bit for bit) instead
-  when the radar's altitude makes the pad wider than half a tile, and every other frame while
-  the altitude is not known;
+  when the radar's altitude makes the pad wider than a third of a tile, and every other frame
+  while the altitude is not known;
 * **track**: a square centred on the estimator's predicted pad (position + velocity x one
   control period, through the attitude) and sized so the pad spans ``span_px`` of the 128 px
   window, at least ``min_side_px`` (at most 2x upsampling), at least the pad plus ``sigma_k``
@@ -111,8 +111,8 @@ class RoiWindow:
 
 @dataclass(frozen=True)
 class RoiState:
-    """The ROI part of a policy's state: the window the next frame is cut with, the search's
-    position in its sequence and the frames since the pad was last seen."""
+    """The ROI part of a policy's state: the window the next frame is cut with, the search
+    tiles seen before it and the frames since the pad was last seen."""
 
     window: RoiWindow
     search_step: int = 0
@@ -286,18 +286,20 @@ class RoiConfig:
 
         return sorted(out, key=lambda w: (dist(w), w.y0, w.x0))
 
-    def search_window(self, step: int, altitude_m: float | None = None) -> RoiWindow:
-        """The window of search step ``step``: a tile; the 45° view when the pad at
-        ``altitude_m`` spans more than half a tile; without an altitude the view and the tiles
-        in turn."""
+    def search_window(
+        self, tiles_seen: int, altitude_m: float | None = None, last_kind: str = "tile"
+    ) -> RoiWindow:
+        """The next search window after ``tiles_seen`` tiles: the next tile; the 45° view when
+        the pad at ``altitude_m`` spans more than a third of a tile; without an altitude, the
+        view after a tile (``last_kind``) and the next tile after the view."""
         tiles = self.tiles()
         if self.search == "view":
             return self.view()
         if altitude_m is None or not (math.isfinite(altitude_m) and altitude_m > 0.0):
-            return self.view() if step % 2 == 0 else tiles[(step // 2) % len(tiles)]
-        if self.fx_px * self.pad_m / altitude_m > self.tile_px / 2.0:
+            return self.view() if last_kind == "tile" else tiles[tiles_seen % len(tiles)]
+        if self.fx_px * self.pad_m / altitude_m > self.tile_px / 3.0:
             return self.view()
-        return tiles[step % len(tiles)]
+        return tiles[tiles_seen % len(tiles)]
 
     def track_window(
         self,
@@ -355,8 +357,11 @@ class RoiConfig:
                 window = self.track_window(pad_body, sigma)
                 if window is not None:
                     return RoiState(window, 0, unseen)
-        step = state.search_step + 1 if state.window.kind != "track" else 0
-        return RoiState(self.search_window(step, altitude), step, unseen)
+        # a new search starts the sweep at the centre tile; search_step counts the tiles seen
+        kind = state.window.kind
+        seen_tiles = 0 if kind == "track" else state.search_step + (kind == "tile")
+        last = "tile" if kind == "track" else kind
+        return RoiState(self.search_window(seen_tiles, altitude, last), seen_tiles, unseen)
 
 
 # --------------------------------------------------------------------------- a real camera

@@ -139,9 +139,9 @@ def test_search_then_track_then_search_again():
     # with the radar's altitude: the tiles only while the pad fits half a tile, else the view
     high = (np.array([0.0, 0.0, -30.0]), np.zeros(3), np.zeros(2), np.array([0, 0, 1], bool))
     low = (np.array([0.0, 0.0, -6.0]), np.zeros(3), np.zeros(2), np.array([0, 0, 1], bool))
-    searching = cfg.next_state(st, False, high, rot, 0.1)
-    assert searching.window == tiles[searching.search_step % len(tiles)]
-    assert cfg.next_state(searching, False, high, rot, 0.1).window.kind == "tile"
+    searching = cfg.next_state(st, False, high, rot, 0.1)  # st: the view after tiles 0, 1
+    assert searching.window == tiles[2] and searching.search_step == 2
+    assert cfg.next_state(searching, False, high, rot, 0.1).window == tiles[3]
     assert cfg.next_state(searching, False, low, rot, 0.1).window == cfg.view()
     # the pad found: 30 m above it, 2 m south of it, drifting north at 1 m/s
     found = (np.array([-2.0, 0.0, -30.0]), np.array([1.0, 0.0, 0.0]), np.full(2, 0.04), np.ones(3))
