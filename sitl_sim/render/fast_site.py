@@ -305,7 +305,7 @@ class FastSite:
         to_cam = BODY_TO_IMAGE @ rot.T  # an NED offset from the camera -> camera axes
         proj = k @ to_cam  # -> homogeneous pixel
         if self._heights is None:
-            image = self._planes(proj, cam, size)
+            image = self._planes(proj, cam, size, float(k[0, 0]))
         else:
             image = self._relief(k, to_cam, cam, size)
         p, r = self._still if self._still is not None else self.look.site.motion.frame(time_s)
@@ -322,14 +322,14 @@ class FastSite:
         )
         return image
 
-    def _slices(self, cam: np.ndarray) -> list[tuple[float, int]]:
+    def _slices(self, cam: np.ndarray, focal_px: float) -> list[tuple[float, int]]:
         """(height, least level) of each rock slice worth drawing from ``cam``: as many as
         pixels of parallax the tallest rock shows at the image's edge (up to ROCK_SLICES)."""
         if self._region is None or self._rock_max <= 0.0:
             return []
         gn, ge = self._gradient
         above = max(-cam[2] - (gn * cam[0] + ge * cam[1]) - self._rock_max, 0.1)
-        parallax_px = 150.0 * _EDGE * self._rock_max / above  # f ~ 150 px at 128 px, 45 deg
+        parallax_px = focal_px * _EDGE * self._rock_max / above
         count = min(ROCK_SLICES, math.ceil(parallax_px - 0.5))
         return [
             ((i + 0.5) / count * self._rock_max, 2 + math.ceil(253.0 * i / count))
@@ -341,7 +341,7 @@ class FastSite:
         """Paint the grey (low byte) of the texels whose level (high byte) is >= ``least``."""
         np.copyto(image, layer.astype(np.uint8), where=layer >= (least << 8))
 
-    def _planes(self, proj: np.ndarray, cam: np.ndarray, size) -> np.ndarray:
+    def _planes(self, proj: np.ndarray, cam: np.ndarray, size, focal_px: float) -> np.ndarray:
         """Ground, region and rock slices as planes parallel to the slope (homographies)."""
         gn, ge = self._gradient
 
@@ -355,7 +355,7 @@ class FastSite:
         if self._region is None:
             return image
         to_ne = self.look.region.texel_to_ne
-        for lift, least in [(0.0, 1), *self._slices(cam)]:
+        for lift, least in [(0.0, 1), *self._slices(cam, focal_px)]:
             h = ground if lift == 0.0 else plane(lift)
             layer = cv2.warpPerspective(
                 self._region, h @ to_ne, size, flags=cv2.INTER_NEAREST, borderValue=0
@@ -442,7 +442,7 @@ class FastSite:
                 self._base_mono, col, row, cv2.INTER_NEAREST, borderMode=self._base_border
             )
         col, row = self._texel_maps(self.look.region.texel_to_ne, n, e)
-        slices = self._slices(cam)
+        slices = self._slices(cam, float(k[0, 0]))
         if slices:
             dcol, drow = self._texel_maps(self.look.region.texel_to_ne, dn, de, shift=False)
         for lift, least in [(0.0, 1), *slices]:
