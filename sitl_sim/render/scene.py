@@ -79,6 +79,18 @@ def ned_to_scene(v_ned) -> np.ndarray:
     return _NED_TO_SCENE @ np.asarray(v_ned, dtype=float)
 
 
+def _add_quad(mesh: tuple[list, list, list], corners_ne, corner_uvs) -> None:
+    """Appends one ground quad (z = 0) to ``mesh`` (vertices, uvs, indices): its four corners
+    (north, east) in order with their uvs, both faces drawn."""
+    vertices, uvs, indices = mesh
+    base = len(vertices)
+    for (n, e), (u, v) in zip(corners_ne, corner_uvs, strict=True):
+        vertices.append(ned_to_scene((n, e, 0.0)).tolist())
+        uvs.append([u, v])
+    indices += [base, base + 1, base + 2, base, base + 2, base + 3]
+    indices += [base, base + 2, base + 1, base, base + 3, base + 2]  # both faces
+
+
 class Renderer(Protocol):
     """What the camera renders from: :class:`Scene` (pybullet, the reference) or
     :class:`sitl_sim.render.render_fast.FastRenderer`; both draw the same ground map and pad."""
@@ -257,12 +269,11 @@ class Scene:
                 corners = ((i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1))
                 du = math.floor(sum(u[c] for c in corners) / 4)
                 dv = math.floor(sum(v[c] for c in corners) / 4)
-                base = len(vertices)
-                for c in corners:
-                    vertices.append(ned_to_scene((n[c], e[c], 0.0)).tolist())
-                    uvs.append([float(u[c] - du), float(v[c] - dv)])
-                indices += [base, base + 1, base + 2, base, base + 2, base + 3]
-                indices += [base, base + 2, base + 1, base, base + 3, base + 2]  # both faces
+                _add_quad(
+                    (vertices, uvs, indices),
+                    [(n[c], e[c]) for c in corners],
+                    [(float(u[c] - du), float(v[c] - dv)) for c in corners],
+                )
         return self._mesh(vertices, indices, uvs)
 
     def _mesh(self, vertices, indices, uvs) -> int:
@@ -310,25 +321,12 @@ class Scene:
                 # this quad's tile: uv of its centre, shifted into [0, 1)
                 u_c, v_c = uv(nm, em)
                 du, dv = math.floor(u_c), math.floor(v_c)
-                base = len(vertices)
-                for n, e in ((n0, e0), (n1, e0), (n1, e1), (n0, e1)):
-                    u, v = uv(n, e)
-                    vertices.append(ned_to_scene((n, e, 0.0)).tolist())
-                    uvs.append([u - du, v - dv])
-                indices += [base, base + 1, base + 2, base, base + 2, base + 3]
-                indices += [base, base + 2, base + 1, base, base + 3, base + 2]  # both faces
-        c = self._client
-        shape = pb.createVisualShape(
-            pb.GEOM_MESH,
-            vertices=vertices,
-            indices=indices,
-            uvs=uvs,
-            normals=[[0.0, 0.0, 1.0]] * len(vertices),
-            physicsClientId=c,
-        )
-        if shape < 0:
-            raise SimError("pybullet: could not create the ground mesh")
-        return pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=c)
+                corners = ((n0, e0), (n1, e0), (n1, e1), (n0, e1))
+                corner_uvs = [uv(n, e) for n, e in corners]
+                _add_quad(
+                    (vertices, uvs, indices), corners, [(u - du, v - dv) for u, v in corner_uvs]
+                )
+        return self._mesh(vertices, indices, uvs)
 
     def render(self, pos_ned_m, quat_wxyz, cfg: CameraConfig, time_s: float = 0.0) -> np.ndarray:
         """Noise-free mono8 image (height, width) from a camera at the vehicle's pose, at sim
