@@ -23,9 +23,9 @@ def _profile(args: argparse.Namespace):
 
 def _cmd_pipeline(args: argparse.Namespace) -> int:
     from training.exec.choose import backend_from_args
-    from training.pipeline import STAGES, run_pipeline
+    from training.pipeline import run_pipeline
 
-    stages = tuple(args.stages.split(",")) if args.stages else STAGES
+    stages = tuple(args.stages.split(",")) if args.stages else None
     prof = _profile(args)
     with backend_from_args(args, prof.workers) as backend:
         records = run_pipeline(
@@ -36,10 +36,16 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             backend=backend,
             start_from=args.start_from,
+            pad=args.pad,
         )
     metrics = Path(args.out) / "metrics.json"
     if args.json:
         print(json.dumps(records, indent=2, default=str))
+    elif args.pad is not None:
+        for stage, rec in records.items():
+            print(f"{stage:>11}: done  {rec.get('checkpoint') or rec.get('metrics') or ''}")
+        if "eval" in records:
+            _print_pad_suite(Path(args.out))
     else:
         for stage, rec in records.items():
             ckpt = rec.get("checkpoint") or rec.get("metrics") or ""
@@ -55,6 +61,24 @@ def _cmd_pipeline(args: argparse.Namespace) -> int:
                     f"{100 * r['success_rate']:>7.1f}%"
                 )
     return 0
+
+
+def _print_pad_suite(run: Path) -> None:
+    """The taught model's suite beside the model it started from (``pad_metrics.json``)."""
+    from training.pad_teach import PadMetrics
+    from training.reports import SuiteReport
+
+    m = PadMetrics.from_dict(json.loads((run / "pad_metrics.json").read_text()))
+    ours, theirs = SuiteReport.load(m.report), SuiteReport.load(m.baseline)
+    before = Path(m.source.checkpoint).name
+    print(f"\npad {m.pad.name}: the taught model and {before} before, seed {m.eval_seed}")
+    print(f"{'condition':>20} {'success':>8} {'mean m':>8} {'before':>8} {'mean m':>8}")
+    for name, r in ours.conditions.items():
+        s, b = r.summary, theirs.conditions[name].summary
+        print(
+            f"{name:>20} {100 * (s.success_rate or 0):>7.1f}% {s.landing_error_m.mean or 0:>8.3f}"
+            f" {100 * (b.success_rate or 0):>7.1f}% {b.landing_error_m.mean or 0:>8.3f}"
+        )
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -78,6 +102,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
+    from training.ship_pad import is_pad_run, ship_pad
+
+    if is_pad_run(args.run):
+        dst = ship_pad(args.run, args.out)
+        print(f"shipped {dst} with {dst.with_suffix('.md')}")
+        return 0
     from training.ship import ship
 
     dst = ship(args.run, args.out)
@@ -138,7 +168,18 @@ def register_training(sub: argparse._SubParsersAction) -> None:
         metavar="RUN",
         help="a new run folder takes RUN's trained stages (collect to perception) and flies "
         "vision and eval with this profile's estimator settings: an estimator ablation "
-        "without training again (the profiles may differ only in estimator settings)",
+        "without training again (the profiles may differ only in estimator settings); with "
+        "--pad, RUN (a run folder or a checkpoint such as models/visland_vision.pt) gives the "
+        "controller that learns the pad",
+    )
+    pp.add_argument(
+        "--pad",
+        default=None,
+        metavar="PADFILE",
+        help="teach this pad (configs/pads/NAME.toml or a shipped pad's NAME) to --from's "
+        "controller: frames rendered with it in the profile's worlds (start altitudes scaled "
+        "to its envelope) retrain the CNN, then vision and eval fly it on the pad's suite; "
+        "visland ship --run OUT ships models/visland_vision_NAME.pt (training.pad_teach)",
     )
     add_backend_arguments(pp)
     pp.set_defaults(func=_cmd_pipeline)
@@ -168,7 +209,11 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     add_backend_arguments(tr)
     tr.set_defaults(func=_cmd_train)
 
-    sh = sub.add_parser("ship", help="copy a run's vision policy to models/ with its model card")
+    sh = sub.add_parser(
+        "ship",
+        help="copy a run's vision policy to models/ with its model card (a run that taught a "
+        "pad: models/visland_vision_NAME.pt and .md)",
+    )
     sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
     sh.add_argument(
         "--out", type=Path, default=Path("models"), help="folder of the shipped model and card"

@@ -9,6 +9,7 @@ the pad spans :data:`ACQUIRE_PX` = 128 x 4 / (2 x 100 x tan 22.5°) = 6.18 pixel
 model's 128 px, 45° image. A pad of width ``w`` is taken as acquirable up to the altitude where
 it spans that many pixels (25 m per metre of pad at 128 px / 45°), and a flight should start
 between :data:`START_FRACTION` of that altitude and that altitude — the scenario's 75-100 m.
+The rule lives in :mod:`sitl_sim.render.pads` (re-exported here), where training reads it too.
 
 **Contrast**: the camera is mono8, so a pad's hue counts for nothing, only its luminance (the
 project's BT.601 :func:`sitl_sim.render.ground.luma`). Each part of the pad
@@ -28,7 +29,19 @@ from typing import Any, TextIO
 import numpy as np
 
 from sitl_sim.errors import ConfigError
-from sitl_sim.render.pads import PadDesign, builtin_pad_paths, load_pad, read_image_rgb
+from sitl_sim.render.pads import (
+    ACQUIRE_PX,
+    REFERENCE,
+    START_FRACTION,
+    PadDesign,
+    acquire_altitude_m,
+    builtin_pad_paths,
+    fill_altitude_m,
+    load_pad,
+    pad_width_px,
+    read_image_rgb,
+    start_altitudes_m,
+)
 
 __all__ = [
     "ACQUIRE_PX",
@@ -47,14 +60,6 @@ __all__ = [
     "start_altitudes_m",
 ]
 
-REFERENCE = {"pad_m": 4.0, "altitude_m": 100.0, "hfov_deg": 45.0, "resolution_px": 128}
-"""The measurement that defines "can acquire": the shipped model acquires the 4 m paper pad from
-the scenario's start altitudes, whose top is 100 m, with the 128 px, 45° camera."""
-
-START_FRACTION = 0.75
-"""The bottom of the start altitudes as a share of the acquire altitude (the scenario's 75 of
-100 m)."""
-
 VANISH_LEVELS = 16.0
 """A part of the pad whose luma is within this many grey levels (of 255) of the ground's median
 vanishes into the ground: about 6 % of full scale, the half-width of the 10-90 % luma spread of
@@ -63,39 +68,6 @@ texture."""
 
 GROUND_SEED = 0
 """The texture seed of the ground families' samples."""
-
-
-def pad_width_px(
-    width_m: float, altitude_m: float, hfov_deg: float = 45.0, resolution_px: int = 128
-) -> float:
-    """Pixels a ``width_m`` pad spans seen straight down from ``altitude_m`` by a camera of
-    ``resolution_px`` across ``hfov_deg`` (pinhole)."""
-    return resolution_px * width_m / (2.0 * altitude_m * math.tan(math.radians(hfov_deg) / 2.0))
-
-
-ACQUIRE_PX = pad_width_px(
-    REFERENCE["pad_m"], REFERENCE["altitude_m"], REFERENCE["hfov_deg"], REFERENCE["resolution_px"]
-)
-"""The pad width in pixels at which the model acquires a pad (6.18 px; :data:`REFERENCE`)."""
-
-
-def acquire_altitude_m(width_m: float, hfov_deg: float = 45.0, resolution_px: int = 128) -> float:
-    """The highest altitude from which a ``width_m`` pad spans :data:`ACQUIRE_PX` pixels."""
-    return resolution_px * width_m / (2.0 * ACQUIRE_PX * math.tan(math.radians(hfov_deg) / 2.0))
-
-
-def start_altitudes_m(
-    width_m: float, hfov_deg: float = 45.0, resolution_px: int = 128
-) -> tuple[float, float]:
-    """The start altitude range for a ``width_m`` pad: ``[START_FRACTION, 1] x`` its acquire
-    altitude (for the 4 m paper pad at 128 px / 45°: the scenario's 75-100 m)."""
-    top = acquire_altitude_m(width_m, hfov_deg, resolution_px)
-    return START_FRACTION * top, top
-
-
-def fill_altitude_m(width_m: float, hfov_deg: float = 45.0) -> float:
-    """The altitude at which the pad spans the whole image (below it the camera sees a part)."""
-    return width_m / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
 
 
 def resolve_pad(spec: str | Path) -> PadDesign:

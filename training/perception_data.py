@@ -18,14 +18,17 @@ With ``visuals`` (the ``[visual]`` sections of a run's training worlds), every c
 :data:`CHUNK` frames is rendered in a world drawn from them by weight — its ground family and
 texture seed, sun, pad, haze and camera effects (``VisualConfig.draw(seed, chunk)``) — so the CNN
 learns the pad on every ground and in every light the worlds fly, not only in the frames the
-expert happened to see. ``None`` stands for the nominal ground and camera.
+expert happened to see. ``None`` stands for the nominal ground and camera. With ``pads`` (the
+worlds' ``[pad]`` sections) the chunk's pad is that world's design, drawn and carried as
+:func:`sitl_sim.world.episode_world` draws an episode's, so the frames show the pad the worlds
+fly (without them, the paper's pad).
 """
 
 from __future__ import annotations
 
 import math
 import multiprocessing as mp
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +36,9 @@ import numpy as np
 from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
 from sitl_sim.render.ground import PadGeometry, nominal_ground
+from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.scene import Camera, make_renderer
-from sitl_sim.render.visual import CameraEffects, VisualConfig
+from sitl_sim.render.visual import CameraEffects, VisualConfig, VisualSample
 
 CHUNK = 256
 """Frames per rendering job, and per drawn visual world."""
@@ -100,13 +104,27 @@ def sample_poses(
 _WORKER: dict = {}
 
 
-def _init(cfg: dict, seed: int, visuals: tuple, weights: tuple) -> None:
+def _init(cfg: dict, seed: int, visuals: tuple, weights: tuple, pads: tuple) -> None:
     camera = CameraConfig(**cfg)
     _WORKER["scene"] = make_renderer(camera.renderer)
     _WORKER["cfg"] = camera
     _WORKER["seed"] = seed
     _WORKER["visuals"] = visuals
+    _WORKER["pads"] = pads
     _WORKER["weights"] = np.asarray(weights, float) / float(np.sum(weights))
+
+
+def _look(
+    visual: VisualConfig | None, pad: PadConfig | None, seed: int, chunk: int
+) -> VisualSample | None:
+    """The look of chunk ``chunk`` as :func:`sitl_sim.world.episode_world` draws episode
+    ``chunk`` of a world with these ``[visual]`` and ``[pad]`` sections: the visual draw carrying
+    the pad's design (no ``[visual]``: the nominal look with the design); None: the nominal
+    ground, camera and pad."""
+    design = pad.draw(seed, chunk) if pad is not None else None
+    if design is not None and (visual is not None or design.scene_pad() != PadGeometry()):
+        return replace((visual or VisualConfig()).draw(seed, chunk), pad_design=design)
+    return visual.draw(seed, chunk) if visual is not None else None
 
 
 def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
@@ -114,15 +132,13 @@ def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
     seed, cfg, scene = _WORKER["seed"], _WORKER["cfg"], _WORKER["scene"]
     rng = np.random.default_rng([seed, chunk])
     pick = np.random.default_rng([seed, chunk, 1])
-    visual: VisualConfig | None = _WORKER["visuals"][
-        int(pick.choice(len(_WORKER["visuals"]), p=_WORKER["weights"]))
-    ]
-    if visual is None:
+    k = int(pick.choice(len(_WORKER["visuals"]), p=_WORKER["weights"]))
+    sample = _look(_WORKER["visuals"][k], _WORKER["pads"][k], seed, chunk)
+    if sample is None:
         scene.configure(nominal_ground(), PadGeometry())
         cam = Camera(scene, cfg, rng)
         rates = np.zeros((len(pos), 3))
     else:
-        sample = visual.draw(seed, chunk)
         scene.configure(sample.ground(), sample.pad())
         effects = CameraEffects(sample, cfg, sample.light)
         cam = Camera(scene, cfg, rng, light=sample.light, effects=effects)
@@ -139,19 +155,24 @@ def render_pose_frames(
     sampling: PoseSampling = PoseSampling(),
     visuals: tuple[VisualConfig | None, ...] = (None,),
     weights: tuple[float, ...] | None = None,
+    pads: tuple[PadConfig | None, ...] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` rendered frames: images (n, H, W) uint8, poses (n, 3) NED and quaternions (n, 4).
 
     ``visuals`` / ``weights``: the looks to render in, one drawn per chunk (module docstring);
-    the default is the nominal ground and camera. With ``cache_dir`` the result is stored as
-    ``poses_s<seed>_n<n>.npz`` and reloaded when its camera, sampling and visuals match; a
-    damaged cache file is rendered again.
+    the default is the nominal ground and camera. ``pads``: each look's ``[pad]`` section (None:
+    the paper's pad everywhere). With ``cache_dir`` the result is stored as
+    ``poses_s<seed>_n<n>.npz`` and reloaded when its camera, sampling, visuals and pads match
+    (its ``key``); a damaged cache file is rendered again.
     """
     if not visuals:
         raise ValueError("visuals: expected at least one (None: the nominal look)")
     weights = tuple(weights) if weights is not None else (1.0,) * len(visuals)
     if len(weights) != len(visuals) or min(weights) <= 0:
         raise ValueError(f"weights {weights}: expected one positive weight per visual")
+    pads = tuple(pads) if pads is not None else (None,) * len(visuals)
+    if len(pads) != len(visuals):
+        raise ValueError(f"pads: {len(pads)} sections; expected one per visual ({len(visuals)})")
     pos, quat = sample_poses(n, seed, camera.fov_deg, sampling)
     key = {
         "camera": asdict(camera),
@@ -159,6 +180,8 @@ def render_pose_frames(
         "visuals": [None if v is None else v.to_dict() for v in visuals],
         "weights": list(weights),
     }
+    if any(pad is not None for pad in pads):  # (a key without pads: the caches made before)
+        key["pads"] = [None if pad is None else _pad_key(pad) for pad in pads]
     path = Path(cache_dir) / f"poses_s{seed}_n{n}.npz" if cache_dir is not None else None
     if path is not None and path.exists():
         try:
@@ -168,7 +191,7 @@ def render_pose_frames(
         except (OSError, ValueError, KeyError):
             pass  # damaged or foreign cache: render again
     jobs = [(k, pos[s : s + CHUNK], quat[s : s + CHUNK]) for k, s in enumerate(range(0, n, CHUNK))]
-    initargs = (asdict(camera), seed, tuple(visuals), weights)
+    initargs = (asdict(camera), seed, tuple(visuals), weights, pads)
     if workers > 1:
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_init, initargs=initargs) as pool:
@@ -187,3 +210,18 @@ def render_pose_frames(
         np.savez(tmp, images=images, pos=pos, quat=quat, key=np.array(repr(key)))
         tmp.replace(path)
     return images, pos, quat
+
+
+def _pad_key(pad: PadConfig) -> list[dict]:
+    """What a ``[pad]`` section draws, for the cache key: each design's name, file, size and
+    pattern or image."""
+    return [
+        {
+            "name": d.name,
+            "file": str(d.path) if d.path is not None else None,
+            "size_m": list(d.size_m),
+            "pattern": d.pattern,
+            "image": str(d.image) if d.image is not None else None,
+        }
+        for d in pad.designs
+    ]

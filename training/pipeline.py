@@ -11,7 +11,12 @@
                 training, inference timings                             metrics.json
 
 Each finished stage writes ``stages/<stage>.json``; a rerun skips finished stages (and finished
-DAgger rounds), so an interrupted pipeline resumes where it stopped. Every DAgger round leaves
+DAgger rounds), so an interrupted pipeline resumes where it stopped. ``pipeline_time.json`` keeps
+each session's seconds, in all and per stage.
+
+With ``pad`` (``visland pipeline --pad PADFILE --from RUN``) the run teaches a new pad to
+``RUN``'s controller: stages ``perception``, ``vision``, ``eval`` of ``training.stages.teach``
+in the profile's worlds with the pad (``training.pad_teach``). Every DAgger round leaves
 its learner flight logs (``flights/<round>/``) and their offline expert labels
 (``labels/<round>/``, written by ``expert.relabel`` exactly as ``visland relabel`` does).
 Scalars go to TensorBoard (``tb/``) and ``scalars.jsonl``.
@@ -32,7 +37,7 @@ from training.exec.backend import Backend
 from training.profiles import PROFILES, PipelineError, Profile
 from training.run_folder import Run
 from training.stage_records import STAGES, StageRecord
-from training.stages import bc, collect, dagger, perception, vision
+from training.stages import bc, collect, dagger, perception, teach, vision
 from training.stages import eval as eval_stage
 
 __all__ = ["STAGES", "PipelineError", "Profile", "run_pipeline"]
@@ -46,16 +51,23 @@ _STAGE_RUN: dict[str, Callable[[Run], StageRecord]] = {
     "eval": eval_stage.run,
 }
 
+_PAD_STAGE_RUN: dict[str, Callable[[Run], StageRecord]] = {
+    "perception": teach.perception,
+    "vision": teach.vision,
+    "eval": teach.evaluate,
+}
+
 
 def run_pipeline(
     out: str | Path,
     profile: str | Profile = "quick",
     scenario: str | None = None,
-    stages: tuple[str, ...] = STAGES,
+    stages: tuple[str, ...] | None = None,
     progress: bool = True,
     redo: str | None = None,
     backend: Backend | None = None,
     start_from: str | Path | None = None,
+    pad: str | Path | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Run (or resume) the stages in order; returns the stage records (their JSON).
 
@@ -65,16 +77,30 @@ def run_pipeline(
     (which were built on it) are removed too, so they run again when asked for.
 
     ``start_from``: a finished run whose trained stages a new run folder takes
-    (:meth:`Run.start_from`: an estimator ablation without training again).
+    (:meth:`Run.start_from`: an estimator ablation without training again); with ``pad``, the
+    run or checkpoint whose controller learns the pad.
+
+    ``pad``: a pad file (or a shipped pad's name) to teach (module docstring); its stages are
+    ``perception``, ``vision``, ``eval`` (``stages``: None, all of a run's stages).
+
+    Raises:
+        PipelineError: a stage cannot run; ConfigError: a bad pad file (named).
     """
+    from training.pad_teach import PAD_STAGES, teach_pad
+
     prof = PROFILES[profile] if isinstance(profile, str) else profile
-    run = Run(out, prof, scenario, progress, backend=backend)
-    if start_from is not None:
-        try:
+    taught = teach_pad(pad) if pad is not None else None  # a bad file fails before any folder
+    if stages is None:
+        stages = PAD_STAGES if taught is not None else STAGES
+    run = Run(out, prof, scenario, progress, backend=backend, pad=taught)
+    try:
+        if start_from is not None:
             run.start_from(start_from)
-        except PipelineError:
-            run.close()
-            raise
+        if taught is not None:
+            _check_pad_run(run, stages, PAD_STAGES)
+    except PipelineError:
+        run.close()
+        raise
     if redo is not None:
         if redo not in STAGES:
             run.close()
@@ -85,7 +111,9 @@ def run_pipeline(
                 record.unlink()
                 run.say(f"stage {later}: record removed, it will run again")
     records = {}
+    seconds: dict[str, float] = {}
     t0 = time.perf_counter()
+    runners = _PAD_STAGE_RUN if taught is not None else _STAGE_RUN
     try:
         for stage in stages:
             if stage not in STAGES:
@@ -96,13 +124,33 @@ def run_pipeline(
             else:
                 s0 = time.perf_counter()
                 run.say(f"stage {stage}: running")
-                rec = _STAGE_RUN[stage](run)
-                run.say(f"stage {stage}: done in {time.perf_counter() - s0:.0f} s")
+                rec = runners[stage](run)
+                seconds[stage] = time.perf_counter() - s0
+                run.say(f"stage {stage}: done in {seconds[stage]:.0f} s")
             records[stage] = rec.to_dict()
     finally:
         run.close()
     timing_path = Path(out) / "pipeline_time.json"
     prev = json.loads(timing_path.read_text()) if timing_path.exists() else {"sessions": []}
-    prev["sessions"].append({"stages": list(stages), "seconds": time.perf_counter() - t0})
+    prev["sessions"].append(
+        {"stages": list(stages), "seconds": time.perf_counter() - t0, "stage_seconds": seconds}
+    )
     timing_path.write_text(json.dumps(prev, indent=2))
     return records
+
+
+def _check_pad_run(run: Run, stages: tuple[str, ...], pad_stages: tuple[str, ...]) -> None:
+    """A pad run has been started from a model and runs only its own stages."""
+    from training.pad_teach import read_started_from
+
+    if read_started_from(run.root) is None:
+        raise PipelineError(
+            f"{run.root}: --pad needs --from RUN or --from CHECKPOINT: the controller that "
+            "learns the pad (e.g. --from models/visland_vision.pt)"
+        )
+    other = [s for s in stages if s not in pad_stages]
+    if other:
+        raise PipelineError(
+            f"{run.root}: a run that teaches a pad has the stages {', '.join(pad_stages)}; "
+            f"got {', '.join(other)}"
+        )

@@ -145,6 +145,13 @@ class Profile(Record):
     eval_suite_baseline: str | None = None
     """A checkpoint the eval stage flies on ``eval_suite`` too, for the comparison (the
     paper-world model for the robust profile)."""
+    pad_pose_frames: int = field(default=40000, metadata=ADDED)
+    """A run that teaches a pad (``visland pipeline --pad``, ``training.pad_teach``): frames
+    rendered at sampled poses with the new pad, the CNN's only data."""
+    pad_perception_epochs: int = field(default=2, metadata=ADDED)
+    """... the epochs over them (the CNN starts from the ``--from`` model's weights)."""
+    pad_perception_lr: float = field(default=1e-3, metadata=ADDED)
+    """... and the learning rate (cosine schedule, as for ``perception``)."""
 
     def net_options(self) -> dict[str, bool | float | None]:
         """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
@@ -183,6 +190,8 @@ PROFILES: dict[str, Profile] = {
         vision_steps=500,
         eval_episodes=20,
         validation_episodes=6,
+        pad_pose_frames=2048,
+        pad_perception_epochs=1,
     ),
     # Paper 4.3 adapted to 2 CPU cores (<= 60 min): 200 expert flights, BC, 2 privileged DAgger
     # rounds of 60 learner rollouts, CNN on the expert frames, 1 vision DAgger round; 300

@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from tqdm import tqdm
 
@@ -26,6 +26,9 @@ from training.provenance import git_commit
 from training.record import RecordError
 from training.stage_records import STAGES, StageRecord, record_type
 from training.worlds import load_worlds, single_world
+
+if TYPE_CHECKING:
+    from training.pad_teach import PadTeach
 
 __all__ = ["Run"]
 
@@ -43,9 +46,13 @@ class Run:
         progress: bool = True,
         say: Callable[[str], None] | None = None,
         backend: Backend | None = None,
+        pad: PadTeach | None = None,
     ) -> None:
         self.root = Path(out)
         self.profile = profile
+        self.pad = pad
+        """The pad this run teaches (``training.pad_teach``; None: a run of the whole
+        pipeline)."""
         self.backend = backend if backend is not None else LocalBackend(profile.workers)
         """Where the run's episodes fly: rollouts, relabelling, validation, evaluation (not a
         part of the profile: both backends fly the same episodes)."""
@@ -69,14 +76,26 @@ class Run:
         for sub in ("stages", "checkpoints", "flights", "labels", "cache"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
         self._check_profile()
+        if pad is not None:  # the profile's worlds with the pad, altitudes to its envelope
+            from training.pad_teach import pad_worlds
+
+            self.worlds = pad_worlds(self.worlds, pad, self.root / "worlds")
+            self.scenario = self.worlds.worlds[0].scenario
         self._tb = None
         self._scalars = (self.root / "scalars.jsonl").open("a")
 
     def _check_profile(self) -> None:
         path = self.root / "profile.json"
         mine = {"profile": self.profile.to_dict(), "scenario": self.scenario_path}
+        if self.pad is not None:
+            mine["pad"] = jsonable(self.pad.record.to_dict())
         if path.exists():
             theirs = json.loads(path.read_text())
+            if theirs.get("pad") and self.pad is None:
+                raise PipelineError(
+                    f"{path}: this run teaches pad {theirs['pad'].get('name')!r}; resume it with "
+                    f"visland pipeline --pad {theirs['pad'].get('file')} --out {self.root}"
+                )
             added = sorted(set(mine["profile"]) - set(theirs.get("profile", {})))
             if added and theirs.get("profile", {}).get("name") == self.profile.name:
                 # a run started before these profile keys existed: the stages it has done keep
@@ -96,6 +115,8 @@ class Run:
                 keys = sorted(k for k in mine["profile"] if prof.get(k) != mine["profile"][k])
                 if theirs.get("scenario") != mine["scenario"]:
                     keys.append("scenario")
+                if theirs.get("pad") != mine.get("pad"):
+                    keys.append("pad")
                 raise PipelineError(
                     f"{path}: this run was started with another profile/scenario "
                     f"({prof.get('name')!r}; differs in {', '.join(keys)}); use a new --out "
@@ -139,7 +160,12 @@ class Run:
 
         Raises:
             PipelineError: this run has stage records already, ``other`` is not a run folder,
-                or the profiles differ in anything else (named)."""
+                or the profiles differ in anything else (named).
+
+        A run that teaches a pad (:attr:`pad`) takes ``other``'s controller instead
+        (:meth:`_teach_from`)."""
+        if self.pad is not None:
+            return self._teach_from(other)
         src = Path(other)
         if any(self.record_path(s).exists() for s in STAGES):
             raise PipelineError(f"{self.root}: --from needs a new run folder (it has stages)")
@@ -178,6 +204,50 @@ class Run:
         path.write_text(json.dumps(data, indent=2))
         self.say(f"started from {src}: {', '.join(taken)}")
         return taken
+
+    def _teach_from(self, other: str | Path) -> list[str]:
+        """Begin a pad run from ``other`` (a checkpoint, or a run folder's vision checkpoint):
+        ``profile.json`` records it (``started_from``: checkpoint, its sha256, run, commit); the
+        stages read its controller and CNN from there. Its network must be this profile's
+        (estimator settings aside). Started from the same checkpoint already: nothing to do
+        (a resumed run). Returns no stage: none is copied.
+
+        Raises:
+            PipelineError: not a vision checkpoint or run, another network, or this run was
+                started from another checkpoint or has stages of its own."""
+        from companion.files import sha256_file
+        from training.pad_teach import (
+            SourceRecord,
+            check_source,
+            read_started_from,
+            source_checkpoint,
+        )
+
+        checkpoint, run = source_checkpoint(other)
+        sha = sha256_file(checkpoint)
+        before = read_started_from(self.root)
+        if before is not None:
+            if before.sha256 != sha:
+                raise PipelineError(
+                    f"{self.root}: this run teaches from {before.checkpoint} (sha256 "
+                    f"{before.sha256[:12]}), not {checkpoint} ({sha[:12]}); use a new --out folder"
+                )
+            return []
+        if any(self.record_path(s).exists() for s in STAGES):
+            raise PipelineError(f"{self.root}: --from needs a new run folder (it has stages)")
+        check_source(checkpoint, self.net_config("vision"))
+        record = SourceRecord(checkpoint=str(checkpoint), sha256=sha, run=run, commit=self.commit)
+        path = self.root / "profile.json"
+        data = json.loads(path.read_text())
+        data["started_from"] = record.to_dict()
+        path.write_text(json.dumps(data, indent=2))
+        assert self.pad is not None
+        self.say(
+            f"teaching pad {self.pad.design.name} to the controller of {checkpoint} (the CNN is "
+            f"retrained; start altitudes {self.pad.record.start_altitude_m[0]:g}-"
+            f"{self.pad.record.start_altitude_m[1]:g} m)"
+        )
+        return []
 
     def log(self, name: str, value: float, step: int) -> None:
         if self._tb is None:

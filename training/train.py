@@ -308,10 +308,13 @@ def train_perception(
 
     ``extra``: more frames ``(images, pos_ned_m, quat_wxyz)`` (e.g. the pose-sampled renders of
     :mod:`training.perception_data`), labelled the same way and split 90/10 by index; their
-    validation figures are reported separately (``pose_val_*``).
+    validation figures are reported separately (``pose_val_*``). With ``extra``, ``episodes`` may
+    be empty (a CNN taught a new pad from rendered frames alone: ``val_*`` are then NaN).
     """
-    if not episodes or any(e.images is None for e in episodes):
+    if any(e.images is None for e in episodes):
         raise ValueError("perception training needs episodes with camera frames")
+    if not episodes and (extra is None or not len(extra[0])):
+        raise ValueError("perception training needs episodes with camera frames or extra frames")
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     focal = float(0.5 * 128 / math.tan(math.radians(45.0) / 2))

@@ -37,15 +37,22 @@ from sitl_sim.errors import ConfigError
 from sitl_sim.render.ground import PadGeometry, PadTexture, luma
 
 __all__ = [
+    "ACQUIRE_PX",
     "DEFAULT_PAD",
     "PADS_DIR",
     "PATTERNS",
+    "REFERENCE",
+    "START_FRACTION",
     "PadDesign",
+    "acquire_altitude_m",
     "builtin_pad_paths",
     "default_pad",
+    "fill_altitude_m",
     "find_file",
     "load_pad",
+    "pad_width_px",
     "read_image_rgb",
+    "start_altitudes_m",
 ]
 
 DEFAULT_PAD = "paper"
@@ -247,6 +254,56 @@ def _luma_levels(y: np.ndarray, k: int = 3) -> list[float]:
         if not out or c - out[-1] > 8.0:
             out.append(round(float(c), 1))
     return out
+
+
+# --------------------------------------------------------------------------- the envelope
+# Acquiring a pad is defined by a pixel width measured from the shipped model on the paper pad:
+# it acquires the 4 m pad from the scenario's start altitudes, 75-100 m, so at 100 m the pad
+# spans ACQUIRE_PX = 128 x 4 / (2 x 100 x tan 22.5 deg) = 6.18 pixels of its 128 px, 45 deg
+# image. A pad of width w is acquirable up to the altitude where it spans that many pixels, and a
+# flight should start between START_FRACTION of that altitude and that altitude. ``visland pad
+# info`` reports it; a pipeline that teaches a pad starts its flights there.
+
+REFERENCE = {"pad_m": 4.0, "altitude_m": 100.0, "hfov_deg": 45.0, "resolution_px": 128}
+"""The measurement that defines "can acquire": the shipped model acquires the 4 m paper pad from
+the scenario's start altitudes, whose top is 100 m, with the 128 px, 45° camera."""
+
+START_FRACTION = 0.75
+"""The bottom of the start altitudes as a share of the acquire altitude (the scenario's 75 of
+100 m)."""
+
+
+def pad_width_px(
+    width_m: float, altitude_m: float, hfov_deg: float = 45.0, resolution_px: int = 128
+) -> float:
+    """Pixels a ``width_m`` pad spans seen straight down from ``altitude_m`` by a camera of
+    ``resolution_px`` across ``hfov_deg`` (pinhole)."""
+    return resolution_px * width_m / (2.0 * altitude_m * math.tan(math.radians(hfov_deg) / 2.0))
+
+
+ACQUIRE_PX = pad_width_px(
+    REFERENCE["pad_m"], REFERENCE["altitude_m"], REFERENCE["hfov_deg"], REFERENCE["resolution_px"]
+)
+"""The pad width in pixels at which the model acquires a pad (6.18 px; :data:`REFERENCE`)."""
+
+
+def acquire_altitude_m(width_m: float, hfov_deg: float = 45.0, resolution_px: int = 128) -> float:
+    """The highest altitude from which a ``width_m`` pad spans :data:`ACQUIRE_PX` pixels."""
+    return resolution_px * width_m / (2.0 * ACQUIRE_PX * math.tan(math.radians(hfov_deg) / 2.0))
+
+
+def start_altitudes_m(
+    width_m: float, hfov_deg: float = 45.0, resolution_px: int = 128
+) -> tuple[float, float]:
+    """The start altitude range for a ``width_m`` pad: ``[START_FRACTION, 1] x`` its acquire
+    altitude (for the 4 m paper pad at 128 px / 45°: the scenario's 75-100 m)."""
+    top = acquire_altitude_m(width_m, hfov_deg, resolution_px)
+    return START_FRACTION * top, top
+
+
+def fill_altitude_m(width_m: float, hfov_deg: float = 45.0) -> float:
+    """The altitude at which the pad spans the whole image (below it the camera sees a part)."""
+    return width_m / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
 
 
 # --------------------------------------------------------------------------- files

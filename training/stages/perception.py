@@ -36,6 +36,7 @@ def run(r: Run) -> PerceptionRecord:
             workers=p.workers,
             visuals=tuple(w.scenario.visual for w in worlds),
             weights=tuple(w.share for w in worlds),
+            pads=tuple(w.scenario.pad for w in worlds),
         )
         r.say(
             f"perception: {p.perception_pose_frames} pose-sampled frames "

@@ -22,6 +22,7 @@ from training.replay import ReplayBuffer
 from training.run_folder import Run
 from training.stage_records import (
     DaggerRecord,
+    FitRecord,
     PerceptionRecord,
     ValidationScore,
     VisionRecord,
@@ -31,7 +32,7 @@ from training.stages.flights import episodes, expert_pairs, fly, relabel
 from training.stages.selection import select, validate
 from training.train import vision_episode
 
-__all__ = ["privileged_controllers", "run"]
+__all__ = ["privileged_controllers", "run", "vision_rounds"]
 
 
 def _vision_policy(r: Run) -> tuple[NetConfig, ControlLSTM, PerceptionCNN]:
@@ -61,6 +62,44 @@ def privileged_controllers(r: Run, cfg: NetConfig) -> list[tuple[str, ControlLST
         fresh = ControlLSTM(cfg)
         fresh.load_state_dict(control.state_dict())
         out.append((Path(checkpoint).stem, fresh))
+    return out
+
+
+def vision_rounds(
+    r: Run,
+    cfg: NetConfig,
+    control: ControlLSTM,
+    cnn: PerceptionCNN,
+    ckpt: Path,
+    buf: ReplayBuffer,
+    names: list[str],
+    fits: list[FitRecord],
+) -> list[str]:
+    """The profile's vision DAgger rounds: round ``k`` flies the latest checkpoint (``ckpt``
+    first) with the camera, relabels its flights, adds their CNN + estimator episodes to ``buf``
+    (their names to ``names``) and fine-tunes ``control`` (its fit to ``fits``); returns each
+    round's checkpoint ``checkpoints/vision_r<k>.pt``."""
+    p = r.profile
+    out = []
+    for k in range(p.vision_rounds):
+        name = f"vision_r{k}"
+        logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
+        pairs = relabel(r, logs, name)
+        policy = LearnedPolicy(cfg, control, cnn)
+        for ep in episodes(r, pairs, images=True):
+            buf.add(vision_episode(policy, ep))
+            names.append(ep.name)
+        fits.append(
+            fit_controller(r, control, buf, p.vision_steps, p.finetune_lr, name, p.seed + 30 + k)
+        )
+        ckpt = save_checkpoint(
+            r.root / "checkpoints" / f"{name}.pt",
+            cfg,
+            control,
+            cnn,
+            r.metadata(name, {"episodes": list(names), "fit": fits[-1].to_dict()}),
+        )
+        out.append(str(ckpt))
     return out
 
 
@@ -119,25 +158,7 @@ def run(r: Run) -> VisionRecord:
         buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 51)
         names = []
         r.say(f"vision rounds start from {ckpt.name} (learner flights only)")
-    for k in range(p.vision_rounds):
-        name = f"vision_r{k}"
-        logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
-        pairs = relabel(r, logs, name)
-        policy = LearnedPolicy(cfg, control, cnn)
-        for ep in episodes(r, pairs, images=True):
-            buf.add(vision_episode(policy, ep))
-            names.append(ep.name)
-        fits.append(
-            fit_controller(r, control, buf, p.vision_steps, p.finetune_lr, name, p.seed + 30 + k)
-        )
-        ckpt = save_checkpoint(
-            r.root / "checkpoints" / f"{name}.pt",
-            cfg,
-            control,
-            cnn,
-            r.metadata(name, {"episodes": list(names), "fit": fits[-1].to_dict()}),
-        )
-        candidates.append(str(ckpt))
+    candidates += vision_rounds(r, cfg, control, cnn, ckpt, buf, names, fits)
     final, selected, scores = select(r, candidates, camera=True, out="vision", known=known)
     return r.finish(
         VisionRecord(

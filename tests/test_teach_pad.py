@@ -1,0 +1,265 @@
+"""Teaching a pad (``visland pipeline --pad PADFILE --from MODEL``, ``training.pad_teach``): the
+envelope rule where training reads it, the pad's suite held to the code, pose frames that show the
+worlds' pad, the derived worlds, one pad run end to end on a tiny budget from the shipped model
+(the pad in its frames, the controller kept, the CNN retrained, ``visland ship`` writing
+``visland_vision_<pad>.pt`` and its card) and each bad input's error."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from companion.files import sha256_file
+from companion.policy_net import load_networks
+from sitl_sim.config import load_sim
+from sitl_sim.errors import ConfigError
+from sitl_sim.render import pads as pads_module
+from sitl_sim.render.pad_section import PadConfig
+from tools.cli import main
+from training.pad_teach import PadMetrics, pad_suite_text, pad_worlds, teach_pad
+from training.perception_data import PoseSampling, render_pose_frames
+from training.pipeline import run_pipeline
+from training.profiles import PROFILES, PipelineError
+from training.provenance import REPO
+from training.reports import SuiteReport
+from training.seeds import EVAL_SEED
+from training.suite import load_suite
+from training.train import bearing_labels
+from training.worlds import single_world
+
+SHIPPED = REPO / "models" / "visland_vision.pt"
+HELIPAD = REPO / "configs" / "pads" / "helipad_1m.toml"
+
+# the robust profile (the shipped model's network) on a budget a test can fly: 512 pose frames,
+# one epoch, one validation flight per world, two episodes per suite condition, no DAgger round
+TINY = replace(
+    PROFILES["robust"],
+    pad_pose_frames=512,
+    pad_perception_epochs=1,
+    validation_episodes=4,
+    eval_episodes=2,
+    vision_rounds=0,
+    workers=1,
+)
+
+
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    """``visland ARGV`` in this process: (exit code, stdout, stderr)."""
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def centre_luma(images: np.ndarray, pos: np.ndarray, quat: np.ndarray) -> list[float]:
+    """The median grey level of 3 x 3 pixels around where the pad's centre appears."""
+    cam = load_sim().camera
+    focal = 0.5 * cam.width_px / math.tan(math.radians(cam.fov_deg) / 2)
+    out = []
+    for image, (tr, tf, _) in zip(images, bearing_labels(pos, quat, cam.fov_deg), strict=True):
+        col = round(cam.width_px / 2 - 0.5 + focal * tr)
+        row = round(cam.height_px / 2 - 0.5 - focal * tf)
+        if 1 <= row < cam.height_px - 1 and 1 <= col < cam.width_px - 1:
+            out.append(float(np.median(image[row - 1 : row + 2, col - 1 : col + 2])))
+    return out
+
+
+# --------------------------------------------------------------------------- the envelope
+
+
+def test_envelope_rule_lives_in_pads_and_pad_info_uses_it():
+    import tools.pad_info as pad_info
+
+    for name in ("ACQUIRE_PX", "REFERENCE", "START_FRACTION", "start_altitudes_m"):
+        assert getattr(pad_info, name) is getattr(pads_module, name)
+    assert pads_module.start_altitudes_m(4.0) == pytest.approx((75.0, 100.0))
+    teach = teach_pad(HELIPAD)
+    assert teach.record.start_altitude_m == pytest.approx((18.75, 25.0))
+    assert teach.scale == pytest.approx(0.25)
+    assert teach.design_text == "helipad_1m"  # a shipped pad by its name
+    assert teach_pad("helipad_1m").record == teach.record
+
+
+def test_helipad_suite_file_is_what_the_code_writes():
+    text = (REPO / "configs" / "suites" / "helipad_1m.toml").read_text()
+    assert text == pad_suite_text(teach_pad(HELIPAD)), (
+        "configs/suites/helipad_1m.toml is stale: python -m training.pad_teach "
+        "configs/pads/helipad_1m.toml > configs/suites/helipad_1m.toml"
+    )
+    suite = load_suite(REPO / "configs" / "suites" / "helipad_1m.toml")
+    standard_suite = load_suite(REPO / "configs" / "suites" / "standard.toml")
+    standard = {c.name: c.scenario for c in standard_suite.conditions}
+    assert [c.name for c in suite.conditions] == [
+        "nominal",
+        "low_sun",
+        "unseen_terrain",
+        "wind_moderate_gusts",
+    ]
+    assert (suite.episodes, suite.seed) == (50, EVAL_SEED)
+    for c in suite.conditions:
+        assert c.scenario.altitude_m == pytest.approx((18.75, 25.0))
+        assert [d.name for d in c.scenario.pad.designs] == ["helipad_1m"]
+        base = standard[c.name]  # everything else as the standard suite's condition
+        assert c.scenario.north_east_m == base.north_east_m
+        assert c.scenario.wind == base.wind
+        assert (c.scenario.visual is None) == (base.visual is None)
+        if base.visual is not None:
+            assert c.scenario.visual.terrain == base.visual.terrain
+            assert c.scenario.visual.texture_seed == base.visual.texture_seed
+            assert c.scenario.visual.sun_elevation_deg == base.visual.sun_elevation_deg
+
+
+# --------------------------------------------------------------------------- pose frames
+
+
+def test_pose_frames_show_the_worlds_pad(tmp_path):
+    cam = load_sim().camera
+    low = PoseSampling(
+        altitude_m=(2.0, 3.0), in_view_fraction=1.0, level_fraction=1.0, level_tilt_deg=3.0
+    )
+    paper, pos, quat = render_pose_frames(24, 3, cam, cache_dir=tmp_path, sampling=low)
+    heli, pos_h, quat_h = render_pose_frames(
+        24, 3, cam, cache_dir=tmp_path, sampling=low, pads=(PadConfig(design=("helipad_1m",)),)
+    )
+    assert np.array_equal(pos, pos_h) and np.array_equal(quat, quat_h)  # same poses
+    # at the pad's centre: the paper pad's red cross (grey ~75), the helipad's white H (~230)
+    assert max(centre_luma(paper, pos, quat)) < 120
+    assert min(centre_luma(heli, pos, quat)) > 200
+    # a section without pads renders as before, from the cache made before (its key unchanged)
+    assert np.array_equal(render_pose_frames(24, 3, cam, sampling=low, pads=(None,))[0], paper)
+    with np.load(tmp_path / "poses_s3_n24.npz") as z:
+        assert "helipad_1m" in str(z["key"])  # the last render (the helipad) is the cache
+
+
+def test_pad_worlds_scale_altitudes_keep_files_and_seeds(tmp_path):
+    teach = teach_pad(HELIPAD)
+    source = single_world(str(REPO / "configs" / "scenario_ground_field_grass.toml"))
+    worlds = pad_worlds(source, teach, tmp_path / "worlds")
+    (w,) = worlds.worlds
+    assert (w.name, w.share, w.seed_offset) == ("scenario", 1.0, 0)
+    assert w.scenario.altitude_m == pytest.approx((18.75, 25.0))
+    assert w.scenario.north_east_m == source.worlds[0].scenario.north_east_m
+    assert [d.path for d in w.scenario.pad.designs] == [HELIPAD.resolve()]
+    # the ground picture, named relative to the scenario file there, still resolves here
+    assert w.scenario.visual.ground_paths == source.worlds[0].scenario.visual.ground_paths
+    # the default scenario (no file): the paper's 75-100 m become the helipad's 18.75-25 m
+    default = pad_worlds(single_world(None), teach, tmp_path / "default")
+    assert default.worlds[0].scenario.altitude_m == pytest.approx((18.75, 25.0))
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def taught(tmp_path_factory) -> Path:
+    """One pad run on the tiny budget, from the shipped model."""
+    out = tmp_path_factory.mktemp("teach") / "helipad"
+    run_pipeline(out, TINY, pad=str(HELIPAD), start_from=str(SHIPPED), progress=False)
+    return out
+
+
+def test_pad_run_retrains_the_cnn_on_frames_with_the_pad(taught):
+    stages = sorted(p.stem for p in (taught / "stages").glob("*.json"))
+    assert stages == ["eval", "perception", "vision"]  # no collect, bc, dagger
+    profile = json.loads((taught / "profile.json").read_text())
+    assert profile["pad"]["name"] == "helipad_1m"
+    assert profile["pad"]["start_altitude_m"] == pytest.approx([18.75, 25.0])
+    assert profile["started_from"]["sha256"] == sha256_file(SHIPPED)
+    # the CNN's data: rendered with the helipad, in every world of the profile's
+    _, _, _, meta = load_networks(taught / "checkpoints" / "perception.pt")
+    assert meta["data"]["pad"]["name"] == "helipad_1m"
+    frames = Path(meta["data"]["pose_frames"])
+    with np.load(frames) as z:
+        key = str(z["key"])
+        assert z["images"].shape[0] == TINY.pad_pose_frames
+        altitudes = -z["pos"][:, 2]
+    assert str(HELIPAD.resolve()) in key and key.count("helipad_1m") >= 4
+    assert altitudes.max() <= 110.0 * 0.25 and altitudes.min() >= 0.25  # scaled to the pad
+    # the worlds the run flies: the robust profile's, with the pad and the pad's altitudes
+    worlds = (taught / "worlds" / "worlds.toml").read_text()
+    for name in ("nominal", "earth_mixed", "mars_mixed", "mars"):
+        assert f"[worlds.{name}]" in worlds
+        text = (taught / "worlds" / f"{name}.toml").read_text()
+        assert 'design = ["helipad_1m"]' in text and "altitude_m = [18.75, 25.0]" in text
+    # the controller is the shipped one, the CNN is not; the lowest fix scales with the pad
+    cfg0, ctrl0, cnn0, _ = load_networks(SHIPPED)
+    cfg1, ctrl1, cnn1, _ = load_networks(taught / "checkpoints" / "vision.pt")
+    assert cfg1.min_fix_altitude_m == pytest.approx(cfg0.min_fix_altitude_m * 0.25)
+    for k, v in ctrl0.state_dict().items():
+        assert torch.equal(v, ctrl1.state_dict()[k]), k
+    assert any(not torch.equal(v, cnn1.state_dict()[k]) for k, v in cnn0.state_dict().items())
+
+
+def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path, capsys):
+    m = PadMetrics.from_dict(json.loads((taught / "pad_metrics.json").read_text()))
+    assert m.eval_seed == EVAL_SEED != m.profile.validation_seed
+    for path, policy in ((m.report, taught / "checkpoints" / "vision.pt"), (m.baseline, SHIPPED)):
+        report = SuiteReport.load(path)
+        assert report.policy == str(policy) and report.seed == EVAL_SEED
+        assert list(report.conditions) == [
+            "nominal",
+            "low_sun",
+            "unseen_terrain",
+            "wind_moderate_gusts",
+        ]
+        assert all(r.episodes == 2 for r in report.conditions.values())
+    # a rerun resumes: every stage done, nothing flown again
+    before = (taught / "suite.json").read_text()
+    run_pipeline(taught, TINY, pad=str(HELIPAD), start_from=str(SHIPPED), progress=False)
+    assert (taught / "suite.json").read_text() == before
+
+    code, out, err = run(capsys, "ship", "--run", str(taught), "--out", str(tmp_path))
+    assert code == 0, err
+    model = tmp_path / "visland_vision_helipad_1m.pt"
+    card = (tmp_path / "visland_vision_helipad_1m.md").read_text()
+    assert model.is_file() and str(model) in out
+    assert (tmp_path / "visland_vision_helipad_1m.control.onnx").is_file()
+    assert not (tmp_path / "MODEL_CARD.md").exists()  # the shipped model's card is not touched
+    assert sha256_file(model) == sha256_file(taught / "checkpoints" / "vision.pt")
+    assert "pad `helipad_1m`" in card and "18.75 and 25 m" in card
+    assert "--pad configs/pads/helipad_1m.toml --from" in card
+    for name in ("nominal", "low_sun", "unseen_terrain", "wind_moderate_gusts"):
+        assert f"| {name} |" in card
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_bad_pad_file_exits_2_naming_it(capsys, tmp_path):
+    missing = tmp_path / "no_such_pad.toml"
+    out = tmp_path / "run"
+    argv = ("pipeline", "--profile", "robust", "--from", str(SHIPPED), "--out", str(out))
+    code, _, err = run(capsys, *argv, "--pad", str(missing))
+    assert code == 2 and str(missing) in err and "not found" in err
+    assert not out.exists()  # refused before any folder was made
+    bad = tmp_path / "typo.toml"
+    bad.write_text('name = "typo"\nsize_m = [1.0, 1.0]\npatern = "helipad"\n')
+    code, _, err = run(capsys, *argv, "--pad", str(bad))
+    assert code == 2 and str(bad) in err and "patern" in err
+
+
+def test_pad_needs_a_matching_model_to_start_from(tmp_path):
+    with pytest.raises(PipelineError, match="--pad needs --from"):
+        run_pipeline(tmp_path / "a", TINY, pad="helipad_1m", progress=False)
+    # the quick profile's network has no hover input; the shipped model has
+    with pytest.raises(PipelineError, match="hover_input"):
+        run_pipeline(tmp_path / "b", PROFILES["quick"], pad="helipad_1m", start_from=str(SHIPPED))
+    with pytest.raises(PipelineError, match="expected a checkpoint file"):
+        run_pipeline(tmp_path / "c", TINY, pad="helipad_1m", start_from=str(tmp_path))
+    with pytest.raises(ConfigError, match="pad file not found"):
+        teach_pad(tmp_path / "none.toml")
+
+
+def test_a_pad_run_is_resumed_only_as_one(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(PipelineError, match="--pad needs --from"):
+        run_pipeline(out, TINY, pad="helipad_1m", progress=False)
+    with pytest.raises(PipelineError, match="teaches pad 'helipad_1m'"):
+        run_pipeline(out, TINY, stages=("perception",), progress=False)
+    with pytest.raises(PipelineError, match=r"differs in .*pad"):
+        run_pipeline(out, TINY, pad="quadrant_2m", progress=False)

@@ -1,0 +1,207 @@
+"""Ship a run that taught a pad (``training.pad_teach``): ``models/visland_vision_<pad>.pt``, its
+ONNX graphs and its own card ``models/visland_vision_<pad>.md``, every number read from the run's
+``pad_metrics.json``, suite reports, stage records and ``pipeline_time.json``.
+
+The card's targets are issue 33's for a taught pad: on each condition of the pad's suite, at
+least :data:`TARGET_SUCCESS` of the landings and a mean landing error of at most
+:data:`TARGET_MEAN_ERROR_M`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+from typing import Any
+
+from companion.files import sha256_file
+from companion.policy_net import load_policy
+from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, file_text
+from training.reports import EvalReport, SuiteReport
+
+__all__ = ["TARGET_MEAN_ERROR_M", "TARGET_SUCCESS", "is_pad_run", "ship_pad"]
+
+TARGET_SUCCESS = 0.98
+TARGET_MEAN_ERROR_M = 0.15
+
+
+def is_pad_run(run: str | Path) -> bool:
+    """Whether ``run`` is a run folder that teaches a pad (its ``profile.json`` names one)."""
+    path = Path(run) / "profile.json"
+    try:
+        return bool(json.loads(path.read_text()).get("pad"))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def _num(value: float | None, digits: int = 3, unit: str = " m") -> str:
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return f"{value:.{digits}f}{unit}"
+
+
+def _cells(r: EvalReport) -> list[str]:
+    s = r.summary
+    return [
+        f"{100 * (s.success_rate or 0.0):.1f} % ({r.episodes})",
+        _num(s.landing_error_m.mean),
+        _num(s.landing_error_m.max),
+        _num(s.touchdown_speed_m_s.mean, unit=" m/s"),
+    ]
+
+
+def suite_table(report: SuiteReport, baseline: SuiteReport, names: tuple[str, str]) -> str:
+    """Markdown: per condition, success (episodes), mean and max landing error, mean touchdown
+    speed of the taught model and of the model it started from."""
+    cols = ("success", "mean", "max", "touchdown")
+    head = " | ".join(f"{n}: {c}" for n in names for c in cols)
+    lines = [f"| condition | {head} |", "|---|" + "---:|" * (2 * len(cols))]
+    for name, r in report.conditions.items():
+        b = baseline.conditions.get(name)
+        theirs = _cells(b) if b is not None else ["—"] * len(cols)
+        lines.append(f"| {name} | {' | '.join(_cells(r) + theirs)} |")
+    return "\n".join(lines)
+
+
+def targets(report: SuiteReport) -> tuple[str, int, int]:
+    """Markdown table of the targets per condition; (table, met, total)."""
+    rows, met = [], 0
+    for name, r in report.conditions.items():
+        s = r.summary
+        success = s.success_rate or 0.0
+        mean = s.landing_error_m.mean
+        for what, value, ok in (
+            (f"success ≥ {100 * TARGET_SUCCESS:.0f} %", f"{100 * success:.1f} %", success),
+            (f"error mean ≤ {TARGET_MEAN_ERROR_M} m", _num(mean), mean),
+        ):
+            good = (
+                ok >= TARGET_SUCCESS
+                if what.startswith("success")
+                else ok is not None and math.isfinite(ok) and ok <= TARGET_MEAN_ERROR_M
+            )
+            met += bool(good)
+            rows.append(f"| {name}: {what} | {value} | {'yes' if good else '**no**'} |")
+    table = "\n".join(["| target | value | met |", "|---|---:|:---:|", *rows])
+    return table, met, len(rows)
+
+
+def _stage_times(run: Path) -> tuple[str, float]:
+    """The sessions of ``pipeline_time.json`` as text (per stage) and their total seconds."""
+    path = run / "pipeline_time.json"
+    sessions: list[dict[str, Any]] = (
+        json.loads(path.read_text()).get("sessions", []) if path.exists() else []
+    )
+    total = sum(s["seconds"] for s in sessions)
+    parts = []
+    for k, s in enumerate(sessions, 1):
+        per = s.get("stage_seconds") or {}
+        detail = ", ".join(f"{n} {v / 60:.1f} min" for n, v in per.items()) or "nothing to run"
+        parts.append(f"session {k}: {s['seconds'] / 60:.1f} min ({detail})")
+    return "; ".join(parts) or "not recorded", total
+
+
+def ship_pad(run: str | Path, out: str | Path = "models") -> Path:
+    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/visland_vision_<pad>.pt``, export its
+    ONNX graphs beside it and write ``<out>/visland_vision_<pad>.md``; returns the model file.
+
+    Raises:
+        FileNotFoundError: the run's eval stage has not finished.
+    """
+    run, out = Path(run), Path(out)
+    metrics_path = run / "pad_metrics.json"
+    if not metrics_path.exists():
+        raise FileNotFoundError(f"{metrics_path}: run the pad run's eval stage first")
+    m = PadMetrics.from_dict(json.loads(metrics_path.read_text()), str(metrics_path))
+    src = run / "checkpoints" / "vision.pt"
+    policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
+    out.mkdir(parents=True, exist_ok=True)
+    dst = out / f"visland_vision_{m.pad.name}.pt"
+    shutil.copyfile(src, dst)
+    from companion.onnx_export import export_onnx
+
+    export_onnx(dst)
+    report, baseline = SuiteReport.load(m.report), SuiteReport.load(m.baseline)
+    source = Path(m.source.checkpoint)
+    table = suite_table(report, baseline, (dst.name, source.name))
+    target_table, met, total = targets(report)
+    times, total_s = _stage_times(run)
+    n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
+        p.numel() for p in policy.perception.parameters()
+    )
+    pr, vr = m.perception, m.vision
+    lo, hi = m.pad.start_altitude_m
+    prior = next((v for v in vr.validation if v.checkpoint == vr.selected), None)
+    first = vr.validation[0] if vr.validation else None  # the controller as it came
+    if vr.fits:
+        rounds = (
+            f"the controller as it came landed {_num(100 * (first.success_rate or 0.0), 1, ' %')}"
+            f" (< {100 * PAD_VALIDATION_SUCCESS:.0f} %): {len(vr.fits)} vision DAgger round(s)"
+            " flew, and validation picked among them"
+            if first
+            else f"{len(vr.fits)} vision DAgger round(s) flew"
+        )
+    elif first and (first.success_rate or 0.0) >= PAD_VALIDATION_SUCCESS:
+        rounds = "no vision DAgger round was needed: the controller flies the taught CNN as it is"
+    else:
+        rounds = f"profile `{m.profile.name}` flies no vision DAgger round"
+    timing = m.timing.get("policy", {}).get("shipped", {})
+    pad_file = file_text(Path(m.pad.file))
+    from_text = f"--from {m.source.run}" if m.source.run else f"--from {m.source.checkpoint}"
+    card = f"""# visland vision landing policy for pad `{m.pad.name}` — model card
+
+`{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
+parameters): the controller and estimator of `{source.name}` (sha256
+`{m.source.sha256[:16]}…`) with its CNN retrained to see the pad `{m.pad.name}`
+(`{pad_file}`, {m.pad.size_m[0]:g} × {m.pad.size_m[1]:g} m). Same inputs and outputs as
+`{source.name}`; fly it only over this pad, started (or flown in) between {lo:g} and {hi:g} m —
+the pad's envelope (`visland pad info --pad {m.pad.name}`).
+
+## How it was made
+
+    visland pipeline --profile {m.profile.name} --pad {pad_file} {from_text} --out {run}
+    visland ship --run {run}
+
+- commit: `{m.git_commit}`; started at `{m.source.commit}`.
+- worlds: the profile's (`{m.profile.worlds or "configs/scenario.toml"}`) with `[pad] design`
+  set and every start altitude × {m.pad.altitude_scale:g} (`{run}/worlds/`).
+- perception: {pr.pose_images} frames rendered at sampled poses with the pad (altitudes
+  × {m.pad.altitude_scale:g}), {pr.epochs} epoch(s) from `{source.name}`'s CNN
+  ({pr.train_images} training frames); held-out frames: bearing error median
+  {_num(pr.pose_val_bearing_error_px_median, 2, " px")}, p95
+  {_num(pr.pose_val_bearing_error_px_p95, 2, " px")}, visibility accuracy
+  {_num(pr.pose_val_visibility_accuracy, 3, "")}.
+- vision: validation ({m.profile.validation_episodes} episodes, seed
+  {m.profile.validation_seed}, disjoint from evaluation) — the selected candidate landed
+  {_num(100 * (prior.success_rate or 0.0) if prior else None, 1, " %")}, mean error
+  {_num(prior.mean_error_m if prior else None)}; {rounds}. The estimator takes horizontal
+  fixes down to {policy.config.min_fix_altitude_m:g} m (`{source.name}`: 1.5 m; scaled with the
+  pad: below it the camera sees a piece of the pad).
+- wall time (`pipeline_time.json`, 2 CPU cores): {total_s / 60:.1f} min — {times}.
+
+## Results on the pad's suite (`{m.suite}`, seed {m.eval_seed})
+
+{table}
+
+Each cell: success (episodes), mean and max landing error, mean touchdown speed. Beside it,
+`{source.name}` before the pad was taught, on the same episodes. Success = landing error
+≤ 1 m, vertical touchdown speed ≤ 1 m/s, tilt ≤ 20°.
+
+### Targets: {met} of {total} met
+
+{target_table}
+
+## Runtime (one thread, batch 1)
+
+This policy: median {_num(timing.get("median_ms"), 3, " ms")} per step, p99
+{_num(timing.get("p99_ms"), 3, " ms")}.
+
+## Limits
+
+Trained and evaluated only in visland's simulator, on the pad as its file draws it (printed at
+true size, matte), over procedural grounds, Earth and Mars. A real camera, real light and a
+real pad need a check before flight: `visland pad check` on a photo of the laid-out pad, then
+the companion's shadow mode (`docs/deploy.md`).
+"""
+    (out / f"visland_vision_{m.pad.name}.md").write_text(card)
+    return dst

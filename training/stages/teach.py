@@ -1,0 +1,242 @@
+"""The stages of a run that teaches a pad (``training.pad_teach``): ``perception`` (the CNN
+fine-tuned on frames rendered with the pad), ``vision`` (the ``--from`` controller fed by it,
+validated; vision DAgger rounds only where validation says so) and ``eval`` (the pad's suite,
+taught and ``--from`` model on the same episodes, into ``pad_metrics.json``). They write the
+records of the stages of the same names."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from companion.files import sha256_file
+from companion.flightlog import jsonable
+from companion.policy_net import ESTIMATOR_FIELDS, load_networks, save_checkpoint
+from training.pad_teach import (
+    PAD_SUITE_EPISODES,
+    PAD_VALIDATION_SUCCESS,
+    PadMetrics,
+    PadTeach,
+    SourceRecord,
+    read_started_from,
+    write_pad_suite,
+)
+from training.perception_data import PoseSampling, render_pose_frames
+from training.profiles import PipelineError
+from training.replay import ReplayBuffer
+from training.run_folder import Run
+from training.stage_records import (
+    EvalRecord,
+    FitRecord,
+    PerceptionRecord,
+    ValidationScore,
+    VisionRecord,
+)
+from training.stages.selection import select, validate
+from training.stages.vision import vision_rounds
+from training.train import train_perception
+
+__all__ = ["evaluate", "perception", "pose_sampling", "vision"]
+
+
+def _teach(r: Run) -> tuple[PadTeach, SourceRecord]:
+    """The run's pad and the model it started from, whose file must still be the one it was
+    (sha256)."""
+    src = read_started_from(r.root)
+    if r.pad is None or src is None:
+        raise PipelineError(f"{r.root}: not a run that teaches a pad (visland pipeline --pad)")
+    if not Path(src.checkpoint).is_file() or sha256_file(src.checkpoint) != src.sha256:
+        raise PipelineError(
+            f"{r.root}: the run started from {src.checkpoint} (sha256 {src.sha256[:12]}), which "
+            "is gone or has changed since; teach the pad again in a new --out folder"
+        )
+    return r.pad, src
+
+
+def pose_sampling(pad: PadTeach) -> PoseSampling:
+    """The pose distribution of perception frames, its altitudes scaled to the pad's envelope
+    (the paper pad's 1-110 m become 0.25-27.5 m for a 1 m pad)."""
+    lo, hi = PoseSampling().altitude_m
+    return PoseSampling(altitude_m=(lo * pad.scale, hi * pad.scale))
+
+
+def perception(r: Run) -> PerceptionRecord:
+    """Frames at sampled poses in the run's worlds (each with the pad), the ``--from`` model's
+    CNN fine-tuned on them alone (90/10 split by frame): ``checkpoints/perception.pt`` carries
+    it with the ``--from`` controller."""
+    p = r.profile
+    pad, src = _teach(r)
+    cfg, control, cnn, _ = load_networks(src.checkpoint)
+    assert cnn is not None  # checked when the run started (check_source)
+    torch.manual_seed(p.seed)
+    worlds = r.worlds.worlds
+    t0 = time.perf_counter()
+    extra = render_pose_frames(
+        p.pad_pose_frames,
+        p.seed + 7,
+        r.sim.camera,
+        cache_dir=r.root / "cache",
+        workers=p.workers,
+        sampling=pose_sampling(pad),
+        visuals=tuple(w.scenario.visual for w in worlds),
+        weights=tuple(w.share for w in worlds),
+        pads=tuple(w.scenario.pad for w in worlds),
+    )
+    r.say(
+        f"perception: {p.pad_pose_frames} pose-sampled frames with pad {pad.design.name} "
+        f"({time.perf_counter() - t0:.0f} s)"
+    )
+    steps = p.pad_perception_epochs * max(1, (p.pad_pose_frames - round(0.1 * len(extra[0]))) // 64)
+    with r.bar(steps, f"teach perception ({pad.design.name})") as bar:
+        fit = train_perception(
+            cnn,
+            [],
+            p.pad_perception_epochs,
+            lr=p.pad_perception_lr,
+            seed=p.seed,
+            log=r.log,
+            progress=bar.update,
+            extra=extra,
+        )
+    r.say(
+        f"perception: validation frames' bearing error median "
+        f"{fit.pose_val_bearing_error_px_median:.2f} px, "
+        f"p95 {fit.pose_val_bearing_error_px_p95:.2f} px, visibility accuracy "
+        f"{fit.pose_val_visibility_accuracy:.3f} ({fit.seconds:.0f} s)"
+    )
+    data = {
+        "pad": pad.record.to_dict(),
+        "from": src.to_dict(),
+        "pose_frames": str(r.root / "cache" / f"poses_s{p.seed + 7}_n{p.pad_pose_frames}.npz"),
+        "fit": fit.to_dict(),
+    }
+    path = save_checkpoint(
+        r.root / "checkpoints" / "perception.pt", cfg, control, cnn, r.metadata("perception", data)
+    )
+    return r.finish(
+        PerceptionRecord(
+            stage="perception", git_commit=r.commit, checkpoint=str(path), **fit.to_dict()
+        )
+    )
+
+
+def vision(r: Run) -> VisionRecord:
+    """The ``--from`` controller with the taught CNN and the profile's estimator, its lowest
+    horizontal fix scaled with the pad like every altitude (``checkpoints/vision_prior.pt``),
+    flown on the validation seeds in the run's worlds. Only
+    when it lands fewer than :data:`PAD_VALIDATION_SUCCESS` of them do the profile's vision
+    DAgger rounds fly (from it, on the learner's flights alone); validation picks among them."""
+    p = r.profile
+    pad, _ = _teach(r)
+    cfg, control, cnn, _ = load_networks(r.need("perception", PerceptionRecord).checkpoint)
+    assert cnn is not None
+    run_cfg = r.net_config("vision")
+    cfg = replace(cfg, **{k: getattr(run_cfg, k) for k in ESTIMATOR_FIELDS})
+    # below min_fix_altitude_m the view is a piece of the pad and a bearing is a guess: an
+    # altitude that scales with the pad (1.5 m for the 4 m paper pad, 0.375 m for a 1 m one)
+    cfg = replace(cfg, min_fix_altitude_m=run_cfg.min_fix_altitude_m * pad.scale)
+    prior = save_checkpoint(
+        r.root / "checkpoints" / "vision_prior.pt",
+        cfg,
+        control,
+        cnn,
+        r.metadata("vision_prior", {"controller": read_started_from(r.root).to_dict()}),
+    )
+    score = validate(r, str(prior), camera=True)
+    known: dict[str, ValidationScore] = {str(prior): score}
+    candidates = [str(prior)]
+    fits: list[FitRecord] = []
+    if (score.success_rate or 0.0) < PAD_VALIDATION_SUCCESS and p.vision_rounds:
+        r.say(
+            f"vision: the controller lands {100 * (score.success_rate or 0.0):.0f} % of the "
+            f"validation flights (< {100 * PAD_VALIDATION_SUCCESS:.0f} %): "
+            f"{p.vision_rounds} vision DAgger round(s) of {p.vision_rollouts} rollouts"
+        )
+        ctrl = type(control)(cfg)
+        ctrl.load_state_dict(control.state_dict())
+        buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 51)
+        candidates += vision_rounds(r, cfg, ctrl, cnn, prior, buf, [], fits)
+    elif p.vision_rounds:
+        r.say("vision: the controller flies the taught CNN as it is (no DAgger round needed)")
+    else:
+        r.say(f"vision: profile {p.name!r} flies no vision DAgger round")
+    final, selected, scores = select(r, candidates, camera=True, out="vision", known=known)
+    return r.finish(
+        VisionRecord(
+            stage="vision",
+            git_commit=r.commit,
+            fits=tuple(fits),
+            rollouts=p.rollouts if fits else None,
+            checkpoint=final,
+            selected=selected,
+            validation=scores,
+        )
+    )
+
+
+def _fly_suite(r: Run, policy: str, suite_file: Path, name: str) -> str:
+    """The pad's suite flown by ``policy`` into ``<run>/<name>``; a finished report of the same
+    checkpoint bytes and suite file is kept (the stage resumes past it)."""
+    from training.suite import format_suite_table, load_suite, run_suite
+
+    path = r.root / name
+    suite = load_suite(suite_file)
+    sha = sha256_file(policy)
+    if path.exists():
+        try:
+            done = json.loads(path.read_text())
+            if done.get("policy_sha256") == sha and done.get("suite") == suite.path:
+                return str(path)
+        except ValueError:
+            pass  # half-written: fly it again
+    report = run_suite(
+        suite,
+        policy,
+        seed=r.profile.eval_seed,
+        render_camera=True,
+        progress=r.progress,
+        backend=r.backend,
+    )
+    report = replace(report, policy_sha256=sha)
+    format_suite_table(report, sys.stderr)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(jsonable(report.to_dict()), indent=1))
+    tmp.replace(path)
+    return str(path)
+
+
+def evaluate(r: Run) -> EvalRecord:
+    """The pad's suite (``<run>/suite.toml``: ``training.pad_teach.pad_suite_text``, at most the
+    profile's eval episodes per condition, the evaluation seed) flown by the taught model and by
+    the ``--from`` model; the inference timing; ``pad_metrics.json``."""
+    from training.stages.eval import inference_timing
+
+    p = r.profile
+    pad, src = _teach(r)
+    vision_rec = r.need("vision", VisionRecord)
+    suite_file = write_pad_suite(
+        pad, r.root / "suite.toml", min(PAD_SUITE_EPISODES, p.eval_episodes)
+    )
+    report = _fly_suite(r, vision_rec.checkpoint, suite_file, "suite.json")
+    baseline = _fly_suite(r, src.checkpoint, suite_file, "suite_baseline.json")
+    metrics = PadMetrics(
+        profile=p,
+        git_commit=r.commit,
+        pad=pad.record,
+        source=src,
+        eval_seed=p.eval_seed,
+        suite=str(suite_file),
+        report=report,
+        baseline=baseline,
+        timing=inference_timing(vision_rec.checkpoint),
+        perception=r.need("perception", PerceptionRecord),
+        vision=vision_rec,
+    )
+    path = r.root / "pad_metrics.json"
+    path.write_text(json.dumps(jsonable(metrics.to_dict()), indent=2))
+    return r.finish(EvalRecord(stage="eval", git_commit=r.commit, metrics=str(path)))
