@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from sitl_sim.site.convex import clip_ray
+
 __all__ = ["PLANES", "Rocks"]
 
 PLANES = 12
@@ -150,23 +152,15 @@ class Rocks:
             t_in = max(t_in, -pz / uz)  # the base plane z >= 0
         else:
             t_out = min(t_out, -pz / uz)
-        for (nx, ny, nz), off in zip(
-            self.normals[k].tolist(), self.offsets[k].tolist(), strict=True
-        ):
-            num = off - (nx * px + ny * py + nz * pz)
-            den = nx * ux + ny * uy + nz * uz
-            if abs(den) < 1e-12:
-                if num < 0.0:
-                    return math.inf
-                continue
-            t = num / den
-            if den < 0.0:
-                t_in = max(t_in, t)
-            else:
-                t_out = min(t_out, t)
-            if t_in > t_out:
-                return math.inf
-        return t_in
+        planes = zip(self.normals[k].tolist(), self.offsets[k].tolist(), strict=True)
+        return clip_ray(
+            (
+                (off - (nx * px + ny * py + nz * pz), nx * ux + ny * uy + nz * uz)
+                for (nx, ny, nz), off in planes
+            ),
+            t_in,
+            t_out,
+        )
 
     def shadowed(self, k: int, x, y, z, toward_sun) -> np.ndarray:
         """Whether points (local x, y, z arrays) see rock ``k`` toward the sun (unit, x north,

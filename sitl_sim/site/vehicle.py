@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sitl_sim.site.convex import clip_ray
+
 __all__ = ["Solid", "hull", "platform", "rover"]
 
 
@@ -75,20 +77,7 @@ class Solid:
         normals, offsets = self.planes()
         num = offsets - normals @ np.asarray(origin, dtype=float)  # >= 0: inside that plane
         den = normals @ np.asarray(direction, dtype=float)
-        t_in, t_out = 0.0, math.inf
-        for nm, dn in zip(num, den, strict=True):
-            if abs(dn) < 1e-12:
-                if nm < 0.0:
-                    return math.inf
-                continue
-            t = nm / dn
-            if dn < 0.0:
-                t_in = max(t_in, t)
-            else:
-                t_out = min(t_out, t)
-            if t_in > t_out:
-                return math.inf
-        return t_in
+        return clip_ray(zip(num, den, strict=True))
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
