@@ -18,6 +18,7 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
+from companion.contract.records import EventKind
 from companion.contract.signing import signing_key_bytes
 from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink.endpoint import Inbound, LinkStats, MavlinkEndpoint, RxError, SitlError
@@ -25,6 +26,7 @@ from sitl_sim.mavlink.link_impairment import LinkConfig, LinkImpairment
 
 if TYPE_CHECKING:
     from sitl_sim.mavlink.config import SitlConfig
+    from sitl_sim.mavlink.flight_log import FlightLog
     from sitl_sim.scenario import Scenario
 
 __all__ = ["Links", "link_impairment"]
@@ -88,6 +90,11 @@ class Links:
         buf = self.offboard.send(msg)
         if self.gcs is not None:
             self.gcs.send_bytes(buf)
+
+    @property
+    def tx_messages(self) -> int:
+        """Messages sent (or batched) on every link so far."""
+        return sum(e.stats.tx_messages for e in self.all)
 
     def flush(self) -> None:
         """Send every link's batched frames (one datagram each)."""
@@ -169,6 +176,20 @@ class Links:
             due = min(t for s in held if (t := s.next_release_s()) is not None)
             time.sleep(min(max(due - now, 0.0), 0.01))
             self.release()
+
+    def update_cut(self, flight_time_s: float, flying: bool, flight_log: FlightLog) -> None:
+        """The impaired link's ``outage_s`` window, on flight time (none before the flight):
+        cut or restored now, each change logged."""
+        imp = self.impairment
+        if imp is None:
+            return
+        cut = imp.config.in_outage(flight_time_s if flying else None)
+        if cut != imp.cut:
+            imp.cut = cut
+            what = "cut" if cut else "restored"
+            text = f"link {what} at flight time {flight_time_s:.3f} s"
+            flight_log.event(EventKind.LINK_OUTAGE, text)
+            log.info("link %s at flight time %.3f s (outage_s)", what, flight_time_s)
 
     def close(self) -> None:
         for endpoint in self.all:

@@ -31,18 +31,15 @@ relabel`` reads); ``first_episode`` lets parallel SITLs fly disjoint parts of on
 
 The SITL is composed of parts, each an object with its dependencies passed in (no part reaches
 into another's attributes; what they share is :class:`~sitl_sim.mavlink.state.FlightState`):
-
-* :class:`~sitl_sim.mavlink.links.Links`: the sockets (offboard, ground station, camera),
-  signing, the impaired link;
-* :class:`~sitl_sim.mavlink.publisher.Publisher`: the message streams and their rates, the
-  builders, the tick's sensor sample (``PUBLISHES``);
-* :class:`~sitl_sim.mavlink.handlers.Handlers`: commands, offboard setpoints, parameters
-  (``SUBSCRIBES``, ``COMMANDS``);
-* :class:`~sitl_sim.mavlink.episodes.Episodes`: reset, flight start, scoring;
-* :class:`~sitl_sim.mavlink.flight_log.FlightLog`: the episode's MCAP log, its writes queued
-  by :class:`~sitl_sim.mavlink.log_queue.LogQueue` and run while the loop waits for the
-  companion's answer (same records, same order: off the frame's critical path);
-* :class:`~sitl_sim.mavlink.precland_loop.PreclandLoop`: AUTO.PRECLAND and LANDING_TARGET.
+:class:`~sitl_sim.mavlink.links.Links` (the sockets, signing, the impaired link; frames batched
+into a datagram per link, held in lockstep flight until the frame nears: ``_FLUSH_LEAD``),
+:class:`~sitl_sim.mavlink.publisher.Publisher` (streams, rates, builders, the tick's sensor
+sample), :class:`~sitl_sim.mavlink.handlers.Handlers` (commands, setpoints, parameters),
+:class:`~sitl_sim.mavlink.episodes.Episodes` (reset, flight start, scoring),
+:class:`~sitl_sim.mavlink.flight_log.FlightLog` (the episode's MCAP log, its writes queued by
+:class:`~sitl_sim.mavlink.log_queue.LogQueue` and run while the loop waits for the companion's
+answer: same records, same order, off the frame's critical path) and
+:class:`~sitl_sim.mavlink.precland_loop.PreclandLoop` (AUTO.PRECLAND and LANDING_TARGET).
 
 :class:`MavlinkSitl` builds them and runs the loop (poll, tick, control period, the command
 flown, the camera frame), timing its parts in flight (:class:`~companion.contract.perf.LoopPerf`,
@@ -98,6 +95,11 @@ from sitl_sim.simulator import Simulator
 __all__ = ["MavlinkSitl", "main", "run_sitl"]
 
 log = logging.getLogger("visland.sitl")
+
+_FLUSH_LEAD = 5
+"""In lockstep flight the telemetry batch is sent once at most this many physics steps (20 ms)
+remain before the next frame, and with the frame: two datagrams a frame instead of one per
+stream tick, each waking the companion (which then digests the batch while the SITL renders)."""
 
 
 class MavlinkSitl:
@@ -310,7 +312,8 @@ class MavlinkSitl:
                     self._idle(min(delay, 0.05))
                     continue
                 self.tick_once()
-                self.links.flush()
+                if paced or self._substeps - self.clock.phase % self._substeps <= _FLUSH_LEAD:
+                    self.links.flush()  # lockstep flight: telemetry held until the frame nears
         finally:
             self.episodes.finish(aborted=not self.episodes.done)
             self.links.flush()
@@ -339,6 +342,7 @@ class MavlinkSitl:
         """Read every link: log and act on what arrived, announce the autopilot's events."""
         perf, flight_log = self.perf, self.flight_log
         t = perf.now()
+        queued = self.links.tx_messages
         for endpoint, accepted, errors in self.links.receive():
             t = perf.add("mavlink", t)
             for err in errors:
@@ -350,7 +354,8 @@ class MavlinkSitl:
                 self.handlers.dispatch(inbound, endpoint)
             t = perf.add("mavlink", t)
         self.publisher.announce_events()
-        self.links.flush()
+        if self.links.tx_messages != queued:  # replies, events (and the telemetry held before)
+            self.links.flush()
         perf.add("mavlink", t)
         self._maybe_log_stats()
 
@@ -369,7 +374,8 @@ class MavlinkSitl:
             self.sim.step_physics(cmd)
             perf.add("physics", t)
             perf.count("sim_s", self.clock.dt_s)
-        self._update_link_cut()
+        if self.link_impairment is not None:  # the outage_s window, on flight time
+            self.links.update_cut(self.sim.time_s, self.state.flying, self.flight_log)
         self.clock.tick += 1
         boundary = self.clock.phase % self._substeps == 0
         if boundary and not self._control_period():
@@ -402,6 +408,7 @@ class MavlinkSitl:
     def _idle(self, timeout_s: float) -> None:
         """Nothing to simulate until a datagram arrives (the companion's answer) or
         ``timeout_s`` passes: write the queued log records meanwhile, else block on the links."""
+        self.links.flush()  # nothing held while waiting
         t = self.perf.now()
         if self.log_queue.pending:
             self.log_queue.drain(stop=self.links.readable)
@@ -425,20 +432,6 @@ class MavlinkSitl:
             stats = self.links.stats_by_link()
             log.warning("MAVLink link errors so far: %s", stats)
             self.flight_log.link_stats(stats)
-
-    def _update_link_cut(self) -> None:
-        """The ``outage_s`` window, on flight time: log its start and end."""
-        imp = self.link_impairment
-        if imp is None:
-            return
-        cut = imp.config.in_outage(self.sim.time_s if self.state.flying else None)
-        if cut != imp.cut:
-            imp.cut = cut
-            what = "cut" if cut else "restored"
-            self.flight_log.event(
-                EventKind.LINK_OUTAGE, f"link {what} at flight time {self.sim.time_s:.3f} s"
-            )
-            log.info("link %s at flight time %.3f s (outage_s)", what, self.sim.time_s)
 
     def _current_command(self) -> Command | None:
         ap = self.autopilot
