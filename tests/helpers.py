@@ -1,26 +1,36 @@
 """Small stand-ins the unit tests share: decoded MAVLink messages without a link, one step of
-a logged episode as the observation the companion built in flight, and the CLI run as a user
-runs it."""
+a logged episode as the observation the companion built in flight, the CLI run as a user runs
+it, and the rendering tests' scenarios and camera frames (a high start, a short flight, one
+frame from a hovering camera)."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from companion.contract import Observation
+from companion.contract import Command, Observation
+from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.scenario import InitialState, Scenario, scenario_from_dict
+from sitl_sim.simulator import Simulator
+from sitl_sim.world import episode_world
 from training.provenance import REPO
 
 __all__ = [
+    "HIGH_START",
     "NO_RETURN_CM",
     "FakeMsg",
     "attitude_msg",
     "episode_observation",
+    "flight_frames",
+    "hover_frame",
     "imu_msg",
     "range_msg",
+    "scenario_with",
     "visland",
 ]
 
@@ -99,3 +109,73 @@ def episode_observation(
         frame_id=int(ep.frame_id[t]),
         **fields,
     )
+
+
+HIGH_START = {
+    "initial_state": {
+        "roll_pitch_deg": [-1.5, 1.5],
+        "yaw_deg": [-180.0, 180.0],
+        "north_east_m": [-5.0, 5.0],
+        "altitude_m": [75.0, 100.0],
+        "vel_north_east_m_s": [-1.0, 1.0],
+        "vel_down_m_s": [0.0, 0.5],
+        "rate_rad_s": [0.0, 0.0],
+    }
+}
+"""An [initial_state] of the nominal high start (75-100 m over the pad): the rendering tests'
+scenarios add their sections to it."""
+
+
+def scenario_with(where: str = "test.toml", **sections: Any) -> Scenario:
+    """The scenario :data:`HIGH_START` plus ``sections`` (``visual={...}``, ``pad={...}``...),
+    read as if from the file ``where``."""
+    return scenario_from_dict({**HIGH_START, **sections}, where)
+
+
+def _camera_sim(renderer: str | None, noiseless: bool) -> Simulator:
+    cfg = load_sim()
+    if noiseless:
+        cfg = cfg.noiseless()
+    if renderer is not None:
+        cfg = replace(cfg, camera=replace(cfg.camera, renderer=renderer))
+    return Simulator(load_vehicle(), cfg)
+
+
+def flight_frames(
+    scenario: Scenario, renderer: str, seed: int = 1, index: int = 0, n: int = 4
+) -> list[np.ndarray]:
+    """The first ``n`` camera frames (``renderer``, sensor noise on) of episode (``seed``,
+    ``index``): a short flight from 12 m near the pad, a gentle roll/pitch manoeuvre."""
+    sim = _camera_sim(renderer, noiseless=False)
+    try:
+        initial = InitialState((1.0, -2.0, -12.0), (0.2, 0.0, 0.3), (0.05, -0.02, 0.4), (0, 0, 0))
+        world = episode_world(scenario, seed, index)
+        sim.reset(initial, np.random.SeedSequence([seed, index]), world=world)
+        out = []
+        for k in range(n):
+            out.append(sim.observe(frame_id=k).image)
+            sim.step(Command.from_array([0.45, 0.3, -0.2, 0.0]))
+        return out
+    finally:
+        sim.close()
+
+
+def hover_frame(
+    scenario: Scenario,
+    pos_ned_m: tuple[float, float, float],
+    renderer: str | None = None,
+    seed: int = 0,
+    index: int = 0,
+    euler_rad: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> np.ndarray:
+    """The first camera frame (noiseless; ``renderer``, None: the default one) of episode
+    (``seed``, ``index``) from a vehicle at rest at ``pos_ned_m`` with attitude ``euler_rad``
+    (roll, pitch, yaw)."""
+    sim = _camera_sim(renderer, noiseless=True)
+    try:
+        initial = InitialState(pos_ned_m, (0.0, 0.0, 0.0), euler_rad, (0, 0, 0))
+        world = episode_world(scenario, seed, index)
+        sim.reset(initial, np.random.SeedSequence([seed, index]), world=world)
+        return sim.observe().image
+    finally:
+        sim.close()

@@ -7,36 +7,21 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import hover_frame, scenario_with
 from PIL import Image
 
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from sitl_sim.physics.dynamics import quat_from_euler
 from sitl_sim.render.ground import PadGeometry
 from sitl_sim.render.ground_image import MIN_GROUND_IMAGE_M, ground_image_map
 from sitl_sim.render.render_fast import FastRenderer, camera_intrinsics
-from sitl_sim.scenario import InitialState, load_scenario, scenario_from_dict
-from sitl_sim.simulator import Simulator
+from sitl_sim.scenario import load_scenario
 from sitl_sim.world import episode_world
 
 CAMERA = load_sim().camera
 GROUNDS = ["configs/grounds/field_grass.jpg", "configs/grounds/parking_lot.jpg"]
-BASE = {
-    "initial_state": {
-        "roll_pitch_deg": [-1.5, 1.5],
-        "yaw_deg": [-180.0, 180.0],
-        "north_east_m": [-5.0, 5.0],
-        "altitude_m": [75.0, 100.0],
-        "vel_north_east_m_s": [-1.0, 1.0],
-        "vel_down_m_s": [0.0, 0.5],
-        "rate_rad_s": [0.0, 0.0],
-    }
-}
 TINY_PAD = PadGeometry(side_m=0.01, cross_length_m=0.01, cross_width_m=0.001)
-
-
-def _scenario(visual: dict, where: str = "test.toml"):
-    return scenario_from_dict({**BASE, "visual": visual}, where)
 
 
 def _gradient(tmp_path, name="g.png", size=(64, 96)) -> str:
@@ -64,24 +49,24 @@ def _gradient(tmp_path, name="g.png", size=(64, 96)) -> str:
 )
 def test_bad_ground_images_name_file_and_key(visual, fragment):
     with pytest.raises(ConfigError) as err:
-        _scenario(visual)
+        scenario_with(visual=visual)
     assert "test.toml" in str(err.value) and fragment in str(err.value), str(err.value)
 
 
 def test_an_unreadable_or_too_small_picture_says_so(tmp_path):
     (tmp_path / "junk.jpg").write_bytes(b"\xff\xd8 truncated")
     with pytest.raises(ConfigError, match=r"\[visual\] ground_image = .*junk\.jpg.*readable"):
-        _scenario({"ground_image": str(tmp_path / "junk.jpg")})
+        scenario_with(visual={"ground_image": str(tmp_path / "junk.jpg")})
     small = _gradient(tmp_path, "small.png", (16, 16))
     with pytest.raises(ConfigError, match=r"16 x 16 px; expected 32 to 4096 px a side"):
-        _scenario({"ground_image": small, "ground_m_per_px": 2.0})
+        scenario_with(visual={"ground_image": small, "ground_m_per_px": 2.0})
     ok = _gradient(tmp_path, "ok.png", (64, 96))
     with pytest.raises(ConfigError) as err:
-        _scenario({"ground_image": ok, "ground_m_per_px": [0.1, 1.0]})
+        scenario_with(visual={"ground_image": ok, "ground_m_per_px": [0.1, 1.0]})
     # 64 px at 0.1 m/px cover 6.4 m: the message says how much, and what m/px would do
     assert "covers 6.4 m across; expected >= 20 m" in str(err.value)
     assert f"ground_m_per_px >= {MIN_GROUND_IMAGE_M / 64:.3g}" in str(err.value)
-    _scenario({"ground_image": ok, "ground_m_per_px": [0.32, 1.0]})  # 20.5 m: accepted
+    scenario_with(visual={"ground_image": ok, "ground_m_per_px": [0.32, 1.0]})  # 20.5 m: accepted
 
 
 def test_pictures_are_found_beside_the_scenario_file(tmp_path):
@@ -104,7 +89,7 @@ def test_pictures_are_found_beside_the_scenario_file(tmp_path):
 
 
 def test_draws_are_deterministic_and_vary_per_episode():
-    sc = _scenario({"ground_image": GROUNDS, "ground_m_per_px": [0.05, 0.1]})
+    sc = scenario_with(visual={"ground_image": GROUNDS, "ground_m_per_px": [0.05, 0.1]})
     a, b = episode_world(sc, 7, 3).visual, episode_world(sc, 7, 3).visual
     assert a == b and a.ground_image.endswith(("field_grass.jpg", "parking_lot.jpg"))
     draws = [episode_world(sc, 7, i).visual for i in range(12)]
@@ -113,7 +98,7 @@ def test_draws_are_deterministic_and_vary_per_episode():
     assert len({round(d.ground_rotation_deg, 6) for d in draws}) == 12
     assert len({d.ground_anchor for d in draws}) == 12
     # the pictures are drawn after every other key: the rest of the draw is unchanged
-    plain = episode_world(_scenario({}), 7, 3).visual
+    plain = episode_world(scenario_with(visual={}), 7, 3).visual
     unset = {"ground_image": "", "ground_m_per_px": 0.0, "ground_anchor": (0.0, 0.0)}
     assert replace(a, **unset, ground_rotation_deg=0.0) == plain
     record = episode_world(sc, 7, 3).record()["visual"]
@@ -162,14 +147,8 @@ def test_rendered_picture_is_the_right_way_round_and_at_its_scale(tmp_path):
 
 
 def _image(visual, alt=20.0, pos=(3.0, 4.0)):
-    sc = _scenario({"ground_image": ["configs/grounds/parking_lot.jpg"], **visual})
-    sim = Simulator(load_vehicle(), load_sim().noiseless())
-    try:
-        initial = InitialState((*pos, -alt), (0, 0, 0), (0, 0, 0), (0, 0, 0))
-        sim.reset(initial, 0, world=episode_world(sc, 0, 0))
-        return sim.observe().image.astype(float)
-    finally:
-        sim.close()
+    sc = scenario_with(visual={"ground_image": ["configs/grounds/parking_lot.jpg"], **visual})
+    return hover_frame(sc, (*pos, -alt)).astype(float)
 
 
 def test_sun_haze_and_camera_effects_apply_to_a_ground_picture():
@@ -189,7 +168,7 @@ def test_sun_haze_and_camera_effects_apply_to_a_ground_picture():
 def test_the_ground_never_ends(tmp_path):
     """Far from the picture (hundreds of metres, many mirrored copies away) the view is still
     the picture's: no border colour (0) anywhere, its grey levels the picture's."""
-    sc = _scenario({"ground_image": GROUNDS, "ground_m_per_px": 0.05})
+    sc = scenario_with(visual={"ground_image": GROUNDS, "ground_m_per_px": 0.05})
     ground = episode_world(sc, 1, 2).visual.ground()
     fast = FastRenderer(ground, TINY_PAD)
     img = fast.render((250.0, -280.0, -60.0), quat_from_euler(0.1, 0.0, 1.0), CAMERA)

@@ -8,9 +8,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import hover_frame, scenario_with
 from PIL import Image
 
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from sitl_sim.physics.dynamics import quat_from_euler
 from sitl_sim.render.ground import PadGeometry, PadTexture, nominal_ground
@@ -23,22 +24,9 @@ from sitl_sim.render.pads import (
 )
 from sitl_sim.render.render_fast import FastRenderer, camera_intrinsics
 from sitl_sim.render.scene import Scene
-from sitl_sim.scenario import InitialState, scenario_from_dict
-from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
 
 CAMERA = load_sim().camera
-BASE = {
-    "initial_state": {
-        "roll_pitch_deg": [-1.5, 1.5],
-        "yaw_deg": [-180.0, 180.0],
-        "north_east_m": [-5.0, 5.0],
-        "altitude_m": [75.0, 100.0],
-        "vel_north_east_m_s": [-1.0, 1.0],
-        "vel_down_m_s": [0.0, 0.5],
-        "rate_rad_s": [0.0, 0.0],
-    }
-}
 
 
 def _write_pad(tmp_path, text: str, image: np.ndarray | None = None, name="p"):
@@ -135,9 +123,7 @@ def test_unreadable_pad_image_and_missing_pad_file(tmp_path):
 
 
 def test_pad_section_draws_per_episode_from_its_own_stream(tmp_path):
-    sc = scenario_from_dict(
-        {**BASE, "pad": {"design": ["helipad_1m", "configs/pads/quadrant_2m.toml"]}}, "t.toml"
-    )
+    sc = scenario_with("t.toml", pad={"design": ["helipad_1m", "configs/pads/quadrant_2m.toml"]})
     names = [episode_world(sc, 5, i).pad.name for i in range(16)]
     assert set(names) == {"helipad_1m", "quadrant_2m"}
     assert names == [episode_world(sc, 5, i).pad.name for i in range(16)]  # same seed, same pads
@@ -147,8 +133,8 @@ def test_pad_section_draws_per_episode_from_its_own_stream(tmp_path):
     assert w.record()["pad"]["design"] == names[0]
     # the section does not move the initial states, nor the [visual] draw
     vis = {"terrain": ["sand"], "sun_elevation_deg": [20.0, 60.0]}
-    with_pad = scenario_from_dict({**BASE, "visual": vis, "pad": {"design": "helipad_1m"}}, "a")
-    without = scenario_from_dict({**BASE, "visual": vis}, "b")
+    with_pad = scenario_with("a", visual=vis, pad={"design": "helipad_1m"})
+    without = scenario_with("b", visual=vis)
     a, b = episode_world(with_pad, 2, 3).visual, episode_world(without, 2, 3).visual
     assert replace(a, pad_design=None) == b
 
@@ -158,7 +144,7 @@ def test_a_pad_file_relative_to_the_scenario_file(tmp_path):
     _write_pad(tmp_path / "pads", 'size_m = [0.5, 0.5]\npattern = "quadrant"\n', name="tiny")
     where = str(tmp_path / "scenario.toml")
     (tmp_path / "scenario.toml").write_text("")
-    sc = scenario_from_dict({**BASE, "pad": {"design": "pads/tiny.toml"}}, where)
+    sc = scenario_with(where, pad={"design": "pads/tiny.toml"})
     assert sc.pad.designs[0].size_m == (0.5, 0.5)
 
 
@@ -173,13 +159,13 @@ def test_a_pad_file_relative_to_the_scenario_file(tmp_path):
 )
 def test_bad_pad_section_names_file_and_key(pad, fragment):
     with pytest.raises(ConfigError) as err:
-        scenario_from_dict({**BASE, "pad": pad}, "test.toml")
+        scenario_with("test.toml", pad=pad)
     assert "test.toml" in str(err.value) and fragment in str(err.value), str(err.value)
 
 
 def test_the_paper_pad_section_is_the_nominal_world_bit_for_bit():
-    sc = scenario_from_dict({**BASE, "pad": {"design": "paper"}}, "p.toml")
-    nominal = scenario_from_dict(BASE, "n.toml")
+    sc = scenario_with("p.toml", pad={"design": "paper"})
+    nominal = scenario_with("n.toml")
     w = episode_world(sc, 1, 0)
     assert w.visual is None and w.pad.name == "paper"
     a, b = _frame(sc, 1, 0, "pybullet"), _frame(nominal, 1, 0, "pybullet")
@@ -187,13 +173,10 @@ def test_the_paper_pad_section_is_the_nominal_world_bit_for_bit():
 
 
 def test_pad_scale_and_colour_jitter_apply_to_any_design():
-    sc = scenario_from_dict(
-        {
-            **BASE,
-            "pad": {"design": "helipad_1m"},
-            "visual": {"pad_scale": [1.5, 1.5], "pad_colour_jitter": 0.3},
-        },
+    sc = scenario_with(
         "j.toml",
+        pad={"design": "helipad_1m"},
+        visual={"pad_scale": [1.5, 1.5], "pad_colour_jitter": 0.3},
     )
     pad = episode_world(sc, 0, 0).visual.pad()
     assert isinstance(pad, PadTexture) and pad.size_m == (1.5, 1.5)
@@ -209,19 +192,7 @@ def test_pad_scale_and_colour_jitter_apply_to_any_design():
 
 
 def _frame(scenario, seed, index, renderer, pos=(0.3, -0.2, -12.0)):
-    cfg = load_sim().noiseless()
-    cfg = replace(cfg, camera=replace(cfg.camera, renderer=renderer))
-    sim = Simulator(load_vehicle(), cfg)
-    try:
-        initial = InitialState(pos, (0.0, 0.0, 0.0), (0.02, -0.01, 0.3), (0, 0, 0))
-        sim.reset(
-            initial,
-            np.random.SeedSequence([seed, index]),
-            world=episode_world(scenario, seed, index),
-        )
-        return sim.observe().image
-    finally:
-        sim.close()
+    return hover_frame(scenario, pos, renderer, seed, index, euler_rad=(0.02, -0.01, 0.3))
 
 
 def _white_pad(w, h):
@@ -257,7 +228,7 @@ def test_a_pad_is_drawn_at_its_true_size_and_the_right_way_up(renderer, alt):
 
 def test_pybullet_and_fast_agree_on_a_pad_in_flight():
     """The [pad] helipad through the simulator: same frames from either renderer (noise-free)."""
-    sc = scenario_from_dict({**BASE, "pad": {"design": "helipad_1m"}}, "h.toml")
+    sc = scenario_with("h.toml", pad={"design": "helipad_1m"})
     for pos in ((0.3, -0.2, -3.0), (1.0, 0.5, -10.0)):
         a = _frame(sc, 4, 1, "pybullet", pos).astype(int)
         b = _frame(sc, 4, 1, "fast", pos).astype(int)

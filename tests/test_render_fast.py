@@ -9,9 +9,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import flight_frames, hover_frame, scenario_with
 
-from companion.contract import Command
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from sitl_sim.physics.dynamics import quat_from_euler
 from sitl_sim.render.ground import PadGeometry, luma, nominal_ground
@@ -22,26 +22,12 @@ from sitl_sim.render.scene import Scene
 from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
 from sitl_sim.render.visual import VisualConfig
 from sitl_sim.scenario import (
-    InitialState,
     InitialStateSampler,
     load_scenario,
-    scenario_from_dict,
 )
-from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
 
 CAMERA = load_sim().camera
-BASE = {
-    "initial_state": {
-        "roll_pitch_deg": [-1.5, 1.5],
-        "yaw_deg": [-180.0, 180.0],
-        "north_east_m": [-5.0, 5.0],
-        "altitude_m": [75.0, 100.0],
-        "vel_north_east_m_s": [-1.0, 1.0],
-        "vel_down_m_s": [0.0, 0.5],
-        "rate_rad_s": [0.0, 0.0],
-    }
-}
 
 
 def _poses(rng, n):
@@ -175,9 +161,7 @@ def test_fast_renderer_draws_the_reference_image_of_landing_sites(name):
 def test_the_fast_renderer_draws_a_tiled_ground_as_with_a_wrapped_border():
     """A site over a terrain family warps a 3 x 3 tiling instead of BORDER_WRAP (three times
     faster): the same image but for a rounding at a few texel edges."""
-    sc = scenario_from_dict(
-        {**BASE, "visual": {"terrain": ["gravel"]}, "terrain": {"slope_deg": [4.0, 4.0]}}, "t"
-    )
+    sc = scenario_with("t", visual={"terrain": ["gravel"]}, terrain={"slope_deg": [4.0, 4.0]})
     w = episode_world(sc, 0, 0)
     fast = FastRenderer(w.visual.ground(), w.visual.pad(), w.site, w.visual.sun)
     rng = np.random.default_rng(3)
@@ -200,13 +184,9 @@ def test_periodic_ground_wraps_without_a_seam():
     assert np.mean(here == there) > 0.995
 
 
-def _visual_scenario(visual: dict):
-    return scenario_from_dict({**BASE, "visual": visual}, "test.toml")
-
-
 def test_visual_draws_are_deterministic_and_leave_the_rest_alone():
-    sc = _visual_scenario(
-        {
+    sc = scenario_with(
+        visual={
             "terrain": ["sand", "grass", "mars_rocks"],
             "texture_seed": [0, 99],
             "sun_elevation_deg": [10.0, 80.0],
@@ -222,31 +202,13 @@ def test_visual_draws_are_deterministic_and_leave_the_rest_alone():
     assert len({(v.terrain, v.texture_seed) for v in others}) > 6
     assert all(0 <= v.texture_seed <= 99 and 10.0 <= v.sun_elevation_deg <= 80.0 for v in others)
     # the section does not move the initial states or any other stream
-    nominal = scenario_from_dict(BASE, "base.toml")
+    nominal = scenario_with("base.toml")
     assert InitialStateSampler(sc, 11).sample(3) == InitialStateSampler(nominal, 11).sample(3)
 
 
-def _frames(scenario, seed, index, renderer="fast", n=5):
-    """The first ``n`` camera frames of a short flight (a gentle roll/pitch manoeuvre)."""
-    sim_cfg = load_sim()
-    cfg = replace(sim_cfg, camera=replace(sim_cfg.camera, renderer=renderer))
-    sim = Simulator(load_vehicle(), cfg)
-    try:
-        initial = InitialState((1.0, -2.0, -12.0), (0.2, 0.0, 0.3), (0.05, -0.02, 0.4), (0, 0, 0))
-        world = episode_world(scenario, seed, index)
-        sim.reset(initial, np.random.SeedSequence([seed, index]), world=world)
-        out = []
-        for k in range(n):
-            out.append(sim.observe(frame_id=k).image)
-            sim.step(Command.from_array([0.45, 0.3, -0.2, 0.0]))
-        return out
-    finally:
-        sim.close()
-
-
 def test_same_seed_same_frames_bit_for_bit_with_every_effect():
-    sc = _visual_scenario(
-        {
+    sc = scenario_with(
+        visual={
             "terrain": ["regolith", "asphalt"],
             "texture_seed": [5, 9],
             "sun_elevation_deg": [20.0, 40.0],
@@ -257,32 +219,25 @@ def test_same_seed_same_frames_bit_for_bit_with_every_effect():
             "lens_k1": [-0.2, -0.1],
         }
     )
-    a, b = _frames(sc, 3, 2), _frames(sc, 3, 2)
+    a, b = flight_frames(sc, "fast", 3, 2, n=5), flight_frames(sc, "fast", 3, 2, n=5)
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
-    c = _frames(sc, 3, 5)
+    c = flight_frames(sc, "fast", 3, 5, n=5)
     assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
 
 
 def test_nominal_world_is_unchanged_and_renderers_agree_in_flight():
     """No [visual]: the images are the nominal ground's, from either renderer."""
-    sc = scenario_from_dict(BASE, "base.toml")
-    ref = _frames(sc, 1, 0, renderer="pybullet")
-    fast = _frames(sc, 1, 0, renderer="fast")
+    sc = scenario_with("base.toml")
+    ref = flight_frames(sc, "pybullet", n=5)
+    fast = flight_frames(sc, "fast", n=5)
     for a, b in zip(ref, fast, strict=True):
         # same render, same sensor noise stream: only a rare texel boundary may differ
         assert np.mean(np.abs(a.astype(int) - b.astype(int))) < 0.5
 
 
 def _mean_image(visual, alt=20.0):
-    sc = _visual_scenario({"terrain": ["asphalt"], "texture_seed": [1, 1], **visual})
-    sim_cfg = load_sim()
-    sim = Simulator(load_vehicle(), sim_cfg.noiseless())
-    try:
-        initial = InitialState((30.0, 30.0, -alt), (0, 0, 0), (0, 0, 0), (0, 0, 0))
-        sim.reset(initial, 0, world=episode_world(sc, 0, 0))
-        return sim.observe().image.astype(float)
-    finally:
-        sim.close()
+    sc = scenario_with(visual={"terrain": ["asphalt"], "texture_seed": [1, 1], **visual})
+    return hover_frame(sc, (30.0, 30.0, -alt)).astype(float)
 
 
 def test_each_effect_does_what_it_says():
@@ -315,20 +270,20 @@ def test_each_effect_does_what_it_says():
 )
 def test_bad_visual_section_names_file_and_key(visual, fragment):
     with pytest.raises(ConfigError) as err:
-        _visual_scenario(visual)
+        scenario_with(visual=visual)
     assert "test.toml" in str(err.value) and fragment in str(err.value)
 
 
 def test_a_partial_visual_section_keeps_the_nominal_value_of_every_key_left_out():
     """A [visual] with only the sun used to be refused for want of ``terrain``: every key left
     out now keeps its nominal value, as the docs table says."""
-    sc = _visual_scenario({"sun_elevation_deg": [20.0, 30.0]})
+    sc = scenario_with(visual={"sun_elevation_deg": [20.0, 30.0]})
     assert sc.visual == replace(VisualConfig(), sun_elevation_deg=(20.0, 30.0))
     assert sc.visual.terrain == ("nominal",) and sc.visual.texture_seed == (0, 999)
     assert sc.visual.brightness == (1.0, 1.0) and sc.visual.haze == (0.0, 0.0)
     drawn = episode_world(sc, 3, 1).visual
     assert drawn.terrain == "nominal" and 20.0 <= drawn.sun_elevation_deg <= 30.0
-    assert _visual_scenario({}).visual == VisualConfig()  # an empty [visual]: all nominal
+    assert scenario_with(visual={}).visual == VisualConfig()  # an empty [visual]: all nominal
 
 
 def test_visual_scenario_files_load():

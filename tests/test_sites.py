@@ -7,56 +7,22 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import flight_frames, scenario_with
 
-from companion.contract import Command
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from sitl_sim.physics.dynamics import quat_from_euler
 from sitl_sim.render.render_fast import FastRenderer
-from sitl_sim.scenario import InitialState, InitialStateSampler, load_scenario, scenario_from_dict
-from sitl_sim.simulator import Simulator
+from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.site.pad_motion import DeckPad, RoverPad
 from sitl_sim.world import episode_world
 
 CAMERA = load_sim().camera
-BASE = {
-    "initial_state": {
-        "roll_pitch_deg": [-1.5, 1.5],
-        "yaw_deg": [-180.0, 180.0],
-        "north_east_m": [-5.0, 5.0],
-        "altitude_m": [75.0, 100.0],
-        "vel_north_east_m_s": [-1.0, 1.0],
-        "vel_down_m_s": [0.0, 0.5],
-        "rate_rad_s": [0.0, 0.0],
-    }
-}
 SITES = sorted(Path("configs/sites").glob("*.toml"))
-
-
-def _scenario(where: str = "t.toml", **sections):
-    return scenario_from_dict({**BASE, **sections}, where)
-
-
-def _frames(scenario, renderer: str, seed: int = 1, index: int = 0, n: int = 4):
-    """The first ``n`` camera frames of a short flight over the pad."""
-    sim_cfg = load_sim()
-    cfg = replace(sim_cfg, camera=replace(sim_cfg.camera, renderer=renderer))
-    sim = Simulator(load_vehicle(), cfg)
-    try:
-        initial = InitialState((1.0, -2.0, -12.0), (0.2, 0.0, 0.3), (0.05, -0.02, 0.4), (0, 0, 0))
-        sim.reset(initial, np.random.SeedSequence([seed, index]), episode_world(scenario, 1, 0))
-        out = []
-        for k in range(n):
-            out.append(sim.observe(frame_id=k).image)
-            sim.step(Command.from_array([0.45, 0.3, -0.2, 0.0]))
-        return out
-    finally:
-        sim.close()
 
 
 # --------------------------------------------------------------------------- draws and config
@@ -66,7 +32,7 @@ def test_sites_draw_per_episode_from_their_own_streams():
     visual = {"terrain": ["regolith"], "sun_elevation_deg": [30.0, 60.0]}
     terrain = {"slope_deg": [3.0, 9.0], "relief_m": [0.2, 0.6], "rocks_per_100m2": [1.0, 3.0]}
     pad = {"motion": "rover", "height_m": 1.5, "speed_m_s": [1.0, 2.0], "turn_rate_deg_s": [-5, 5]}
-    sc = _scenario(visual=visual, terrain=terrain, pad=pad)
+    sc = scenario_with(visual=visual, terrain=terrain, pad=pad)
     a, b = episode_world(sc, 4, 2), episode_world(sc, 4, 2)
     assert a.site.record() == b.site.record()  # same (seed, episode): the same site
     for t in (0.0, 3.3, 17.0):
@@ -78,25 +44,25 @@ def test_sites_draw_per_episode_from_their_own_streams():
     assert len({json.dumps(r, sort_keys=True) for r in others}) == 5
     assert json.loads(json.dumps(a.record()))["site"] == a.site.record()  # logged, as JSON
     # the sections move no other draw: not the look, not the initial states
-    plain = _scenario(visual=visual)
+    plain = scenario_with(visual=visual)
     assert episode_world(plain, 4, 2).visual == a.visual
     assert InitialStateSampler(sc, 4).sample(2) == InitialStateSampler(plain, 4).sample(2)
     # and neither moves the other: the terrain is the same under a still pad
-    still = _scenario(visual=visual, terrain=terrain)
+    still = scenario_with(visual=visual, terrain=terrain)
     assert episode_world(still, 4, 2).site.terrain.record() == a.site.terrain.record()
-    moving = _scenario(visual=visual, pad=pad)
+    moving = scenario_with(visual=visual, pad=pad)
     assert episode_world(moving, 4, 2).site.motion.record() == a.site.motion.record()
 
 
 def test_the_nominal_site_is_the_nominal_world_bit_for_bit():
     """A still pad at height 0 and no [terrain]: no site, today's world, records and images."""
-    explicit = _scenario(pad={"motion": "static", "height_m": 0.0})
-    nominal = _scenario()
+    explicit = scenario_with(pad={"motion": "static", "height_m": 0.0})
+    nominal = scenario_with()
     w = episode_world(explicit, 1, 0)
     assert w.site is None and w.visual is None
     assert w.record() == episode_world(nominal, 1, 0).record() == {}
     for renderer in ("fast", "pybullet"):
-        a, b = _frames(explicit, renderer), _frames(nominal, renderer)
+        a, b = flight_frames(explicit, renderer), flight_frames(nominal, renderer)
         assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)), renderer
 
 
@@ -122,16 +88,16 @@ def test_the_nominal_site_is_the_nominal_world_bit_for_bit():
 )
 def test_bad_site_keys_name_file_and_key(sections, fragment):
     with pytest.raises(ConfigError) as err:
-        _scenario("bad.toml", **sections)
+        scenario_with("bad.toml", **sections)
     assert "bad.toml" in str(err.value) and fragment in str(err.value), str(err.value)
 
 
 def test_keys_left_out_take_their_nominal_values():
-    sc = _scenario(terrain={"relief_m": [0.5, 0.5]})
+    sc = scenario_with(terrain={"relief_m": [0.5, 0.5]})
     assert sc.terrain.slope_deg == (0.0, 0.0) and sc.terrain.rocks_per_100m2 == (0.0, 0.0)
-    deck = _scenario(pad={"motion": "deck", "heave_m": 0.2})
+    deck = scenario_with(pad={"motion": "deck", "heave_m": 0.2})
     assert deck.pad.height_m == (0.0, 0.0) and deck.pad.heave_period_s == (6.0, 10.0)
-    flat = _scenario(terrain={})  # an empty [terrain]: flat, bare ground
+    flat = scenario_with(terrain={})  # an empty [terrain]: flat, bare ground
     site = episode_world(flat, 0, 0).site
     assert site.terrain.heights is None and len(site.terrain.rocks) == 0
     assert site.ground_height(17.0, -4.0) == 0.0
@@ -152,7 +118,7 @@ def test_example_site_scenarios_draw_what_they_say(path):
 
 
 def test_ground_height_and_normal_on_a_known_slope():
-    site = episode_world(_scenario(terrain={"slope_deg": 10.0}), 2, 0).site
+    site = episode_world(scenario_with(terrain={"slope_deg": 10.0}), 2, 0).site
     az = math.radians(site.terrain.slope_azimuth_deg)
     grade = math.tan(math.radians(10.0))
     for n, e in ((3.0, -4.0), (-20.0, 7.5), (140.0, 55.0), (0.0, 0.0)):
@@ -170,7 +136,7 @@ def test_ground_height_and_normal_on_a_known_slope():
 
 
 def test_a_ray_cast_meets_a_rock_where_its_surface_is():
-    sc = _scenario(terrain={"rocks_per_100m2": 6.0, "rock_height_m": [0.3, 0.6]})
+    sc = scenario_with(terrain={"rocks_per_100m2": 6.0, "rock_height_m": [0.3, 0.6]})
     site = episode_world(sc, 5, 1).site
     rocks = site.terrain.rocks
     k = int(np.argmax(rocks.height))
@@ -195,7 +161,7 @@ def test_a_ray_cast_meets_a_rock_where_its_surface_is():
 
 
 def test_a_ray_cast_meets_the_relief_where_it_is():
-    sc = _scenario(terrain={"slope_deg": 6.0, "relief_m": 1.0, "craters_per_km2": 2000.0})
+    sc = scenario_with(terrain={"slope_deg": 6.0, "relief_m": 1.0, "craters_per_km2": 2000.0})
     site = episode_world(sc, 7, 0).site
     assert site.terrain.heights is not None and site.terrain.craters
     rng = np.random.default_rng(0)
@@ -214,7 +180,7 @@ def test_a_ray_cast_meets_the_relief_where_it_is():
 
 def test_a_rover_with_no_turn_drives_straight_at_its_speed():
     pad = {"motion": "rover", "height_m": 1.4, "speed_m_s": 2.0, "heading_deg": 30.0}
-    site = episode_world(_scenario(pad=pad), 3, 0).site
+    site = episode_world(scenario_with(pad=pad), 3, 0).site
     assert isinstance(site.motion, RoverPad)
     heading = np.array([math.cos(math.radians(30)), math.sin(math.radians(30))])
     for t in (0.0, 1.3, 7.5, 42.0):
@@ -228,14 +194,14 @@ def test_a_rover_with_no_turn_drives_straight_at_its_speed():
 
 def test_a_rover_turning_steadily_drives_a_circle_and_a_wandering_one_both_ways():
     pad = {"motion": "rover", "height_m": 1.0, "speed_m_s": 3.0, "heading_deg": 0.0}
-    circle = episode_world(_scenario(pad={**pad, "turn_rate_deg_s": 6.0}), 0, 0).site
+    circle = episode_world(scenario_with(pad={**pad, "turn_rate_deg_s": 6.0}), 0, 0).site
     radius = 3.0 / math.radians(6.0)
     centre = np.array([0.0, radius])  # heading north, turning right (clockwise from above)
     for t in np.linspace(0.0, 90.0, 31):
         pose = circle.pad_pose(float(t))
         assert np.linalg.norm(pose.position_ned[:2] - centre) == pytest.approx(radius, abs=1e-4)
         assert pose.omega_ned[2] == pytest.approx(math.radians(6.0), abs=1e-6)
-    wander = episode_world(_scenario(pad={**pad, "turn_rate_deg_s": [-8, 8]}), 0, 0).site
+    wander = episode_world(scenario_with(pad={**pad, "turn_rate_deg_s": [-8, 8]}), 0, 0).site
     rates = [wander.motion.turn_rate(float(t)) for t in np.linspace(0.0, 120.0, 600)]
     assert max(rates) <= math.radians(8) + 1e-12 and min(rates) >= -math.radians(8) - 1e-12
     assert max(rates) > 0.0 > min(rates)  # S-bends, not one long curve
@@ -254,7 +220,7 @@ def test_a_deck_heaves_rolls_and_pitches_within_its_amplitudes_and_drifts():
         "pitch_deg": 3.0,
         "heave_period_s": [6.0, 8.0],
     }
-    site = episode_world(_scenario(pad=pad), 6, 2).site
+    site = episode_world(scenario_with(pad=pad), 6, 2).site
     motion = site.motion
     assert isinstance(motion, DeckPad)
     samples = np.array([motion.motion(float(t)) for t in np.linspace(0.0, 300.0, 3001)])
@@ -273,7 +239,7 @@ def test_a_deck_heaves_rolls_and_pitches_within_its_amplitudes_and_drifts():
 
 def test_ray_casts_meet_the_rover_roof_and_the_deck_at_their_time():
     rover = {"motion": "rover", "height_m": 1.5, "speed_m_s": 2.0, "heading_deg": 30.0}
-    site = episode_world(_scenario(pad=rover), 1, 0).site
+    site = episode_world(scenario_with(pad=rover), 1, 0).site
     p = site.pad_pose(4.0).position_ned
     assert site.range_along((p[0], p[1], -10.0), (0, 0, 1), 4.0, 50.0) == pytest.approx(8.5)
     assert site.surface_height(p[0], p[1], 4.0) == pytest.approx(1.5)
@@ -282,7 +248,7 @@ def test_ray_casts_meet_the_rover_roof_and_the_deck_at_their_time():
     assert site.surface_height(p[0], p[1], 0.0) == 0.0
     assert site.surface_height(p[0] + 12.0, p[1] - 12.0, 4.0) == 0.0
     deck = {"motion": "deck", "height_m": 2.0, "heave_m": 0.5, "roll_deg": 5.0, "pitch_deg": 4.0}
-    site = episode_world(_scenario(pad=deck), 2, 0).site
+    site = episode_world(scenario_with(pad=deck), 2, 0).site
     for t in (0.0, 3.7, 11.2):
         centre = site.pad_pose(t).position_ned
         r = site.range_along((centre[0], centre[1], -20.0), (0, 0, 1), t, 50.0)
@@ -297,7 +263,7 @@ def test_ray_casts_meet_the_rover_roof_and_the_deck_at_their_time():
 
 def test_the_camera_sees_the_pad_move_with_its_rover():
     pad = {"motion": "rover", "height_m": 1.5, "speed_m_s": 2.0, "heading_deg": 0.0}
-    sc = _scenario(visual={"terrain": ["asphalt"]}, pad=pad)
+    sc = scenario_with(visual={"terrain": ["asphalt"]}, pad=pad)
     w = episode_world(sc, 0, 0)
     v = w.visual
     fast = FastRenderer(v.ground(), v.pad(), w.site, v.sun)
@@ -306,7 +272,7 @@ def test_the_camera_sees_the_pad_move_with_its_rover():
     assert light[0] > 0.05 and light[1] < 0.5 * light[0]  # the pad has driven 10 m north
     ahead = fast.render((10.0, 0.0, -15.0), q, CAMERA, 5.0)
     assert np.mean(ahead > 120) == pytest.approx(light[0], rel=0.2)  # and is there, as bright
-    still = _scenario(visual={"terrain": ["asphalt"]}, terrain={"slope_deg": 5.0})
+    still = scenario_with(visual={"terrain": ["asphalt"]}, terrain={"slope_deg": 5.0})
     w = episode_world(still, 0, 0)
     fast = FastRenderer(w.visual.ground(), w.visual.pad(), w.site, w.visual.sun)
     a, b = (fast.render((0.0, 0.0, -15.0), q, CAMERA, t) for t in (0.0, 5.0))
@@ -315,9 +281,9 @@ def test_the_camera_sees_the_pad_move_with_its_rover():
 
 def test_site_flights_are_deterministic_and_both_renderers_agree():
     sc = load_scenario("configs/sites/rover_fast.toml")
-    fast_a, fast_b = _frames(sc, "fast", n=3), _frames(sc, "fast", n=3)
+    fast_a, fast_b = flight_frames(sc, "fast", n=3), flight_frames(sc, "fast", n=3)
     assert all(np.array_equal(x, y) for x, y in zip(fast_a, fast_b, strict=True))
-    ref = _frames(sc, "pybullet", n=3)
+    ref = flight_frames(sc, "pybullet", n=3)
     for a, b in zip(ref, fast_a, strict=True):
         # same render, same sensor noise stream: only pixels on edges may differ
         assert np.mean(np.abs(a.astype(int) - b.astype(int)) > 40) < 0.01
