@@ -241,21 +241,7 @@ class VisualSample:
         scaled by ``pad_scale``, its colours jittered."""
         if self.pad_design is not None and base is None:
             return self.pad_design.scene_pad(self.pad_scale, self.pad_colour_gain)
-        base = (base or PadGeometry()).scaled(self.pad_scale)
-        g = self.pad_colour_gain
-
-        def jit(rgb, gains):
-            return tuple(float(min(1.0, c * k)) for c, k in zip(rgb, gains, strict=True))
-
-        return PadGeometry(
-            side_m=base.side_m,
-            cross_length_m=base.cross_length_m,
-            cross_width_m=base.cross_width_m,
-            green_rgb=jit(base.green_rgb, g[:3]),
-            red_rgb=jit(base.red_rgb, g[3:]),
-            square_top_m=base.square_top_m,
-            cross_top_m=base.cross_top_m,
-        )
+        return (base or PadGeometry()).scaled(self.pad_scale).recoloured(self.pad_colour_gain)
 
     def to_dict(self) -> dict[str, Any]:
         """The record of the draw (the ground picture's and the pad's keys only when set, so
