@@ -6,7 +6,8 @@ module                 what it fixes
 =====================  ===============================================================
 ``messages``           Command (thrust + FRD rates = SET_ATTITUDE_TARGET mask 128),
                        Observation (what a deployable policy sees), GroundTruth (the
-                       privileged channel), ContractError
+                       privileged channel), ContractError, rotation_zyx (ATTITUDE's
+                       Euler angles -> the FRD -> NED rotation)
 ``policy``             the one Policy protocol ``act(obs, groundtruth, state)`` with
                        explicit recurrent state, PolicyError, MissingGroundTruthError
 ``topics``             every flight-log topic name and schema name
@@ -34,6 +35,7 @@ from companion.contract.messages import (
     ContractError,
     GroundTruth,
     Observation,
+    rotation_zyx,
 )
 from companion.contract.policy import (
     MissingGroundTruthError,
@@ -53,4 +55,5 @@ __all__ = [
     "Policy",
     "PolicyError",
     "PolicyState",
+    "rotation_zyx",
 ]

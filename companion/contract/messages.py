@@ -28,12 +28,28 @@ __all__ = [
     "ContractError",
     "GroundTruth",
     "Observation",
+    "rotation_zyx",
 ]
 
 IMAGE_SIZE_PX = 128
 """Side of the square mono8 camera image every policy is trained on (paper Table 1)."""
 CAMERA_FOV_DEG = 45.0
 """Full field of view of that image (paper Table 1)."""
+
+
+def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation body FRD -> NED from ZYX Euler angles (MAVLink ATTITUDE, an
+    Observation's ``attitude_rad``; a pad's yaw, pitch and roll)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 class ContractError(ValueError):

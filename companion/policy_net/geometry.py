@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from companion.contract import rotation_zyx
+
 __all__ = [
     "FEATURE_NAMES",
     "HOVER_FEATURE",
@@ -59,20 +61,6 @@ def feature_names(hover_input: bool) -> tuple[str, ...]:
 
 
 _G0 = 9.80665
-
-
-def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """(3, 3) rotation body FRD -> NED from ZYX Euler angles (MAVLink ATTITUDE)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
 
 
 def position_from_bearing(

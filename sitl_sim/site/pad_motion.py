@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.contract import rotation_zyx
+
 __all__ = [
     "DeckPad",
     "PadMotion",
@@ -37,7 +39,6 @@ __all__ = [
     "StaticPad",
     "draw_pad_motion",
     "frame_from_down",
-    "rot_zyx",
 ]
 
 Ground = Callable[[float, float], tuple[float, tuple[float, float]]]
@@ -55,20 +56,6 @@ class PadPose:
     R_pad_to_ned: np.ndarray
     velocity_ned: np.ndarray
     omega_ned: np.ndarray
-
-
-def rot_zyx(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
-    """Rotation body->NED of ZYX Euler angles (yaw, then pitch, then roll)."""
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cr, sr = math.cos(roll), math.sin(roll)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
 
 
 def frame_from_down(down: np.ndarray, heading: float) -> np.ndarray:
@@ -268,7 +255,7 @@ class DeckPad(PadMotion):
         d = self.speed_m_s * t
         return (
             np.array([c * d, s * d, -(self.height_m + heave)]),
-            rot_zyx(self.heading_rad, pitch, roll),
+            rotation_zyx(roll, pitch, self.heading_rad),
         )
 
     def record(self) -> dict[str, Any]:
