@@ -141,20 +141,7 @@ class PadConfig(Section):
         """Episode ``index`` of ``seed``'s pad motion, on ``ground`` (the terrain's height and
         gradient under a rover; None: flat) with ``ground_gradient`` under a still pad."""
         rng = np.random.default_rng([int(seed), int(index), PAD_MOTION_STREAM])
-        return draw_pad_motion(
-            rng,
-            self.motion,
-            height_m=self.height_m,
-            speed_m_s=self.speed_m_s,
-            heading_deg=self.heading_deg,
-            turn_rate_deg_s=self.turn_rate_deg_s,
-            heave_m=self.heave_m,
-            heave_period_s=self.heave_period_s,
-            roll_deg=self.roll_deg,
-            pitch_deg=self.pitch_deg,
-            ground=ground,
-            ground_gradient=ground_gradient,
-        )
+        return draw_pad_motion(rng, self, ground, ground_gradient)
 
     def draw(self, seed: int, index: int) -> PadDesign | None:
         """Episode ``index`` of ``seed``'s pad (None: the nominal pad)."""

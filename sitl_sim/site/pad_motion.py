@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from companion.contract import rotation_zyx
 
 __all__ = [
     "DeckPad",
+    "MotionSpans",
     "PadMotion",
     "PadPose",
     "RoverPad",
@@ -272,29 +273,37 @@ class DeckPad(PadMotion):
         }
 
 
+class MotionSpans(Protocol):
+    """The ``[pad]`` section's motion keys (:class:`sitl_sim.render.pad_section.PadConfig`):
+    the motion's name and the ``[lo, hi]`` span of each of its numbers."""
+
+    motion: str
+    height_m: tuple[float, float]
+    speed_m_s: tuple[float, float]
+    heading_deg: tuple[float, float]
+    turn_rate_deg_s: tuple[float, float]
+    heave_m: tuple[float, float]
+    heave_period_s: tuple[float, float]
+    roll_deg: tuple[float, float]
+    pitch_deg: tuple[float, float]
+
+
 def draw_pad_motion(
     rng: np.random.Generator,
-    motion: str,
-    height_m: tuple[float, float],
-    speed_m_s: tuple[float, float],
-    heading_deg: tuple[float, float],
-    turn_rate_deg_s: tuple[float, float],
-    heave_m: tuple[float, float],
-    heave_period_s: tuple[float, float],
-    roll_deg: tuple[float, float],
-    pitch_deg: tuple[float, float],
+    spans: MotionSpans,
     ground: Ground | None = None,
     ground_gradient: tuple[float, float] = (0.0, 0.0),
 ) -> PadMotion:
-    """One episode's motion from the ``[pad]`` ranges (each span drawn uniformly, in this
-    order: height, speed, heading, then the model's own draws)."""
+    """One episode's motion from the ``[pad]`` section's ``spans`` (each drawn uniformly, in
+    this order: height, speed, heading, then the model's own draws)."""
 
     def u(rg: tuple[float, float]) -> float:
         return float(rg[0] + (rg[1] - rg[0]) * rng.random())
 
-    height = u(height_m)
-    speed = u(speed_m_s)
-    heading = math.radians(u(heading_deg))
+    height = u(spans.height_m)
+    speed = u(spans.speed_m_s)
+    heading = math.radians(u(spans.heading_deg))
+    motion = spans.motion
     if motion == "static":
         return StaticPad(height_m=height, ground_gradient=ground_gradient)
     if motion == "rover":
@@ -303,16 +312,20 @@ def draw_pad_motion(
             height_m=height,
             speed_m_s=speed,
             heading_rad=heading,
-            turn_lo_rad_s=math.radians(turn_rate_deg_s[0]),
-            turn_hi_rad_s=math.radians(turn_rate_deg_s[1]),
+            turn_lo_rad_s=math.radians(spans.turn_rate_deg_s[0]),
+            turn_hi_rad_s=math.radians(spans.turn_rate_deg_s[1]),
             turn_omega_rad_s=tuple(2 * math.pi / p for p in periods),  # type: ignore[arg-type]
             turn_phase_rad=tuple(float(v) for v in rng.uniform(0.0, 2 * math.pi, 2)),  # type: ignore[arg-type]
             ground=ground,
         )
     if motion != "deck":
         raise ValueError(f"pad motion {motion!r}; expected static, rover or deck")
-    amplitudes = (u(heave_m), math.radians(u(roll_deg)), math.radians(u(pitch_deg)))
-    base = u(heave_period_s)
+    amplitudes = (
+        u(spans.heave_m),
+        math.radians(u(spans.roll_deg)),
+        math.radians(u(spans.pitch_deg)),
+    )
+    base = u(spans.heave_period_s)
     periods, phases = [], []
     for scale in (1.0, 1.15, 0.9):  # roll and pitch a little slower/faster than heave
         t0 = base * scale
