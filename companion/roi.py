@@ -411,6 +411,8 @@ class RoiCameraSource(OpenCvCameraSource):
         self._window_fn = lambda: roi_window(runtime.next_state())
 
     def poll(self) -> list[ReceivedFrame]:
+        """The frames since the last call, each cut with the window the next step maps its
+        CNN output through: answer only the newest (older ones share it; log them)."""
         frames = super().poll()
         if not frames:
             return frames
