@@ -23,6 +23,7 @@ Pure numpy and math; no rendering.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -79,15 +80,15 @@ def _down_of(gradient: tuple[float, float]) -> tuple[float, float, float]:
     return (gn / norm, ge / norm, 1.0 / norm)
 
 
-class PadMotion:
+class PadMotion(ABC):
     """Base of the motion models: :meth:`frame` is the pose at ``t``; :meth:`pose` adds rates."""
 
     kind = "static"
     height_m: float  # the surface the pad lies on above the ground (a dataclass field below)
 
+    @abstractmethod
     def frame(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``(position_ned (3,), R_pad_to_ned (3, 3))`` at sim time ``t``."""
-        raise NotImplementedError
 
     @property
     def moves(self) -> bool:
@@ -104,9 +105,9 @@ class PadMotion:
         omega = np.array([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]]) / 2
         return PadPose(p, r, v, omega)
 
+    @abstractmethod
     def record(self) -> dict[str, Any]:
         """What was drawn (for the episode's log)."""
-        raise NotImplementedError
 
 
 @dataclass(frozen=True)

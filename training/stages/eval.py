@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -39,18 +40,20 @@ def inference_timing(vision_checkpoint: str, steps: int = 300) -> dict[str, Any]
     return {"policy": policy, "mpc": mpc}
 
 
-def _fly_suite(r: Run, policy: str, name: str) -> str:
-    """The profile's suite flown by ``policy`` (a checkpoint) into ``<run>/<name>``; a finished
-    file of the same checkpoint bytes (sha256) and suite is kept (the stage resumes past it; a
-    redone vision stage's new ``vision.pt`` is flown again)."""
+def fly_suite(r: Run, policy: str, name: str, suite_file: Path | None = None) -> str:
+    """A suite (``suite_file``, default the profile's) flown by ``policy`` (a checkpoint) into
+    ``<run>/<name>``; a finished file of the same checkpoint bytes (sha256) and suite is kept (the
+    stage resumes past it; a redone vision stage's new ``vision.pt`` is flown again)."""
     from companion.files import sha256_file
     from training.provenance import REPO
     from training.suite import format_suite_table, load_suite, run_suite
 
     p = r.profile
-    assert p.eval_suite is not None
+    if suite_file is None:
+        assert p.eval_suite is not None
+        suite_file = REPO / p.eval_suite
     path = r.root / name
-    suite = load_suite(REPO / p.eval_suite)
+    suite = load_suite(suite_file)
     sha = sha256_file(policy)
     if path.exists():
         try:
@@ -102,11 +105,11 @@ def run(r: Run) -> EvalRecord:
         )
     suite = suite_baseline = None
     if p.eval_suite is not None:
-        suite = _fly_suite(r, vision, "suite.json")
+        suite = fly_suite(r, vision, "suite.json")
         if p.eval_suite_baseline is not None:
             from training.provenance import REPO
 
-            suite_baseline = _fly_suite(r, str(REPO / p.eval_suite_baseline), "suite_baseline.json")
+            suite_baseline = fly_suite(r, str(REPO / p.eval_suite_baseline), "suite_baseline.json")
     path = r.root / "metrics.json"
     metrics = Metrics(
         profile=p,

@@ -7,7 +7,6 @@ records of the stages of the same names."""
 from __future__ import annotations
 
 import json
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -37,6 +36,7 @@ from training.stage_records import (
     ValidationScore,
     VisionRecord,
 )
+from training.stages.eval import fly_suite
 from training.stages.selection import select, validate
 from training.stages.vision import vision_rounds
 from training.train import train_perception
@@ -179,37 +179,6 @@ def vision(r: Run) -> VisionRecord:
     )
 
 
-def _fly_suite(r: Run, policy: str, suite_file: Path, name: str) -> str:
-    """The pad's suite flown by ``policy`` into ``<run>/<name>``; a finished report of the same
-    checkpoint bytes and suite file is kept (the stage resumes past it)."""
-    from training.suite import format_suite_table, load_suite, run_suite
-
-    path = r.root / name
-    suite = load_suite(suite_file)
-    sha = sha256_file(policy)
-    if path.exists():
-        try:
-            done = json.loads(path.read_text())
-            if done.get("policy_sha256") == sha and done.get("suite") == suite.path:
-                return str(path)
-        except ValueError:
-            pass  # half-written: fly it again
-    report = run_suite(
-        suite,
-        policy,
-        seed=r.profile.eval_seed,
-        render_camera=True,
-        progress=r.progress,
-        backend=r.backend,
-    )
-    report = replace(report, policy_sha256=sha)
-    format_suite_table(report, sys.stderr)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(jsonable(report.to_dict()), indent=1))
-    tmp.replace(path)
-    return str(path)
-
-
 def evaluate(r: Run) -> EvalRecord:
     """The pad's suite (``<run>/suite.toml``: ``training.pad_teach.pad_suite_text``, at most the
     profile's eval episodes per condition, the evaluation seed) flown by the taught model and by
@@ -222,8 +191,8 @@ def evaluate(r: Run) -> EvalRecord:
     suite_file = write_pad_suite(
         pad, r.root / "suite.toml", min(PAD_SUITE_EPISODES, p.eval_episodes)
     )
-    report = _fly_suite(r, vision_rec.checkpoint, suite_file, "suite.json")
-    baseline = _fly_suite(r, src.checkpoint, suite_file, "suite_baseline.json")
+    report = fly_suite(r, vision_rec.checkpoint, "suite.json", suite_file)
+    baseline = fly_suite(r, src.checkpoint, "suite_baseline.json", suite_file)
     metrics = PadMetrics(
         profile=p,
         git_commit=r.commit,
