@@ -7,7 +7,6 @@ records of the stages of the same names."""
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from training.pad_teach import (
     read_started_from,
     write_pad_suite,
 )
-from training.perception_data import PoseSampling, render_pose_frames
+from training.perception_data import PoseSampling
 from training.profiles import PipelineError
 from training.replay import ReplayBuffer
 from training.run_folder import Run
@@ -37,9 +36,9 @@ from training.stage_records import (
     VisionRecord,
 )
 from training.stages.eval import fly_suite
-from training.stages.selection import select, validate
-from training.stages.vision import vision_rounds
-from training.train import train_perception
+from training.stages.perception import fit_cnn, pose_frames, save_perception
+from training.stages.selection import validate
+from training.stages.vision import select_vision, vision_rounds
 
 __all__ = ["evaluate", "perception", "pose_sampling", "vision"]
 
@@ -74,35 +73,18 @@ def perception(r: Run) -> PerceptionRecord:
     cfg, control, cnn, _ = load_networks(src.checkpoint)
     assert cnn is not None  # checked when the run started (check_source)
     torch.manual_seed(p.seed)
-    worlds = r.worlds.worlds
-    t0 = time.perf_counter()
-    extra = render_pose_frames(
-        p.pad_pose_frames,
-        p.seed + 7,
-        r.sim.camera,
-        cache_dir=r.root / "cache",
-        workers=p.workers,
-        sampling=pose_sampling(pad),
-        visuals=tuple(w.scenario.visual for w in worlds),
-        weights=tuple(w.share for w in worlds),
-        pads=tuple(w.scenario.pad for w in worlds),
-    )
-    r.say(
-        f"perception: {p.pad_pose_frames} pose-sampled frames with pad {pad.design.name} "
-        f"({time.perf_counter() - t0:.0f} s)"
-    )
+    extra = pose_frames(r, p.pad_pose_frames, pose_sampling(pad), f" with pad {pad.design.name}")
     steps = p.pad_perception_epochs * max(1, (p.pad_pose_frames - round(0.1 * len(extra[0]))) // 64)
-    with r.bar(steps, f"teach perception ({pad.design.name})") as bar:
-        fit = train_perception(
-            cnn,
-            [],
-            p.pad_perception_epochs,
-            lr=p.pad_perception_lr,
-            seed=p.seed,
-            log=r.log,
-            progress=bar.update,
-            extra=extra,
-        )
+    fit = fit_cnn(
+        r,
+        cnn,
+        [],
+        p.pad_perception_epochs,
+        steps,
+        f"teach perception ({pad.design.name})",
+        extra,
+        lr=p.pad_perception_lr,
+    )
     r.say(
         f"perception: validation frames' bearing error median "
         f"{fit.pose_val_bearing_error_px_median:.2f} px, "
@@ -115,14 +97,7 @@ def perception(r: Run) -> PerceptionRecord:
         "pose_frames": str(r.root / "cache" / f"poses_s{p.seed + 7}_n{p.pad_pose_frames}.npz"),
         "fit": fit.to_dict(),
     }
-    path = save_checkpoint(
-        r.root / "checkpoints" / "perception.pt", cfg, control, cnn, r.metadata("perception", data)
-    )
-    return r.finish(
-        PerceptionRecord(
-            stage="perception", git_commit=r.commit, checkpoint=str(path), **fit.to_dict()
-        )
-    )
+    return save_perception(r, cfg, control, cnn, data, fit)
 
 
 def vision(r: Run) -> VisionRecord:
@@ -165,18 +140,7 @@ def vision(r: Run) -> VisionRecord:
         r.say("vision: the controller flies the taught CNN as it is (no DAgger round needed)")
     else:
         r.say(f"vision: profile {p.name!r} flies no vision DAgger round")
-    final, selected, scores = select(r, candidates, camera=True, out="vision", known=known)
-    return r.finish(
-        VisionRecord(
-            stage="vision",
-            git_commit=r.commit,
-            fits=tuple(fits),
-            rollouts=p.rollouts if fits else None,
-            checkpoint=final,
-            selected=selected,
-            validation=scores,
-        )
-    )
+    return select_vision(r, candidates, known, fits, rounds_flown=bool(fits))
 
 
 def evaluate(r: Run) -> EvalRecord:

@@ -32,7 +32,7 @@ from training.stages.flights import episodes, expert_pairs, fly, relabel
 from training.stages.selection import select, validate
 from training.train import vision_episode
 
-__all__ = ["privileged_controllers", "run", "vision_rounds"]
+__all__ = ["privileged_controllers", "run", "select_vision", "vision_rounds"]
 
 
 def _vision_policy(r: Run) -> tuple[NetConfig, ControlLSTM, PerceptionCNN]:
@@ -159,13 +159,26 @@ def run(r: Run) -> VisionRecord:
         names = []
         r.say(f"vision rounds start from {ckpt.name} (learner flights only)")
     candidates += vision_rounds(r, cfg, control, cnn, ckpt, buf, names, fits)
+    return select_vision(r, candidates, known, fits, rounds_flown=bool(p.vision_rounds))
+
+
+def select_vision(
+    r: Run,
+    candidates: list[str],
+    known: dict[str, ValidationScore],
+    fits: list[FitRecord],
+    rounds_flown: bool,
+) -> VisionRecord:
+    """Validation with the camera picks the stage's checkpoint among ``candidates`` (``known``:
+    those already validated); the stage's record, with the rollout transport where vision
+    DAgger rounds flew (``fits``: the controller's fits)."""
     final, selected, scores = select(r, candidates, camera=True, out="vision", known=known)
     return r.finish(
         VisionRecord(
             stage="vision",
             git_commit=r.commit,
             fits=tuple(fits),
-            rollouts=p.rollouts if p.vision_rounds else None,
+            rollouts=r.profile.rollouts if rounds_flown else None,
             checkpoint=final,
             selected=selected,
             validation=scores,
