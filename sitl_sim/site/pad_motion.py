@@ -110,6 +110,17 @@ class PadMotion(ABC):
         """What was drawn (for the episode's log)."""
 
 
+def _travel_record(pad: RoverPad | DeckPad) -> dict[str, Any]:
+    """The keys a travelling pad's record starts with: its motion, height, speed and start
+    heading."""
+    return {
+        "motion": pad.kind,
+        "height_m": pad.height_m,
+        "speed_m_s": pad.speed_m_s,
+        "heading_deg": math.degrees(pad.heading_rad),
+    }
+
+
 @dataclass(frozen=True)
 class StaticPad(PadMotion):
     """A still pad ``height_m`` above the ground at the origin, square to the ground there
@@ -208,10 +219,7 @@ class RoverPad(PadMotion):
 
     def record(self) -> dict[str, Any]:
         return {
-            "motion": "rover",
-            "height_m": self.height_m,
-            "speed_m_s": self.speed_m_s,
-            "heading_deg": math.degrees(self.heading_rad),
+            **_travel_record(self),
             "turn_rate_deg_s": [math.degrees(self.turn_lo_rad_s), math.degrees(self.turn_hi_rad_s)],
             "turn_period_s": [2 * math.pi / om for om in self.turn_omega_rad_s],
             "turn_phase_rad": list(self.turn_phase_rad),
@@ -262,10 +270,7 @@ class DeckPad(PadMotion):
 
     def record(self) -> dict[str, Any]:
         return {
-            "motion": "deck",
-            "height_m": self.height_m,
-            "speed_m_s": self.speed_m_s,
-            "heading_deg": math.degrees(self.heading_rad),
+            **_travel_record(self),
             "heave_m": self.heave_m,
             "roll_deg": math.degrees(self.roll_rad),
             "pitch_deg": math.degrees(self.pitch_rad),
