@@ -176,7 +176,7 @@ class LandingEnv(gym.Env):
             reward = -(self.result.landing_error_m + self.result.touchdown_speed_m_s)
         elif truth.time_s >= self.sim_config.episode_timeout_s - 1e-9:
             truncated = True
-            self.result = EpisodeResult.timeout(truth.time_s, truth.pos_ned_m, truth.vel_ned_m_s)
+            self.result = EpisodeResult.timeout(truth.time_s, *truth.pad_relative)
             reward = -(self.result.landing_error_m + 10.0)
         obs = self._sim.observe(frame_id=self._frame, truth=truth)
         self._last_image = obs.image

@@ -32,6 +32,8 @@ SUCCESS_MAX_TILT_DEG = 20.0
 
 _RESULT_KEYS = EpisodeResultRecord.required_field_names()
 """The result's own keys: those every ``/episode/result`` message has (the SITL's are extras)."""
+_SITE_KEYS = ("touched_pad", "tipped_over")
+"""The result's keys on a site (absent on the nominal one)."""
 
 
 @dataclass(**RECORD)
@@ -55,14 +57,34 @@ class EpisodeResult(EpisodeResultRecord):
     def read(cls, values: Mapping[str, Any]) -> EpisodeResult:
         """The result in a logged ``/episode/result`` message, or in a report's row (their
         other keys left out; a metric logged as null, NaN when written, is NaN again)."""
-        return cls(**{k: math.nan if values[k] is None else values[k] for k in _RESULT_KEYS})
+        site = {k: bool(values[k]) for k in _SITE_KEYS if values.get(k) is not None}
+        return cls(
+            **{k: math.nan if values[k] is None else values[k] for k in _RESULT_KEYS}, **site
+        )
 
     @classmethod
     def from_contact(cls, contact: ContactEvent) -> EpisodeResult:
-        err = float(math.hypot(contact.pos_ned_m[0], contact.pos_ned_m[1]))
-        speed = float(np.linalg.norm(contact.vel_ned_m_s))
-        vz = float(contact.vel_ned_m_s[2])
-        tilt = math.degrees(float(contact.tilt_rad))
+        """Scored in the pad's frame: on the nominal site that is NED at the origin; on a site
+        (``contact.pad``) the error lies in the pad's plane, the speeds are relative to the
+        pad's surface, the tilt is from its normal, and a tip-over fails."""
+        pad = contact.pad
+        if pad is None:
+            pos, vel, tilt_rad = contact.pos_ned_m, contact.vel_ned_m_s, contact.tilt_rad
+        else:
+            pos, vel, tilt_rad = pad.pos_m, pad.vel_m_s, pad.tilt_rad
+        err = float(math.hypot(pos[0], pos[1]))
+        speed = float(np.linalg.norm(vel))
+        vz = float(vel[2])
+        tilt = math.degrees(float(tilt_rad))
+        success = (
+            err <= SUCCESS_MAX_ERROR_M
+            and vz <= SUCCESS_MAX_VERTICAL_SPEED_M_S
+            and tilt <= SUCCESS_MAX_TILT_DEG
+        )
+        site = {}
+        if pad is not None:
+            success = success and not pad.tipped_over
+            site = {"touched_pad": bool(pad.touched_pad), "tipped_over": bool(pad.tipped_over)}
         return cls(
             landed=True,
             time_s=float(contact.time_s),
@@ -70,13 +92,14 @@ class EpisodeResult(EpisodeResultRecord):
             touchdown_speed_m_s=speed,
             touchdown_vertical_speed_m_s=vz,
             tilt_deg=tilt,
-            success=err <= SUCCESS_MAX_ERROR_M
-            and vz <= SUCCESS_MAX_VERTICAL_SPEED_M_S
-            and tilt <= SUCCESS_MAX_TILT_DEG,
+            success=success,
+            **site,
         )
 
     @classmethod
     def timeout(cls, time_s: float, pos_ned_m, vel_ned_m_s) -> EpisodeResult:
+        """A flight that never came down: ``pos_ned_m`` relative to the pad
+        (``GroundTruth.pad_relative``)."""
         return cls(
             landed=False,
             time_s=float(time_s),

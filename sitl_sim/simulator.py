@@ -21,7 +21,15 @@ import numpy as np
 from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.errors import SimStateError
-from sitl_sim.physics.dynamics import LAYOUT, ContactEvent, Physics, derivative, make_state, step
+from sitl_sim.physics.dynamics import (
+    LAYOUT,
+    ContactEvent,
+    Physics,
+    derivative,
+    integrate,
+    make_state,
+    step,
+)
 from sitl_sim.physics.rate_controller import RateController
 from sitl_sim.physics.sensor_faults import SensorFaults
 from sitl_sim.physics.sensors import AttitudeSensor, Imu, RadarAltimeter
@@ -30,6 +38,7 @@ from sitl_sim.render.ground import GroundMap, PadGeometry, nominal_ground
 from sitl_sim.render.scene import Camera, Renderer, make_renderer
 from sitl_sim.render.visual import CameraEffects, VisualSample
 from sitl_sim.scenario import InitialState
+from sitl_sim.site.contact import SiteContact, quat_from_rotation
 from sitl_sim.site.site import Site
 from sitl_sim.world import EpisodeWorld
 
@@ -102,6 +111,9 @@ class Simulator:
         """This episode's wind (None: still air)."""
         self.sensor_faults: SensorFaults | None = None
         """This episode's sensor faults (None: the sensors of the sim config)."""
+        self.site: Site | None = None
+        """This episode's landing site (None: flat ground, the pad still at the origin)."""
+        self._site_contact: SiteContact | None = None
         self._latency_steps = 0
         # (step, position, attitude, body rates) of the last `latency` physics steps
         self._poses: (
@@ -153,7 +165,15 @@ class Simulator:
             gyro_bias_frd_rad_s=faults.gyro_bias_frd_rad_s if faults is not None else None,
         )
         self.attitude_sensor = AttitudeSensor(self.sim.attitude, np.random.default_rng(att_ss))
-        self.radar = RadarAltimeter(self.sim.radar, np.random.default_rng(radar_ss), faults)
+        site = world.site
+        self.site = site
+        self._site_contact = SiteContact(site) if site is not None else None
+        self.radar = RadarAltimeter(
+            self.sim.radar,
+            np.random.default_rng(radar_ss),
+            faults,
+            surface=site.range_along if site is not None else None,
+        )
         self.camera = self._camera(world.visual, np.random.default_rng(cam_ss), world.site)
         hover = self.phys.hover_rotor_thrust_n
         self._x = make_state(
@@ -226,12 +246,14 @@ class Simulator:
         else:
             rotor_cmd = self.rate_controller.update(command, x[10:13], dt)
         self._rotor_cmd = rotor_cmd
-        if self.wind is None:
-            x_new, event = step(x, rotor_cmd, dt, self.phys, self._t)
-        else:
-            # held over this step (zero-order hold); the model moves on to the step's end
-            wind = self.wind.step(dt, self._t, x[0:3], x[3:6])
+        # the wind is held over this step (zero-order hold); the model moves on to its end
+        wind = None if self.wind is None else self.wind.step(dt, self._t, x[0:3], x[3:6])
+        contact = self._site_contact
+        if contact is None:
             x_new, event = step(x, rotor_cmd, dt, self.phys, self._t, wind_ned_m_s=wind)
+        else:
+            x_free = integrate(x, rotor_cmd, dt, self.phys, wind)
+            x_new, event = contact.resolve(x, x_free, self._t, dt)
         self._step_count += 1
         self._t = self._step_count * dt  # integer count: no drift in sim time
         self._x = x_new
@@ -276,8 +298,15 @@ class Simulator:
             # the wind now: what the next physics step holds
             d = derivative(x, self._rotor_cmd, self.phys, self.wind.wind_tuple)
         accel = np.asarray(d[3:6])
-        if x[2] >= 0.0 and accel[2] >= 0.0:
-            accel = np.zeros(3)  # resting on the ground: the normal force balances the rest
+        contact = self._site_contact
+        pad: dict[str, np.ndarray] = {}
+        if contact is None:
+            if x[2] >= 0.0 and accel[2] >= 0.0:
+                accel = np.zeros(3)  # resting on the ground: the normal force balances the rest
+        else:
+            if contact.resting:
+                accel = contact.surface_accel(self._t)  # carried by the surface it rests on
+            pad = self._pad_state()
         return GroundTruth(
             time_s=self._t,
             pos_ned_m=arr[LAYOUT.pos_ned_m].copy(),
@@ -287,7 +316,28 @@ class Simulator:
             accel_ned_m_s2=accel,
             rotor_thrust_n=arr[LAYOUT.rotor_thrust_n].copy(),
             wind_ned_m_s=self.wind.wind_ned_m_s if self.wind is not None else None,
+            **pad,
         )
+
+    def _pad_state(self) -> dict[str, np.ndarray]:
+        """GroundTruth's pad fields now (on a site)."""
+        assert self.site is not None
+        pose = self.site.pad_pose(self._t)
+        return {
+            "pad_pos_ned_m": pose.position_ned.copy(),
+            "pad_vel_ned_m_s": pose.velocity_ned.copy(),
+            "pad_quat_wxyz": np.array(quat_from_rotation(pose.R_pad_to_ned)),
+            "pad_accel_ned_m_s2": self.site.pad_accel(self._t),
+        }
+
+    def on_ground(self) -> bool:
+        """The vehicle is on the ground: within 1 cm of the plane (nominal), or resting on a
+        site's surface or within 1 cm of it (the land detector's input)."""
+        x = self._state()
+        contact = self._site_contact
+        if contact is None:
+            return x[2] > -0.01
+        return contact.resting or contact.height_above(x, self._t) < 0.01
 
     @property
     def camera_latency_steps(self) -> int:
@@ -347,7 +397,7 @@ class Simulator:
             t, gt.quat_wxyz, gt.accel_ned_m_s2, gt.rate_frd_rad_s, self.sim.planet.gravity_m_s2
         )
         att = self.attitude_sensor.read(t, gt.quat_wxyz, gt.rate_frd_rad_s)
-        rng = self.radar.read(gt.pos_ned_m, gt.quat_wxyz)
+        rng = self.radar.read(gt.pos_ned_m, gt.quat_wxyz, t)
         frame = self.capture_frame(gt)
         return Observation(
             image=frame.image,

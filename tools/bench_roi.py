@@ -307,7 +307,7 @@ def _fly(cfg: AcquireConfig, policy: Any, camera: str, pad_m: float) -> dict[str
                     result = EpisodeResult.from_contact(contact)
                     break
             if result is None:
-                result = EpisodeResult.timeout(truth.time_s, truth.pos_ned_m, truth.vel_ned_m_s)
+                result = EpisodeResult.timeout(truth.time_s, *truth.pad_relative)
             rows.append(
                 {
                     "episode_index": index,

@@ -83,6 +83,10 @@ class EpisodeRow(Record):
     touchdown_vertical_speed_m_s: float | None
     tilt_deg: float | None
     success: bool
+    touched_pad: bool | None = field(default=None, metadata=_OMIT)
+    """On a site: the vehicle came down on the pad's own surface (absent on the nominal one)."""
+    tipped_over: bool | None = field(default=None, metadata=_OMIT)
+    """On a site: the surface it came down on was too steep to stand on."""
     touchdown_ne_m: tuple[float, float] | None = field(
         default=None, metadata={"omit_none": True, "what": "[north, east] in m"}
     )

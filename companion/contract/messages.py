@@ -155,6 +155,19 @@ class Observation:
         object.__setattr__(self, "hover_thrust_norm", hover)
 
 
+PAD_STATE_FIELDS = ("pad_pos_ned_m", "pad_vel_ned_m_s", "pad_quat_wxyz", "pad_accel_ned_m_s2")
+"""GroundTruth's pad state: all four or none (the nominal pad, still at the origin)."""
+_OPTIONAL_VECTORS = (
+    ("accel_ned_m_s2", 3),
+    ("rotor_thrust_n", 4),
+    ("wind_ned_m_s", 3),
+    ("pad_pos_ned_m", 3),
+    ("pad_vel_ned_m_s", 3),
+    ("pad_quat_wxyz", 4),
+    ("pad_accel_ned_m_s2", 3),
+)
+
+
 def _vec(name: str, value: object, n: int) -> np.ndarray:
     arr = np.asarray(value, dtype=np.float64)  # no copy for a float64 array: the caller's values
     if arr.shape != (n,):
@@ -176,6 +189,10 @@ class GroundTruth:
         rotor_thrust_n: (4,) rotor thrusts, or None where the source has none (ODOMETRY).
         wind_ned_m_s: (3,) wind at the vehicle (NED, m/s) in a simulated world with wind, else
             None (still air, or a source that cannot know it).
+        pad_pos_ned_m, pad_vel_ned_m_s, pad_quat_wxyz, pad_accel_ned_m_s2: the pad's surface
+            centre now on a site that is not flat and still (a rover, a deck, a slope, rocks):
+            position, velocity, attitude (pad frame x forward, y right, z down -> NED) and
+            acceleration; all four None for the nominal still pad at the origin, lying level.
     """
 
     time_s: float
@@ -186,6 +203,10 @@ class GroundTruth:
     accel_ned_m_s2: np.ndarray | None = None
     rotor_thrust_n: np.ndarray | None = None
     wind_ned_m_s: np.ndarray | None = None
+    pad_pos_ned_m: np.ndarray | None = None
+    pad_vel_ned_m_s: np.ndarray | None = None
+    pad_quat_wxyz: np.ndarray | None = None
+    pad_accel_ned_m_s2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Shapes only: finiteness is the producer's business (the simulator raises its own
@@ -197,20 +218,33 @@ class GroundTruth:
             ("rate_frd_rad_s", 3),
         ):
             object.__setattr__(self, name, _vec(name, getattr(self, name), n))
-        for name, n in (("accel_ned_m_s2", 3), ("rotor_thrust_n", 4), ("wind_ned_m_s", 3)):
+        for name, n in _OPTIONAL_VECTORS:
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, _vec(name, value, n))
+        pad = [getattr(self, name) is None for name in PAD_STATE_FIELDS]
+        if any(pad) and not all(pad):
+            raise ContractError(f"{', '.join(PAD_STATE_FIELDS)}: expected all four or none")
+
+    @property
+    def pad_relative(self) -> tuple[np.ndarray, np.ndarray]:
+        """(position, velocity) of the vehicle relative to the pad's surface centre (NED): the
+        state itself for the nominal pad at the origin."""
+        if self.pad_pos_ned_m is None or self.pad_vel_ned_m_s is None:
+            return self.pos_ned_m, self.vel_ned_m_s
+        return self.pos_ned_m - self.pad_pos_ned_m, self.vel_ned_m_s - self.pad_vel_ned_m_s
 
     def as_dict(self) -> dict[str, np.ndarray]:
-        """The gymnasium ``info["groundtruth"]`` layout (``wind_ned_m_s`` only in wind, like
-        the ground-truth log record)."""
+        """The gymnasium ``info["groundtruth"]`` layout (``wind_ned_m_s`` only in wind and the
+        pad's state only on a site, like the ground-truth log record)."""
         out = {
             "pos_ned_m": self.pos_ned_m.copy(),
             "vel_ned_m_s": self.vel_ned_m_s.copy(),
             "quat_wxyz": self.quat_wxyz.copy(),
             "rate_frd_rad_s": self.rate_frd_rad_s.copy(),
         }
-        if self.wind_ned_m_s is not None:
-            out["wind_ned_m_s"] = np.array(self.wind_ned_m_s, dtype=float)
+        for name in ("wind_ned_m_s", *PAD_STATE_FIELDS):
+            value = getattr(self, name)
+            if value is not None:
+                out[name] = np.array(value, dtype=float)
         return out

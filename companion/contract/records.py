@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from companion.contract.companion_records import COMPANION_RECORDS, ObservationKeys
-from companion.contract.messages import Command, GroundTruth, Observation
+from companion.contract.messages import PAD_STATE_FIELDS, Command, GroundTruth, Observation
 from companion.contract.record_base import (
     ABSENT,
     RECORD,
@@ -241,6 +241,12 @@ class GroundTruthRecord(LogRecord):
     rotor_thrust_n: Vector | None
     wind_ned_m_s: Vector | Absent = ABSENT
     """Only in a world with wind (still-air logs are unchanged)."""
+    pad_pos_ned_m: Vector | Absent = ABSENT
+    """The pad's state (``GroundTruth``'s four pad fields): only on a site that is not flat
+    and still (nominal logs are unchanged)."""
+    pad_vel_ned_m_s: Vector | Absent = ABSENT
+    pad_quat_wxyz: Vector | Absent = ABSENT
+    pad_accel_ned_m_s2: Vector | Absent = ABSENT
     flight_time_s: float | Absent = ABSENT
     flying: bool | Absent = ABSENT
     mode: str | Absent = ABSENT
@@ -248,7 +254,10 @@ class GroundTruthRecord(LogRecord):
 
     @classmethod
     def from_groundtruth(cls, gt: GroundTruth, frame_id: int, **status: Any) -> GroundTruthRecord:
-        wind = gt.wind_ned_m_s
+        optional = {
+            name: ABSENT if getattr(gt, name) is None else getattr(gt, name)
+            for name in ("wind_ned_m_s", *PAD_STATE_FIELDS)
+        }
         return cls(
             frame_id=frame_id,
             pos_ned_m=gt.pos_ned_m,
@@ -257,7 +266,7 @@ class GroundTruthRecord(LogRecord):
             rate_frd_rad_s=gt.rate_frd_rad_s,
             accel_ned_m_s2=gt.accel_ned_m_s2,
             rotor_thrust_n=gt.rotor_thrust_n,
-            wind_ned_m_s=ABSENT if wind is None else wind,
+            **optional,
             **status,
         )
 
@@ -276,6 +285,10 @@ class GroundTruthRecord(LogRecord):
             accel_ned_m_s2=_vec(self, "accel_ned_m_s2", 3),
             rotor_thrust_n=_vec(self, "rotor_thrust_n", 4),
             wind_ned_m_s=None if self.wind_ned_m_s is ABSENT else _vec(self, "wind_ned_m_s", 3),
+            **{
+                name: None if getattr(self, name) is ABSENT else _vec(self, name, n)
+                for name, n in zip(PAD_STATE_FIELDS, (3, 3, 4, 3), strict=True)
+            },
         )
 
 
@@ -380,6 +393,11 @@ class EpisodeResultRecord(LogRecord):
     touchdown_vertical_speed_m_s: float
     tilt_deg: float
     success: bool
+    touched_pad: bool | Absent = ABSENT
+    """On a site (a moving pad, slope, rocks): whether the vehicle came down on the pad's own
+    surface; the metrics above are then in the pad's frame. Absent on the nominal flat site."""
+    tipped_over: bool | Absent = ABSENT
+    """On a site: the surface it came down on was too steep to stand on (a failure)."""
     link_stats: Mapping[str, int] | Absent = ABSENT
     gcs_link_stats: Mapping[str, int] | Absent = ABSENT
     lockstep_timeouts: int | Absent = ABSENT

@@ -182,13 +182,22 @@ class MpcExpert:
             yaw_hold = float(euler_from_quat(groundtruth.quat_wxyz)[2])
             state = MpcState(yaw_hold_rad=yaw_hold)
         self.last_plan = None  # a failed solve must not leave the previous plan looking current
+        # Tracking in the pad's frame: the state relative to the pad's surface centre; the air
+        # seen from that frame moves at wind - pad velocity (the drag stays the true one), and
+        # the pad's acceleration (a rover's turn, a deck's heave) is fed forward as the frame's.
+        pos, vel = groundtruth.pad_relative
+        wind = groundtruth.wind_ned_m_s
+        frame_accel = groundtruth.pad_accel_ned_m_s2
+        if groundtruth.pad_vel_ned_m_s is not None:
+            wind = (0.0 if wind is None else wind) - groundtruth.pad_vel_ned_m_s
         plan = self.plan(
-            groundtruth.pos_ned_m,
-            groundtruth.vel_ned_m_s,
+            pos,
+            vel,
             groundtruth.quat_wxyz,
             yaw_hold,
             groundtruth.rate_frd_rad_s,
-            groundtruth.wind_ned_m_s,
+            wind,
+            frame_accel,
         )
         self.last_plan = plan
         return plan.command, state
@@ -276,6 +285,7 @@ class MpcExpert:
         yaw_hold_rad: float | None = None,
         rate_frd_rad_s: np.ndarray | None = None,
         wind_ned_m_s: np.ndarray | None = None,
+        frame_accel_ned_m_s2: np.ndarray | None = None,
     ) -> MpcPlan:
         """Solve the MPC at one state (ground truth, NED/FRD) and return the plan.
 
@@ -289,6 +299,9 @@ class MpcExpert:
             wind_ned_m_s: (3,) the true wind now (privileged, ``GroundTruth.wind_ned_m_s``);
                 its drag at the current state joins the affine residual, i.e. it is fed
                 forward as a disturbance held over the horizon. None: still air.
+            frame_accel_ned_m_s2: (3,) the acceleration of the frame ``pos_ned_m`` is given in
+                (a moving pad's), held over the horizon: the relative motion's feed-forward.
+                None: an inertial frame (the still pad).
 
         Raises:
             MpcSolveError: neither OSQP nor Clarabel solved the QP.
@@ -331,6 +344,9 @@ class MpcExpert:
         )
         resid = np.zeros(NX)
         resid[VEL] = np.asarray(acc) - model.a[VEL] @ x0
+        if frame_accel_ned_m_s2 is not None:
+            an, ae, ad = (float(v) for v in frame_accel_ned_m_s2)
+            resid[VEL] -= np.array([c * an + s * ae, -s * an + c * ae, ad])
         c_d = model.gamma_d @ resid
         # Equality bounds: -x1 + B du0 = -(A x0 + c); -x_{k+1} + A x_k + B du_k = -c.
         beq = np.tile(-c_d, qp.n)

@@ -197,7 +197,7 @@ class Episodes:
             result = EpisodeResult.from_contact(self.sim.contact)
         else:
             gt = self.sim.ground_truth()
-            result = EpisodeResult.timeout(self.sim.time_s, gt.pos_ned_m, gt.vel_ned_m_s)
+            result = EpisodeResult.timeout(self.sim.time_s, *gt.pad_relative)
         if not aborted:
             self.results.append(result)
         imp = self.links.impairment

@@ -347,7 +347,7 @@ class Handlers:
         self.publisher.announce_events()
 
     def _in_air(self) -> bool:
-        return not self.state.on_ground(self.sim.ground_truth())
+        return not self.state.on_ground(self.sim)
 
     def command_arm_disarm(self, p: tuple[float, ...], follow_up: list[Any]) -> MavResult:
         if not math.isfinite(p[0]):

@@ -141,7 +141,7 @@ class TickSample:
     @functools.cached_property
     def range_m(self) -> float:
         gt = self.truth
-        return self._sim.radar.read(gt.pos_ned_m, gt.quat_wxyz)
+        return self._sim.radar.read(gt.pos_ned_m, gt.quat_wxyz, gt.time_s)
 
 
 @dataclass(eq=False, repr=False)
@@ -297,7 +297,7 @@ class Publisher:
         return self.links.mav.system_time_encode(0, self.clock.time_boot_ms)
 
     def _landed_state(self) -> int:
-        if self.state.on_ground(self.sample().truth):
+        if self.state.on_ground(self.sim):
             return mavlink.MAV_LANDED_STATE_ON_GROUND
         if self.state.autopilot.mode is FlightMode.LAND:
             return mavlink.MAV_LANDED_STATE_LANDING

@@ -474,8 +474,7 @@ class MavlinkSitl:
     def _control_period(self) -> bool:
         """10 Hz checks. Returns False when the episode ended (nothing more this tick)."""
         ap = self.autopilot
-        truth = self.sim.ground_truth()
-        ap.update(self.clock.time_s, on_ground=self.state.on_ground(truth))
+        ap.update(self.clock.time_s, on_ground=self.state.on_ground(self.sim))
         self.publisher.announce_events()
         if not self.state.flying and ap.taken_over:
             self.episodes.start_flight()

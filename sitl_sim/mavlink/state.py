@@ -11,13 +11,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from companion.contract import GroundTruth
     from sitl_sim.autopilot.px4 import Autopilot, LandController
     from sitl_sim.mavlink.clock import FrameWait
+    from sitl_sim.simulator import Simulator
 
 __all__ = ["FlightState"]
-
-_ON_GROUND_DOWN_M = -0.01  # within 1 cm of the ground plane counts as on the ground
 
 
 @dataclass
@@ -49,6 +47,7 @@ class FlightState:
     frame_id: int = 0
     lockstep_timeouts: int = 0
 
-    def on_ground(self, truth: GroundTruth) -> bool:
-        """In flight and within 1 cm of the ground plane (the land detector's input)."""
-        return self.flying and float(truth.pos_ned_m[2]) > _ON_GROUND_DOWN_M
+    def on_ground(self, sim: Simulator) -> bool:
+        """In flight and on the ground (:meth:`Simulator.on_ground`: within 1 cm of the plane,
+        or resting on a site's surface): the land detector's input."""
+        return self.flying and sim.on_ground()

@@ -40,15 +40,18 @@ __all__ = [
     "LAYOUT",
     "STATE_SIZE",
     "ContactEvent",
+    "PadContact",
     "Physics",
     "StateLayout",
     "derivative",
     "euler_from_quat",
+    "integrate",
     "make_state",
     "quat_from_euler",
     "quat_to_rotation",
     "rk4_step",
     "step",
+    "tilt_of",
     "translational_accel_ned",
 ]
 
@@ -368,12 +371,34 @@ class ContactEvent:
         pos_ned_m: (3,) position at contact (down = 0).
         vel_ned_m_s: (3,) velocity just before contact.
         tilt_rad: angle between body down and world down at contact.
+        pad: on a site (:mod:`sitl_sim.site.contact`), the contact seen from the pad; None on
+            the nominal flat ground with the still pad at the origin (whose frame is NED).
     """
 
     time_s: float
     pos_ned_m: np.ndarray
     vel_ned_m_s: np.ndarray
     tilt_rad: float
+    pad: PadContact | None = None
+
+
+@dataclass(frozen=True)
+class PadContact:
+    """A contact on a site, in the pad's frame (x forward, y right, z down along its normal).
+
+    Attributes:
+        pos_m: (3,) the vehicle centre relative to the pad's surface centre.
+        vel_m_s: (3,) the vehicle's velocity relative to the pad's surface at that point.
+        tilt_rad: angle between body down and the pad's down (its normal).
+        touched_pad: the surface touched is the pad's own (within its extent, on its plane).
+        tipped_over: the surface touched is steeper than the vehicle can stand on.
+    """
+
+    pos_m: np.ndarray
+    vel_m_s: np.ndarray
+    tilt_rad: float
+    touched_pad: bool
+    tipped_over: bool
 
 
 def _tilt(qx: float, qy: float) -> float:
@@ -412,6 +437,23 @@ def _resolve_ground_contact(x_prev, x_new: list[float], t_prev: float, dt: float
     return out, event
 
 
+def integrate(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> list[float]:
+    """RK4 over ``dt`` and the quaternion renormalised: the free flight of one step, no ground
+    (:func:`step` adds the flat ground; :mod:`sitl_sim.site.contact` a site's surfaces)."""
+    x_new = phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
+    n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
+    x_new[6] /= n
+    x_new[7] /= n
+    x_new[8] /= n
+    x_new[9] /= n
+    return x_new
+
+
+def tilt_of(qx: float, qy: float) -> float:
+    """The angle between body down and world down of a unit quaternion's x and y (rad)."""
+    return _tilt(qx, qy)
+
+
 def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_s=None):
     """Advance the state by ``dt``: RK4, quaternion renormalisation, ground contact.
 
@@ -428,12 +470,7 @@ def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_
         came down onto the ground during this step, else ``None``.
     """
     on_ground = x[2] >= 0.0
-    x_new = phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
-    n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
-    x_new[6] /= n
-    x_new[7] /= n
-    x_new[8] /= n
-    x_new[9] /= n
+    x_new = integrate(x, rotor_cmd_n, dt, phys, wind_ned_m_s)
     x_new, event = _resolve_ground_contact(x, x_new, t_s, dt)
     if on_ground:
         event = None  # still resting: not a new touchdown

@@ -9,7 +9,9 @@ faults (:mod:`sitl_sim.physics.sensor_faults`) come in as the IMU's turn-on bias
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -100,8 +102,14 @@ class AttitudeSensor:
         return AttitudeReading(time_s, att, rate)
 
 
+Surface = Callable[[Any, tuple[float, float, float], float, float], float]
+"""``(origin_ned, direction_ned, time_s, max_range) -> range`` to a site's first surface (inf:
+none within ``max_range``): :meth:`sitl_sim.site.site.Site.range_along`."""
+
+
 class RadarAltimeter:
-    """Downward radar: range along the body down axis to the flat ground, 0..max_range.
+    """Downward radar: range along the body down axis to the ground (the flat plane, or with
+    ``surface`` a site's terrain, rocks, rover roof, deck or water), 0..max_range.
 
     ``range = altitude / cos(tilt)`` for the beam along body +z; the reading is NaN (invalid) when
     the beam does not hit the ground (tilt >= 90 deg) or the range exceeds ``max_range_m``.
@@ -112,33 +120,43 @@ class RadarAltimeter:
     """
 
     def __init__(
-        self, cfg: RadarConfig, rng: np.random.Generator, faults: SensorFaults | None = None
+        self,
+        cfg: RadarConfig,
+        rng: np.random.Generator,
+        faults: SensorFaults | None = None,
+        surface: Surface | None = None,
     ) -> None:
         self._cfg = cfg
         self._rng = rng
         self._faults = faults
+        self._surface = surface
 
     @property
     def max_range_m(self) -> float:
         return self._cfg.max_range_m
 
-    def true_range(self, pos_ned_m, quat_wxyz) -> float:
-        """Noise-free beam length to the ground (inf when the beam misses it)."""
-        qx, qy = float(quat_wxyz[1]), float(quat_wxyz[2])
+    def true_range(self, pos_ned_m, quat_wxyz, time_s: float = 0.0) -> float:
+        """Noise-free beam length to the ground (inf when the beam misses it): on a site
+        (``surface``), to whatever surface the body's down axis meets first at ``time_s``."""
+        qw, qx, qy, qz = (float(v) for v in quat_wxyz)
         cos_tilt = 1.0 - 2.0 * (qx * qx + qy * qy)
+        if self._surface is not None:
+            down = (2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), cos_tilt)
+            return self._surface(pos_ned_m, down, time_s, self._cfg.max_range_m)
         altitude = max(0.0, -float(pos_ned_m[2]))
         if cos_tilt <= 1e-6:
             return math.inf
         return altitude / cos_tilt
 
-    def read(self, pos_ned_m, quat_wxyz) -> float:
-        reading = self._read(pos_ned_m, quat_wxyz)
+    def read(self, pos_ned_m, quat_wxyz, time_s: float = 0.0) -> float:
+        """One reading at ``time_s`` (sim time: where a moving surface is)."""
+        reading = self._read(pos_ned_m, quat_wxyz, time_s)
         if self._faults is None:
             return reading
         return self._faults.radar_reading(reading, self._cfg.max_range_m)
 
-    def _read(self, pos_ned_m, quat_wxyz) -> float:
-        rng_true = self.true_range(pos_ned_m, quat_wxyz)
+    def _read(self, pos_ned_m, quat_wxyz, time_s: float) -> float:
+        rng_true = self.true_range(pos_ned_m, quat_wxyz, time_s)
         if not rng_true <= self._cfg.max_range_m:
             return math.nan
         sigma = self._cfg.noise_std_m + self._cfg.noise_fraction * rng_true

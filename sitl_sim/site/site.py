@@ -85,16 +85,55 @@ class Site:
         and angular velocity (NED)."""
         return self.motion.pose(t)
 
+    def pad_accel(self, t: float) -> np.ndarray:
+        """The pad surface centre's acceleration at ``t`` (NED, m/s^2; central difference of
+        its velocity, 10 ms apart: the paths are smooth)."""
+        if not self.moves:
+            return np.zeros(3)
+        h = 5e-3
+        return (self.motion.pose(t + h).velocity_ned - self.motion.pose(t - h).velocity_ned) / (
+            2 * h
+        )
+
     def surface_height(self, n: float, e: float, t: float) -> float:
         """The highest surface at (n, e) at time ``t`` (up, m): the ground, a rock, the
         vehicle's roof or deck (the pad lies on it)."""
+        return self.surface(n, e, t)[0]
+
+    def surface(self, n: float, e: float, t: float) -> tuple[float, bool]:
+        """``(height up (m), on_vehicle)``: the highest surface at (n, e) at time ``t``, and
+        whether it is the carrying vehicle's (else the ground or a rock)."""
         top = self.ground_height(n, e)
         if not self.vehicle:
-            return top
+            return top, False
         p, r = self.motion.frame(t)
         start = max(top, -float(p[2])) + 50.0
         s = self._vehicle_ray(np.array([n, e, -start]), np.array([0.0, 0.0, 1.0]), p, r)
-        return max(top, start - s) if math.isfinite(s) else top
+        if math.isfinite(s) and start - s > top:
+            return start - s, True
+        return top, False
+
+    def base_ground_height(self, n: float, e: float) -> float:
+        """The ground's height without rocks (up, m): a cheap bound's base (the terrain's
+        bilinear relief; 0 on water or flat ground)."""
+        if self.water or self.terrain is None:
+            return 0.0
+        return self.terrain.ground(n, e)[0]
+
+    def clearance_bound_m(self) -> float:
+        """How far above :meth:`base_ground_height` anything of the site can reach (m): a
+        rock's top, or the vehicle's highest point however it moves (a bound, not tight)."""
+        grad = self.terrain.max_gradient if self.terrain is not None else 0.0
+        top = 0.0
+        rocks = self.terrain.rocks if self.terrain is not None else None
+        if rocks is not None and len(rocks):
+            top = float(np.max(rocks.height)) + grad * float(np.max(rocks.extent))
+        if self.vehicle:
+            reach = max(float(np.max(np.abs(s.outline))) for s in self.vehicle) * math.sqrt(2)
+            above = max(-s.z_top for s in self.vehicle)
+            swell = getattr(self.motion, "heave_m", 0.0)
+            top = max(top, self.motion.height_m + swell + above + reach * (0.5 + grad))
+        return top
 
     # ------------------------------------------------------------------ ray cast
 

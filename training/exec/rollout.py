@@ -190,10 +190,11 @@ def fly_episode(
             truth = sim.ground_truth()
             if contact is not None:
                 result = EpisodeResult.from_contact(contact)
-                where_ne = contact.pos_ned_m
+                # relative to the pad: in its frame on a site (forward, right), else N, E
+                where_ne = contact.pos_ned_m if contact.pad is None else contact.pad.pos_m
             elif steps >= max_steps:
-                result = EpisodeResult.timeout(truth.time_s, truth.pos_ned_m, truth.vel_ned_m_s)
-                where_ne = truth.pos_ned_m
+                result = EpisodeResult.timeout(truth.time_s, *truth.pad_relative)
+                where_ne = truth.pad_relative[0]
             else:
                 frame += 1
                 obs = sim.observe(frame_id=frame, truth=truth)
