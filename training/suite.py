@@ -221,6 +221,15 @@ def _cells(r: EvalReport, widths: tuple[int, int, int] = (0, 0, 0)) -> list[str]
     return [_num(v, w, 3) for v, w in zip(values, widths, strict=True)]
 
 
+def _on_pad(r: EvalReport) -> tuple[int, int] | None:
+    """(touchdowns on the pad's own surface, touchdowns) of a condition flown on a site; None
+    for one on the nominal site (its rows carry no ``touched_pad``)."""
+    rows = [row for row in r.per_episode if row.landed]
+    if not any(row.touched_pad is not None for row in r.per_episode):
+        return None
+    return sum(bool(row.touched_pad) for row in rows), len(rows)
+
+
 def format_suite_table(report: SuiteReport, out: TextIO) -> None:
     """One row per condition: episodes, success, landing error mean/max, touchdown speed mean,
     timeouts ("-": no episode touched down)."""
@@ -265,16 +274,36 @@ def suite_markdown(report: SuiteReport, command: str, plot: str | None = None) -
         "(disjoint from every training and selection seed). Success: touched down within "
         "the pad's success radius, upright and slow (training/evaluate.py).",
         "",
+    ]
+    sites = any(_on_pad(r) is not None for r in report.conditions.values())
+    if sites:
+        lines.append(
+            "On a site (a moving pad, a slope, rocks) the metrics are in the pad's frame and "
+            "*on pad %* is the share of touchdowns on the pad's own surface; *off pad* counts "
+            "touchdowns elsewhere (the ground beside a rover, the sea, a rock)."
+        )
+        lines.append("")
+    extra = " on pad % | off pad |" if sites else ""
+    lines += [
         "| condition | episodes | success % | error mean m | error max m "
-        "| touchdown mean m/s | timeouts |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        f"| touchdown mean m/s | timeouts |{extra}",
+        "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if sites else ""),
     ]
     for name, r in report.conditions.items():
         mean, worst, touchdown = _cells(r)
-        lines.append(
+        row = (
             f"| {name} | {r.episodes} | {100 * r.summary.success_rate:.1f} "
             f"| {mean} | {worst} | {touchdown} | {r.summary.timeouts} |"
         )
+        if sites:
+            counts = _on_pad(r)
+            if counts is None:
+                row += " - | - |"
+            else:
+                on, landed = counts
+                share = f"{100 * on / landed:.1f}" if landed else "-"
+                row += f" {share} | {landed - on} |"
+        lines.append(row)
     if plot:
         lines += ["", f"![success and mean landing error per condition]({plot})"]
     return "\n".join(lines) + "\n"

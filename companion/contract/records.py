@@ -364,7 +364,7 @@ class LabelRecord(LogRecord):
 class EpisodeScenarioRecord(LogRecord):
     """``/episode/scenario``, first in the file: the seed, the episode (the SITL's
     ``episode``, the in-process ``episode_index``), its initial state and scenario, and what
-    its world drew (``airframe``, ``visual``: left out when nominal)."""
+    its world drew (``airframe``, ``visual``, ``pad``, ``site``: left out when nominal)."""
 
     SCHEMA = SCHEMA_EPISODE_SCENARIO
     episode: int | Absent = ABSENT
@@ -374,6 +374,10 @@ class EpisodeScenarioRecord(LogRecord):
     scenario: Mapping[str, Any]
     airframe: Mapping[str, Any] | Absent = ABSENT
     visual: Mapping[str, Any] | Absent = ABSENT
+    pad: Mapping[str, Any] | Absent = ABSENT
+    """The pad design drawn (``[pad] design``)."""
+    site: Mapping[str, Any] | Absent = ABSENT
+    """The landing site drawn (``sitl_sim.site.Site.record``: the pad's motion, terrain)."""
 
 
 @dataclass(**RECORD)

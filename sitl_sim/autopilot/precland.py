@@ -152,8 +152,12 @@ class LteParams:
 
     ``mode`` 1 (Stationary) is *not* PX4's default (0, Moving): without GPS the vehicle's own
     velocity drifts, and a static target's relative velocity is the only velocity aiding there
-    is (PX4 fuses it into the EKF in Stationary mode). With Moving, a 0.3 m/s velocity error
-    offsets the landing by ``kd/kp`` × 0.3 ≈ 0.7 m for this SITL's position loop.
+    is (PX4 fuses it into the EKF in Stationary mode). A target that moves (a rover, a deck)
+    needs 0 (Moving): the target is then used for setpoints only, re-published every cycle
+    from the filter's prediction, and the precision land feeds its velocity forward
+    (:attr:`PreclandSetpoint.velocity_ne_m_s`), as ArduPilot's ``PLND_OPTIONS`` bit 0 and
+    PX4's newer ``PLD_MOVING_T`` do: the position loop then flies the relative state alone, and
+    the vehicle's own velocity error cancels out of it.
     """
 
     mode: int = 1
@@ -221,9 +225,34 @@ class LandingTargetEstimator:
         self.abs_ne_m = np.full(2, math.nan)
         """The target in the estimate frame as last published (PX4 ``x_abs``, ``y_abs``): the
         relative position + the vehicle's estimated position at the last accepted measurement.
-        Nothing is published while the target is unseen, so it stays where it was seen."""
+        Nothing is published while the target is unseen, so it stays where it was seen (in
+        Stationary mode; Moving: :meth:`publish`)."""
+        self.abs_vel_ne_m_s = np.zeros(2)
+        """Moving mode: the target's velocity as last published (estimate frame)."""
         self.accepted = 0
         self.rejected = 0
+
+    @property
+    def moving(self) -> bool:
+        """``LTEST_MODE`` 0: the target may move (module docstring of :class:`LteParams`)."""
+        return self.params.mode == 0
+
+    def publish(self, nav: NavEstimator, dt_s: float) -> None:
+        """Moving mode: re-publish the target every cycle — from the filter's prediction
+        (relative + the vehicle's estimated position) while it runs, and after it reset, moved
+        on at its last velocity (the pose's age still counts from the last measurement, so
+        PLD_BTOUT still ends it). Stationary keeps the last measured one."""
+        if not self.moving or not math.isfinite(self.last_update_s):
+            return
+        if self.initialised:
+            self.abs_ne_m = nav.pos_ned_m[:2] + self.x[:, 0]
+            self.abs_vel_ne_m_s = self.target_vel_ne(nav)
+        else:
+            self.abs_ne_m = self.abs_ne_m + self.abs_vel_ne_m_s * dt_s
+
+    def target_vel_ne(self, nav: NavEstimator) -> np.ndarray:
+        """The target's velocity in the estimate frame: relative + the vehicle's own."""
+        return self.x[:, 1] + nav.vel_ned_m_s[:2]
 
     def predict(self, dt_s: float, vehicle_accel_ned_m_s2: np.ndarray, now_s: float) -> None:
         if not self.initialised:
@@ -309,6 +338,9 @@ class PreclandSetpoint:
 
     north_east_m: np.ndarray
     altitude_m: float | None
+    velocity_ne_m_s: np.ndarray | None = None
+    """A moving target's velocity, fed forward (``LTEST_MODE`` 0 while it is tracked); None:
+    a still point."""
 
 
 @dataclass(frozen=True)
@@ -455,8 +487,15 @@ class PrecisionLand:
 
     def _setpoint(self, now_s: float) -> PreclandSetpoint:
         state = self.state
-        if state in (PreclandState.HORIZONTAL_APPROACH, PreclandState.DESCEND_ABOVE_TARGET):
+        follow = None
+        moving = self.lte.moving and math.isfinite(self.lte.last_update_s)
+        if state in (PreclandState.HORIZONTAL_APPROACH, PreclandState.DESCEND_ABOVE_TARGET) or (
+            moving and state is PreclandState.FINAL_APPROACH
+        ):
+            # a moving target is followed down to the ground on its prediction
             ne = self.target_ne_m()
+            if moving:
+                follow = self.lte.abs_vel_ne_m_s.copy()
         else:
             ne = self.approx_ne_m.copy()
         if state is PreclandState.SEARCH:
@@ -467,5 +506,5 @@ class PrecisionLand:
                 alt = self._hold_alt_m = min(self.nav.altitude_m + 1.0, self._hold_alt_m)
             return PreclandSetpoint(ne, alt)
         if state in (PreclandState.START, PreclandState.HORIZONTAL_APPROACH):
-            return PreclandSetpoint(ne, self._hold_alt_m)
-        return PreclandSetpoint(ne, None)  # descend, final approach, fallback: land
+            return PreclandSetpoint(ne, self._hold_alt_m, follow)
+        return PreclandSetpoint(ne, None, follow)  # descend, final approach, fallback: land

@@ -146,6 +146,7 @@ class PreclandLoop:
         att = sample.attitude.attitude_rad
         nav.predict(dt, att, sample.imu.accel_frd_m_s2)
         lte.predict(dt, nav.accel_ned_m_s2, self.clock.time_s)
+        lte.publish(nav, dt)
         if self.clock.phase % self.substeps == 0:
             nav.fuse_range(sample.range_m, att)
 
@@ -196,7 +197,10 @@ class PreclandLoop:
             v_down = min(_MAX_HOLD_DESCENT_M_S, max(-_MAX_CLIMB_M_S, v_down))
         quat = quat_from_euler(*(float(a) for a in nav.attitude_rad))
         pos = np.array([err[0], err[1], -nav.altitude_m])
-        cmd = self.state.land_controller.command(pos, nav.vel_ned_m_s, quat, v_down_m_s=v_down)
+        vel = nav.vel_ned_m_s
+        if sp.velocity_ne_m_s is not None:  # a moving target: fly the velocity relative to it
+            vel = vel - np.array([sp.velocity_ne_m_s[0], sp.velocity_ne_m_s[1], 0.0])
+        cmd = self.state.land_controller.command(pos, vel, quat, v_down_m_s=v_down)
         self._log(sp.altitude_m)
         return cmd
 

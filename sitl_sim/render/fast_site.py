@@ -367,10 +367,16 @@ class FastSite:
         """The ground beyond the region through the homography ``ground`` (plane -> pixel)."""
         to_ne = self._base.texel_to_ne
         h = ground @ to_ne
-        if self._tiles is not None:
-            # the texels under the image's corners, moved by whole tiles to the tiling's corner
-            w, hgt = size
-            corners = np.linalg.solve(h, np.array([[0, w, w, 0], [0, 0, hgt, hgt], [1, 1, 1, 1.0]]))
+        w, hgt = size
+        pixel_corners = np.array([[0, w, w, 0], [0, 0, hgt, hgt], [1, 1, 1, 1.0]])
+        try:
+            # the texels under the image's corners (none: the camera lies in the ground's plane,
+            # a vehicle come down on the ground)
+            corners = np.linalg.solve(h, pixel_corners) if self._tiles is not None else None
+        except np.linalg.LinAlgError:
+            corners = None
+        if self._tiles is not None and corners is not None:
+            # moved by whole tiles to the tiling's corner
             rows, cols = self._base_mono.shape
             if np.all(corners[2] * np.sign(corners[2, 0]) > 1e-9):  # all on the ground
                 col, row = corners[0] / corners[2], corners[1] / corners[2]
