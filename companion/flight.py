@@ -295,6 +295,8 @@ class FlightMachine(ABC):
             needed = [store.attitude, store.imu, store.range]
             if self._needs_odometry:
                 needed.append(store.odometry)
+                if store.pad_odometry is not None:  # on a site: the pad's state too
+                    needed.append(store.pad_odometry)
             if all(s is not None and s.time_s >= t for s in needed):
                 return
             left = deadline - self._clock()

@@ -326,7 +326,7 @@ class FlightController(FlightMachine):
         # it arrived after them (jitter); a companion-clock camera, the newest
         at = frame.time_s if self.camera_clock == "autopilot" else None
         obs = assemble_observation(frame, self.store, self._hover_thrust(now), at)
-        gt = self.store.at("odometry", at) if self.runtime.privileged else None
+        gt = self.store.groundtruth_at(at) if self.runtime.privileged else None
         t_policy = self.perf.now()
         result = self.runtime.step(obs, gt)
         self.perf.add_inner("policy", t_policy)

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from companion.camera import ReceivedFrame
+from companion.contract import PAD_ODOMETRY_COMPONENT
 from companion.contract.companion_records import (
     CompanionCommandRecord,
     CompanionLandingTargetRecord,
@@ -111,13 +112,17 @@ class CompanionLog:
 
     def message(self, msg: Any, rx_s: float) -> None:
         """A message from the autopilot as received (its fields are read when the write runs:
-        a received message is never changed), with ``rx_s``."""
+        a received message is never changed), with ``rx_s``; the pad's ODOMETRY on a SITL
+        link also with its ``src_component`` (the replay tells the two streams apart by it)."""
+        extra: dict[str, Any] = {"rx_s": rx_s}
+        if msg.get_srcComponent() == PAD_ODOMETRY_COMPONENT:
+            extra["src_component"] = PAD_ODOMETRY_COMPONENT
         self._put(
             self.writer.write_mavlink,
             TOPIC_MAVLINK_IN + msg.get_type(),
             max(0.0, self.rel(rx_s)),
             msg,
-            {"rx_s": rx_s},
+            extra,
         )
 
     def frame(self, frame: ReceivedFrame) -> None:
@@ -202,6 +207,10 @@ class _Recorded:
 
     def get_type(self) -> str:
         return self._name
+
+    def get_srcComponent(self) -> int:  # pymavlink's name
+        """The sender's component: logged only for the pad's ODOMETRY, else the autopilot's."""
+        return int(self.__dict__.get("src_component", 1))
 
 
 @dataclass
@@ -299,7 +308,7 @@ def replay_log(path: str | Path, runtime: Any) -> ReplayReport:
                 continue
             at = times.get(fid)
             obs = assemble_observation(frame, store, hovers.get(fid), at)
-            gt = store.at("odometry", at and at["odometry"]) if runtime.privileged else None
+            gt = store.groundtruth_at(at and at["odometry"]) if runtime.privileged else None
             result = runtime.step(obs, gt)
             if result.command is None:
                 report.errors.append(f"frame {fid}: {result.error}")

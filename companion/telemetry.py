@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from companion.camera import RESTART_WINDOW_S, ReceivedFrame
-from companion.contract import GroundTruth, Observation
+from companion.contract import PAD_ODOMETRY_COMPONENT, GroundTruth, Observation
 
 __all__ = [
     "SUBSCRIBES",
@@ -52,7 +52,7 @@ SUBSCRIBES = (
 HISTORY_SAMPLES = 16
 """Samples kept per timed message for :meth:`TelemetryStore.at`: 0.32 s of 50 Hz ATTITUDE,
 HIGHRES_IMU or ODOMETRY, 1.6 s of 10 Hz DISTANCE_SENSOR — beyond any jitter worth flying."""
-_TIMED = ("attitude", "imu", "range", "odometry")
+_TIMED = ("attitude", "imu", "range", "odometry", "pad_odometry")
 
 _MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing
 _MAV_MODE_FLAG_SAFETY_ARMED = 128
@@ -178,6 +178,9 @@ class TelemetryStore:
     heartbeat: HeartbeatSample | None = None
     landed: LandedSample | None = None
     odometry: OdometrySample | None = None
+    pad_odometry: OdometrySample | None = None
+    """On a SITL link flying a landing site: the pad's state (ODOMETRY from
+    :data:`companion.contract.PAD_ODOMETRY_COMPONENT`)."""
     latest_time_s: float = -math.inf
     """The newest autopilot time stamp seen (s since autopilot boot)."""
     rejected: dict[str, int] = field(default_factory=dict)
@@ -287,7 +290,30 @@ class TelemetryStore:
         sample = odometry_from_msg(msg, rx_s)
         if sample is None:
             return self._reject("ODOMETRY")
+        if msg.get_srcComponent() == PAD_ODOMETRY_COMPONENT:
+            return self._keep("pad_odometry", sample, "ODOMETRY (pad)")
         return self._keep("odometry", sample, "ODOMETRY")
+
+    def groundtruth_at(self, time_s: float | None) -> GroundTruth | None:
+        """The privileged state at ``time_s`` (:meth:`at` of ODOMETRY) with, on a site, the
+        pad's: position, velocity and attitude of its ODOMETRY then, and its acceleration from
+        the two samples before (zero with one)."""
+        gt = self.at("odometry", time_s)
+        pad = self.at("pad_odometry", time_s)
+        if gt is None or pad is None:
+            return gt
+        earlier = [s for s in self._history["pad_odometry"] if s.time_s < pad.time_s - 1e-6]
+        accel = np.zeros(3)
+        if earlier:
+            prev = earlier[-1]
+            accel = (pad.vel_ned_m_s - prev.vel_ned_m_s) / (pad.time_s - prev.time_s)
+        return replace(
+            gt,
+            pad_pos_ned_m=pad.pos_ned_m,
+            pad_vel_ned_m_s=pad.vel_ned_m_s,
+            pad_quat_wxyz=pad.quat_wxyz,
+            pad_accel_ned_m_s2=accel,
+        )
 
     # ------------------------------------------------------------------ queries
 

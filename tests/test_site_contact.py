@@ -228,3 +228,91 @@ def test_the_expert_lands_on_every_kind_of_site_in_the_pads_frame(site):
             assert r.landing_error_m < 0.1 and r.touchdown_speed_m_s <= 0.5
     finally:
         env.close()
+
+
+def test_card_the_expert_lands_on_a_turning_rover_over_mavlink_and_the_log_shows_it(tmp_path):
+    """The SITL sends the pad's state as ODOMETRY from PAD_ODOMETRY_COMPONENT with
+    --groundtruth; the companion hands it to the privileged expert, which lands on the rover's
+    roof; ``visland log plot`` draws the path in the pad's frame beside the world's."""
+    from companion.flightlog import read_log
+    from tools.log_plots import plot_flight
+    from training.exec.fly import FlyConfig, fly
+
+    report = fly(
+        FlyConfig(
+            policy="expert",
+            scenario="configs/sites/rover_fast.toml",
+            episodes=1,
+            seed=500,
+            out=str(tmp_path / "run"),
+            progress=False,
+            companion_args=("--max-age-ms", "3000"),
+            sitl_args=("--lockstep-timeout-s", "5"),
+        )
+    )
+    (row,) = report.per_episode
+    assert row.success and row.touched_pad and row.landing_error_m < 0.1, row
+    flight = read_log(row.log)
+    pad = [m for m in flight.topic("/groundtruth/state") if "pad_pos_ned_m" in m]
+    assert pad and np.linalg.norm(pad[-1]["pad_pos_ned_m"][:2]) > 20.0  # it drove off
+    plotted = plot_flight(row.log, tmp_path / "rover.png")
+    assert "pad frame" in plotted.drawn and (tmp_path / "rover.png").stat().st_size > 10_000
+    # the companion's log replays to the same commands: the pad's stream is told apart in it
+    from companion.record import replay_log
+    from companion.runtime import PolicyRuntime
+    from training.companion_process import resolve_policy
+
+    (companion_log,) = (tmp_path / "run" / "companion").glob("*.mcap")
+    replay = replay_log(companion_log, PolicyRuntime(resolve_policy("expert"), "expert"))
+    assert replay.errors == [] and replay.commands > 100 and replay.max_abs_diff <= 1e-5
+
+
+def test_the_companion_joins_the_pads_odometry_to_the_vehicles():
+    """Two ODOMETRY streams of one system: the vehicle's from the autopilot, the pad's from
+    PAD_ODOMETRY_COMPONENT; the ground truth at a time carries both, the pad's acceleration from
+    its last two samples."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.contract import PAD_ODOMETRY_COMPONENT
+    from companion.telemetry import TelemetryStore
+
+    store = TelemetryStore()
+    enc = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    pad_enc = mavlink.MAVLink(None, srcSystem=1, srcComponent=PAD_ODOMETRY_COMPONENT)
+    nan21 = [math.nan] + [0.0] * 20
+
+    def odometry(encoder, t_s, pos, vel):
+        msg = encoder.odometry_encode(
+            round(t_s * 1e6), 1, 1, *pos, [1.0, 0, 0, 0], *vel, 0, 0, 0, nan21, nan21, 0, 0, 100
+        )
+        return mavlink.MAVLink(None).decode(bytearray(msg.pack(encoder)))
+
+    for k, t in enumerate((1.0, 1.02, 1.04)):
+        assert store.update(odometry(enc, t, (5.0, 0.0, -20.0), (0, 0, 1.0)), t)
+        vel = (2.0 + 0.5 * k * 0.02, 0.0, 0.0)  # accelerating at 0.5 m/s^2
+        assert store.update(odometry(pad_enc, t, (2.0 * t, 0.0, -1.5), vel), t)
+    gt = store.groundtruth_at(1.04)
+    assert gt.pos_ned_m == pytest.approx([5.0, 0.0, -20.0])
+    assert gt.pad_pos_ned_m == pytest.approx([2.08, 0.0, -1.5])
+    assert gt.pad_accel_ned_m_s2 == pytest.approx([0.5, 0.0, 0.0], abs=1e-6)
+    assert gt.pad_relative[0] == pytest.approx([2.92, 0.0, -18.5])
+    # no pad stream (the nominal site): the vehicle's ODOMETRY alone, as always
+    plain = TelemetryStore()
+    plain.update(odometry(enc, 1.0, (5.0, 0.0, -20.0), (0, 0, 1.0)), 1.0)
+    assert plain.groundtruth_at(1.0).pad_pos_ned_m is None
+
+
+def test_the_camera_of_a_vehicle_come_down_beside_the_rover_still_gives_frames():
+    """Its camera lies in the ground's plane: the fast renderer's ground homography is singular
+    there, and a frame (not an exception) must come out, as on the nominal site."""
+    rover = {"motion": "rover", "height_m": 1.5, "speed_m_s": 2.0, "heading_deg": 0.0}
+    sim = Simulator(load_vehicle(), load_sim())
+    try:
+        world = episode_world(scenario_with(pad=rover, visual={"terrain": ["asphalt"]}), 1, 0)
+        sim.reset(InitialState((0.0, 8.0, -2.0), (0, 0, 0), (0, 0, 0), (0, 0, 0)), 1, world=world)
+        _fall(sim, seconds=2.0)
+        assert sim.ground_truth().pos_ned_m[2] == pytest.approx(0.0, abs=1e-9)
+        image = sim.observe().image
+        assert image.shape == (128, 128) and image.any()
+    finally:
+        sim.close()

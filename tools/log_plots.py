@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 
 from companion.contract.records import TIME_S, EventKind, EventRecord, RecordError
-from companion.contract.topics import TOPIC_EVENTS
+from companion.contract.topics import TOPIC_EVENTS, TOPIC_GROUNDTRUTH
 from companion.flightlog import FlightLog, read_log
 from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
+from sitl_sim.physics.dynamics import quat_to_rotation
 from tools.logtool import (
     PANEL_WIDTH,
     RESULT_TOPICS,
@@ -239,12 +240,16 @@ def plot_flight(path: str | Path, out: str | Path | None = None) -> PlotReport:
         )
         if src.sources[panel] is not None  # a panel without data is left out, not drawn empty
     ]
-    rows, cols = (1, max(1, len(panels))) if len(panels) <= 2 else (2, 2)
+    if _pad_track(log) is not None:  # a moving or tilted pad: the path as seen from it too
+        panels.insert(
+            1, ("pad frame", _draw_pad_frame, "in the pad's frame", "right (m)", "forward (m)")
+        )
+    rows, cols = (1, max(1, len(panels))) if len(panels) <= 2 else (2, (len(panels) + 1) // 2)
     fig, axes = plt.subplots(rows, cols, figsize=(6.5 * cols, 4.5 * rows + 0.5), squeeze=False)
     try:
         flat = list(axes.flat)
         for ax, (panel, draw, title, xlabel, ylabel) in zip(flat, panels, strict=False):
-            topic = src.sources[panel]
+            topic = src.sources.get(panel, TOPIC_GROUNDTRUTH)
             draw(ax, log, topic, events)
             ax.set_title(f"{title} ({topic})", fontsize=10)
             ax.set_xlabel(xlabel)
@@ -279,7 +284,46 @@ def _draw_top(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -
     ax.plot(pos[:, 1], pos[:, 0], color="tab:blue", linewidth=1.2, label="path")
     ax.plot(pos[0, 1], pos[0, 0], "o", color="tab:blue", label="start")
     ax.plot(pos[-1, 1], pos[-1, 0], "x", color="k", markersize=9, label="end")
-    span = max(3.0, float(np.nanmax(np.abs(pos[:, :2]))) * 1.15)
+    reach = pos[:, :2]
+    track = _pad_track(log)
+    if track is not None:  # a pad that moves: its path in the world too
+        pad = track[1]
+        ax.plot(
+            pad[:, 1], pad[:, 0], "--", color="tab:orange", linewidth=2.0, label="pad", zorder=1
+        )
+        ax.plot(pad[-1, 1], pad[-1, 0], "s", color="tab:orange", markersize=6)
+        reach = np.vstack([reach, pad[:, :2]])
+    span = max(3.0, float(np.nanmax(np.abs(reach))) * 1.15)
+    ax.set_xlim(-span, span)
+    ax.set_ylim(-span, span)
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(alpha=0.3)
+
+
+def _pad_track(log: FlightLog) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vehicle NED (n, 3), pad NED (n, 3), pad attitude quaternions (n, 4)) from the ground
+    truth of a flight on a site (None: the still pad at the origin, or no ground truth)."""
+    msgs = [m for m in log.topic(TOPIC_GROUNDTRUTH) if "pad_pos_ned_m" in m]
+    if not msgs:
+        return None
+    return tuple(  # type: ignore[return-value]
+        np.array([m[k] for m in msgs], dtype=float)
+        for k in ("pos_ned_m", "pad_pos_ned_m", "pad_quat_wxyz")
+    )
+
+
+def _draw_pad_frame(ax, log: FlightLog, topic: str, events: list[tuple[float, str]]) -> None:
+    """The vehicle's path relative to the pad, in the pad's frame (right across, forward up):
+    what landing on a moving pad is."""
+    pos, pad, quat = _pad_track(log) or (np.zeros((0, 3)),) * 3
+    rel = np.array(
+        [quat_to_rotation(q).T @ (p - c) for p, c, q in zip(pos, pad, quat, strict=True)]
+    )
+    draw_pad(ax, success_circle=True)
+    ax.plot(rel[:, 1], rel[:, 0], color="tab:purple", linewidth=1.2, label="path from the pad")
+    ax.plot(rel[-1, 1], rel[-1, 0], "x", color="k", markersize=9, label="end")
+    span = max(3.0, float(np.nanmax(np.abs(rel[:, :2]))) * 1.15)
     ax.set_xlim(-span, span)
     ax.set_ylim(-span, span)
     ax.set_aspect("equal")

@@ -31,6 +31,7 @@ dialect, imported only by whoever needs them). Nothing here imports another visl
 from companion.contract.messages import (
     CAMERA_FOV_DEG,
     IMAGE_SIZE_PX,
+    PAD_ODOMETRY_COMPONENT,
     Command,
     ContractError,
     GroundTruth,
@@ -47,6 +48,7 @@ from companion.contract.policy import (
 __all__ = [
     "CAMERA_FOV_DEG",
     "IMAGE_SIZE_PX",
+    "PAD_ODOMETRY_COMPONENT",
     "Command",
     "ContractError",
     "GroundTruth",

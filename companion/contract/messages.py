@@ -155,6 +155,10 @@ class Observation:
         object.__setattr__(self, "hover_thrust_norm", hover)
 
 
+PAD_ODOMETRY_COMPONENT = 25
+"""MAV_COMP_ID_USER1: on a SITL link with ``--groundtruth`` and a landing site, the pad's state
+travels as ODOMETRY from this component of the autopilot's system (pose in LOCAL_NED, velocity
+in LOCAL_NED): the privileged channel's pad, as the vehicle's own ODOMETRY is its state."""
 PAD_STATE_FIELDS = ("pad_pos_ned_m", "pad_vel_ned_m_s", "pad_quat_wxyz", "pad_accel_ned_m_s2")
 """GroundTruth's pad state: all four or none (the nominal pad, still at the origin)."""
 _OPTIONAL_VECTORS = (

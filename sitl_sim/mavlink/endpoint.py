@@ -262,15 +262,20 @@ class MavlinkEndpoint:
 
     # ------------------------------------------------------------------ sending
 
-    def send(self, msg: Any) -> bytes:
-        """Pack (sign) and send to the remote and every peer; socket errors are counted."""
+    def send(self, msg: Any, component: int | None = None) -> bytes:
+        """Pack (sign) and send to the remote and every peer; socket errors are counted.
+        ``component``: another component of this system sends it (None: ours)."""
         enc = self._encoder
         if enc.signing.sign_outgoing:
             # Signing time must not lag the wall clock (receivers reject old new-streams).
             enc.signing.timestamp = max(enc.signing.timestamp, signing_timestamp_now())
-            buf = msg.pack(enc)
+            own, enc.srcComponent = enc.srcComponent, component or enc.srcComponent
+            try:
+                buf = msg.pack(enc)
+            finally:
+                enc.srcComponent = own
         else:  # pymavlink's bytes, packed in a third of its time
-            buf = pack_unsigned(msg, enc.seq, enc.srcSystem, enc.srcComponent)
+            buf = pack_unsigned(msg, enc.seq, enc.srcSystem, component or enc.srcComponent)
         enc.seq = (enc.seq + 1) % 256
         self.send_bytes(buf)
         return buf

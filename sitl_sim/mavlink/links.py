@@ -85,9 +85,10 @@ class Links:
         """The codec messages are built with (the offboard link's)."""
         return self.offboard.mav
 
-    def send(self, msg: Any) -> None:
-        """Pack (and sign) once; send on every link."""
-        buf = self.offboard.send(msg)
+    def send(self, msg: Any, component: int | None = None) -> None:
+        """Pack (and sign) once; send on every link (from ``component``, None: the
+        autopilot's)."""
+        buf = self.offboard.send(msg, component)
         if self.gcs is not None:
             self.gcs.send_bytes(buf)
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.contract import GroundTruth
+from companion.contract import PAD_ODOMETRY_COMPONENT, GroundTruth
 from companion.contract.records import EventKind, ObservationRecord
 from sitl_sim.autopilot.px4 import FlightMode
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
@@ -189,8 +189,8 @@ class Publisher:
 
     # ------------------------------------------------------------------ sending
 
-    def send(self, msg: Any) -> None:
-        self.links.send(msg)
+    def send(self, msg: Any, component: int | None = None) -> None:
+        self.links.send(msg, component)
         self.flight_log.outbound(msg)
 
     def statustext(self, severity: int, text: str) -> None:
@@ -219,6 +219,8 @@ class Publisher:
         for stream in self.streams.values():
             if stream.period_ticks and phase % stream.period_ticks == 0:
                 self.send(self.builders[stream.msg_id]())
+                if stream.msg_id == mavlink.MAVLINK_MSG_ID_ODOMETRY and self.sim.site is not None:
+                    self.send(self.build_pad_odometry(), PAD_ODOMETRY_COMPONENT)
 
     # ------------------------------------------------------------------ the tick's readings
 
@@ -385,6 +387,35 @@ class Publisher:
             w[0],
             w[1],
             w[2],
+            nan21,
+            nan21,
+            0,
+            mavlink.MAV_ESTIMATOR_TYPE_MOCAP,
+            100,
+        )
+
+    def build_pad_odometry(self) -> Any:
+        """The pad's ground truth on a site (:data:`companion.contract.PAD_ODOMETRY_COMPONENT`
+        sends it): pose and velocity in LOCAL_NED, the pad frame's angular rates."""
+        gt = self.sample().truth
+        assert gt.pad_pos_ned_m is not None and gt.pad_vel_ned_m_s is not None
+        assert gt.pad_quat_wxyz is not None
+        p, v, q = gt.pad_pos_ned_m, gt.pad_vel_ned_m_s, gt.pad_quat_wxyz
+        nan21 = [math.nan] + [0.0] * 20
+        return self.links.mav.odometry_encode(
+            self.clock.time_us,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            p[0],
+            p[1],
+            p[2],
+            [float(x) for x in q],
+            v[0],
+            v[1],
+            v[2],
+            0.0,
+            0.0,
+            0.0,
             nan21,
             nan21,
             0,
