@@ -106,6 +106,13 @@ class Companion:
         self.perf = LoopPerf()
         """Wall time per part of the loop while a flight is in the air (the report's
         ``perf``)."""
+        self.live = None
+        if cfg.live:
+            from companion.live import LiveView, parse_live
+
+            host, port = parse_live(cfg.live)
+            self.live = LiveView(host, port, name="visland companion")
+            print(f"visland companion: live view on ws://{host}:{self.live.port}", file=sys.stderr)
 
     # ------------------------------------------------------------------ plumbing
 
@@ -142,7 +149,7 @@ class Companion:
             (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0),
         ):
             link.set_message_interval(msg_id, hz)
-        if self.runtime.privileged:
+        if self.runtime.privileged or self.live is not None:  # live: the truth beside the estimate
             link.set_message_interval(mavlink.MAVLINK_MSG_ID_ODOMETRY, 50.0)
 
     def _link_events(self) -> None:
@@ -185,6 +192,7 @@ class Companion:
             self._pump,
             self._clock,
             self.perf,
+            self.live,
         )
         if self.tracker is not None:
             from companion.landing_target import LandingTargetController
@@ -285,6 +293,8 @@ class Companion:
             self.camera.close()
             self.link.close()
             perf.close()
+            if self.live is not None:
+                self.live.close()
         return {
             "flights": self.outcomes,
             "not_flown": self.not_flown,

@@ -162,8 +162,20 @@ class CompanionConfig:
         "/var/lib/visland/flights", "folder for one MCAP log per flight ('': a temporary one)", str
     )
     max_wall_s: float | None = option(None, "exit after this many seconds (safety net)", float)
+    live: str = option(
+        "",
+        "serve a live view in Foxglove on [HOST:]PORT (e.g. 8765 on 127.0.0.1, 0.0.0.0:8765 for "
+        "the field laptop; pip install 'visland[live]'); '' = off",
+    )
 
     def __post_init__(self) -> None:
+        if self.live:
+            from companion.live import parse_live
+
+            try:
+                parse_live(self.live)
+            except ValueError as exc:
+                raise CompanionError(str(exc)) from None
         if self.flights < 0:
             raise CompanionError(f"flights = {self.flights}; expected >= 0")
         if not (math.isfinite(self.max_age_ms) and self.max_age_ms > 0):

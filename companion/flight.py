@@ -26,6 +26,7 @@ from companion.states import Failsafe, FlightResult, FlightState, TouchdownActio
 
 if TYPE_CHECKING:
     from companion.link import MavlinkLink
+    from companion.live import LiveView
     from companion.safety import SafetyMonitor
     from companion.telemetry import TelemetryStore
 
@@ -102,6 +103,7 @@ class FlightContext:
         clock: the companion's monotonic clock.
         perf: the process loop's counters (the flight times its policy steps, sends and log
             writes into them).
+        live: the live view (``--live``; None: off): each answered frame and event goes there.
     """
 
     cfg: OffboardConfig
@@ -112,6 +114,7 @@ class FlightContext:
     pump: Callable[[float], None]
     clock: Callable[[], float]
     perf: LoopPerf = field(default_factory=LoopPerf)
+    live: LiveView | None = None
 
 
 @dataclass
@@ -188,6 +191,7 @@ class FlightMachine(ABC):
         self._pump = ctx.pump
         self._clock = clock = ctx.clock
         self.perf = ctx.perf
+        self.live = ctx.live
         self.outcome = FlightOutcome(index=index, log_path=str(log.path))
         self.state = FlightState.WAITING
         self.began = False
@@ -240,6 +244,10 @@ class FlightMachine(ABC):
 
     def _event(self, kind: EventKind, text: str) -> None:
         self.log.event(self._clock(), kind, text, state=self.state.value)
+        if self.live is not None:
+            latest = self.store.latest_time_s
+            error = kind in (EventKind.FAILSAFE,)
+            self.live.event(latest if math.isfinite(latest) else 0.0, f"{kind}: {text}", error)
         self.outcome.events.append(f"{kind}: {text}")
         log.info("flight %d %s: %s", self.outcome.index, kind, text)
 

@@ -41,6 +41,7 @@ from companion.contract.companion_records import CompanionCommandRecord, Compani
 from companion.contract.records import EventKind
 from companion.flight import FlightContext, FlightMachine, FlightRecorder
 from companion.link import mavlink
+from companion.live import live_frame
 from companion.runtime import PolicyRuntime
 from companion.safety import TouchdownDetector
 from companion.states import Failsafe, FailsafeReason, FlightResult, FlightState, TouchdownAction
@@ -369,6 +370,17 @@ class FlightController(FlightMachine):
                 sync_ms=(now - t_in) * 1e3,
             ),
         )
+        if self.live is not None and self.live.watched:  # after the setpoint left: never before
+            self.live.publish(
+                live_frame(
+                    obs,
+                    self.store.groundtruth_at(at),
+                    self.runtime.next_state(),
+                    cmd,
+                    self.state.value,
+                    self.link.counters,
+                )
+            )
         if self._touchdown.update(self.store, self._flight_start_rx) and not self.cfg.bench:
             self._on_touchdown()
 

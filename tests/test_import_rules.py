@@ -21,6 +21,7 @@ COMPANION_THIRD_PARTY = {
     "pymavlink",
     "mcap",
     "zstandard",
+    "foxglove",
     "torch",  # the torch runtime and `visland export-onnx` (see test below: not in the contract)
     "onnxruntime",
     "onnx",
@@ -39,6 +40,7 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
             "companion.files",
             "companion.options",
             "companion.lazy",
+            "companion.live",
         ),
         {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2"},
     ),

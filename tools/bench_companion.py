@@ -103,10 +103,14 @@ def bench_companion(
     scenario: str | None = None,
     runtime: str = "torch",
     compare: bool = True,
+    live: bool = False,
 ) -> dict[str, Any]:
     """Latency figures from ``logs``, or from a fresh ``fly`` run of ``policy`` on ``runtime``
     (``torch`` | ``onnx``); with ``compare`` and a checkpoint file, also
-    :func:`compare_runtimes` on the run's first flight."""
+    :func:`compare_runtimes` on the run's first flight. With ``live``, the same flights again
+    with the live view on and a Foxglove-protocol client subscribed to every channel
+    (:mod:`tools.live_client`): ``live`` holds their latency and ``live_vs_off`` the ratios of
+    median and p99 (with a viewer / without)."""
     if logs:
         return {"logs": [str(p) for p in logs], **latency_stats(list(logs))}
     from companion.runtime import RUNTIMES
@@ -142,6 +146,11 @@ def bench_companion(
         )
     )
     logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
+    watched = None
+    if live:
+        watched = _fly_watched(
+            str(flown) if is_file else policy, episodes, seed, scenario, runtime, run / "live"
+        )
     res: dict[str, Any] = {
         "policy": policy,
         "runtime": runtime,
@@ -153,7 +162,60 @@ def bench_companion(
     }
     if is_file and compare and logs:
         res["compare"] = compare_runtimes(flown, logs[0])
+    if watched is not None:
+        res["live"] = watched
+        res["live_vs_off"] = {
+            k: watched[f"{k}_ms"] / res[f"{k}_ms"] if res.get(f"{k}_ms") else None
+            for k in ("median", "p99")
+        }
     return res
+
+
+def _fly_watched(
+    policy: str, episodes: int, seed: int, scenario: str | None, runtime: str, out: Path
+) -> dict[str, Any]:
+    """The same flights with ``--live`` and a client subscribed to every channel throughout:
+    the companion's latency then, and what the client received."""
+    import socket
+    import threading
+
+    from tools.live_client import watch
+    from training.exec.fly import FlyConfig, fly
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    done = threading.Event()
+    seen: dict[str, Any] = {}
+
+    def client() -> None:
+        topics = {"/camera/image", "/scene", "/camera/annotations", "/tf", "/live/state"}
+        got = watch(port, topics, per_topic=10**9, timeout_s=600.0, until=done.is_set)
+        seen["messages"] = {t: len(m) for t, m in got.messages.items()}
+
+    viewer = threading.Thread(target=client, daemon=True)
+    viewer.start()
+    report = fly(
+        FlyConfig(
+            policy=policy,
+            episodes=episodes,
+            seed=seed,
+            scenario=scenario,
+            render=True,
+            progress=False,
+            out=str(out),
+            live=str(port),
+            companion_args=("--runtime", runtime),
+        )
+    )
+    done.set()
+    viewer.join(30)
+    logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
+    return {
+        "success_rate": report.summary.success_rate,
+        "received": seen.get("messages", {}),
+        **latency_stats(list(logs)),
+    }
 
 
 def format_bench(res: dict[str, Any]) -> str:
@@ -178,6 +240,15 @@ def format_bench(res: dict[str, Any]) -> str:
         lines.append(
             f"commands vs the flown ones ({res['runtime']}): torch max |diff| "
             f"{t['max_abs_diff_vs_flown']:.2g}, onnx max |diff| {o['max_abs_diff_vs_flown']:.2g}"
+        )
+    watched = res.get("live")
+    if watched:
+        ratio = res["live_vs_off"]
+        lines.append(
+            f"the same flights with the live view and a client subscribed to every channel: "
+            f"median {watched['median_ms']:.2f} ms, p99 {watched['p99_ms']:.2f} ms "
+            f"(x{ratio['median']:.2f} median, x{ratio['p99']:.2f} p99 of the flights without; "
+            f"the client received {sum(watched['received'].values())} messages)"
         )
     return "\n".join(lines)
 

@@ -120,6 +120,8 @@ EXTRA_OF_MODULE = {
     "tomli_w": "train",
     "onnx": "train",
     "ray": "ray",
+    "foxglove": "live",
+    "websockets": "dev",
     "mavsdk": "dev",
     "pytest": "dev",
 }

@@ -109,6 +109,29 @@ def add_parallel_arguments(p: argparse.ArgumentParser, workers_help: str | None 
     add_backend_arguments(p)
 
 
+def add_live_argument(p: argparse.ArgumentParser, who: str) -> None:
+    """``--live [HOST:]PORT``: a live view in Foxglove (:mod:`companion.live`)."""
+    p.add_argument(
+        "--live",
+        metavar="[HOST:]PORT",
+        default="",
+        type=_live,
+        help=f"serve a live view of the flight in Foxglove ({who}) on PORT (default host "
+        "127.0.0.1; 8765 is Foxglove's port): open Foxglove, Open connection, ws://HOST:PORT, "
+        "and load docs/foxglove/visland.json (needs 'visland[live]'; default: off)",
+    )
+
+
+def _live(text: str) -> str:
+    from companion.live import parse_live
+
+    try:
+        parse_live(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def scenario_arg(args: argparse.Namespace) -> str | None:
     """``--scenario`` as the configs take it: a path string, None for the default."""
     return str(args.scenario) if args.scenario else None

@@ -76,6 +76,7 @@ def _bench_companion(args: argparse.Namespace) -> int:
             episodes=args.episodes or 3,
             seed=args.seed,
             runtime=args.runtime or "torch",
+            live=args.live_client,
         )
     except FlyError as exc:
         print(f"visland bench companion: failed: {exc}", file=sys.stderr)
@@ -193,6 +194,14 @@ def register_bench(sub: argparse._SubParsersAction) -> None:
         help="bench policy: checkpoint to time; bench companion: checkpoint to fly; bench sitl: "
         "what the companion flies, a checkpoint or expert (default, all: "
         "models/visland_vision.pt)",
+    )
+    b.add_argument(
+        "--live",
+        dest="live_client",
+        action="store_true",
+        help="bench companion: fly the same episodes again with the live view on and a "
+        "Foxglove-protocol client subscribed to every channel, and report both latencies and "
+        "their ratio (default: off)",
     )
     b.add_argument(
         "--runtime",

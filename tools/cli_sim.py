@@ -14,6 +14,7 @@ from typing import NamedTuple
 from tools.cli_args import (
     add_deprecated_alias,
     add_episode_arguments,
+    add_live_argument,
     config_from_args,
     print_json,
     scenario_arg,
@@ -154,6 +155,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
         sitl_args=link_args,
         autopilot=getattr(args, "autopilot", "px4"),
         sitl_params=tuple(getattr(args, "param", None) or ()),
+        live=getattr(args, "live", ""),
     )
     # eval --transport mavlink --workers N = fly --instances N
     instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
@@ -196,6 +198,7 @@ def _register_demo(sub: argparse._SubParsersAction) -> None:
         "every episode was flown, whatever the landings scored (failures are reported); 1 when "
         "a process failed; 2 on bad input.",
     )
+    add_live_argument(d, "the companion serves it: its camera, CNN and estimate beside the truth")
     d.add_argument(
         "--policy",
         default=str(SHIPPED_MODEL),
@@ -305,6 +308,7 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
         "to see the companion refuse",
     )
     add_deprecated_alias(fl, "--sitl-param", "--param", "param", append=True)
+    add_live_argument(fl, "the companion serves it: its camera, CNN and estimate beside the truth")
     add_episode_arguments(
         fl,
         episodes=20,

@@ -67,6 +67,8 @@ class DemoConfig:
     """Output folder: logs, ``flights.png``, ``demo.json`` (a previous demo there is replaced)."""
     progress: bool = True
     """Print ``fly: k/N episodes`` on stderr while flying."""
+    live: str = ""
+    """``[HOST:]PORT`` of a live view in Foxglove ('' = off)."""
 
 
 def _rel(path: str | Path, base: Path | None = None) -> str:
@@ -300,6 +302,7 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
             scenario=str(scenario) if scenario else None,
             out=str(out_dir),
             progress=cfg.progress,
+            live=cfg.live,
         )
     ).to_dict()  # the demo's report is fly's JSON object, its own keys added (demo.json)
     rows = report["per_episode"]

@@ -96,6 +96,9 @@ class FlyConfig:
     sitl_params: tuple[str, ...] = ()
     """``NAME=VALUE`` parameters for the SITL's ``--param``, after the profile's setup
     (:func:`setup_params`), so they win."""
+    live: str = ""
+    """``[HOST:]PORT``: the companion serves the live view there (the SITL then sends its truth
+    as ODOMETRY, drawn beside the estimate); '' = off."""
 
 
 AUTOPILOTS = ("px4", "ardupilot")
@@ -250,7 +253,7 @@ def fly(cfg: FlyConfig) -> FlyReport:
         str(sitl_dir),
         "--max-wall-s",
         str(timeout_s),
-        "--groundtruth" if privileged else "--no-groundtruth",
+        "--groundtruth" if privileged or cfg.live else "--no-groundtruth",
         "--render" if render else "--no-render",
         "--no-lockstep" if cfg.realtime else "--lockstep",
         *(["--scenario", cfg.scenario] if cfg.scenario else []),
@@ -277,6 +280,7 @@ def fly(cfg: FlyConfig) -> FlyReport:
         str(comp_dir),
         "--max-wall-s",
         str(timeout_s),
+        *(["--live", cfg.live] if cfg.live else []),
         *cfg.companion_args,
     ]
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **cfg.env}

@@ -1,0 +1,125 @@
+"""The live view (issue 30): a Foxglove WebSocket server in the flying process; a client of the
+Foxglove protocol subscribes and decodes what it serves."""
+
+from __future__ import annotations
+
+import socket
+import threading
+
+import numpy as np
+import pytest
+
+from companion.live import LiveFrame, LiveView, parse_live
+from tools.live_client import watch
+from training.exec.fly import DEFAULT_VISION_POLICY, FlyConfig, fly
+
+TOPICS = {
+    "/camera/image",
+    "/camera/calibration",
+    "/camera/annotations",
+    "/scene",
+    "/tf",
+    "/live/state",
+}
+
+
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_parse_live_takes_host_and_port_and_names_a_bad_one():
+    assert parse_live("8765") == ("127.0.0.1", 8765)
+    assert parse_live("0.0.0.0:9000") == ("0.0.0.0", 9000)
+    for bad in ("", "host:", "99999", "port"):
+        with pytest.raises(ValueError, match=r"\[HOST:\]PORT"):
+            parse_live(bad)
+
+
+def test_nothing_is_built_without_a_client_and_everything_with_one():
+    view = LiveView(port=0)
+    try:
+        assert not view.watched
+        frame = LiveFrame(
+            time_s=1.5,
+            image=np.full((128, 128), 77, np.uint8),
+            vehicle_pos_ned_m=np.array([2.0, -1.0, -30.0]),
+            quat_wxyz=np.array([1.0, 0.0, 0.0, 0.0]),
+            perception=(0.05, -0.02, 0.97),
+            estimate_rel_ned_m=np.array([2.3, -1.2, -30.0]),
+            estimate_sigma_m=np.array([0.4, 0.4, 0.3]),
+            truth_rel_ned_m=np.array([2.0, -1.0, -30.0]),
+            command=(0.55, 0.01, -0.02, 0.0),
+            range_m=30.1,
+            wind_ned_m_s=np.array([4.0, 1.0, 0.0]),
+            state="flying",
+        )
+        view.publish(frame)  # nobody watches: builds nothing, costs nothing
+        stop = threading.Event()
+
+        def pump() -> None:
+            while not stop.wait(0.05):
+                view.publish(frame)
+
+        threading.Thread(target=pump, daemon=True).start()
+        try:
+            seen = watch(view.port, TOPICS)
+        finally:
+            stop.set()
+    finally:
+        view.close()
+    assert seen.channels["/camera/image"]["schemaName"] == "foxglove.RawImage"
+    image = seen.messages["/camera/image"][0]
+    assert (image.width, image.height, image.encoding) == (128, 128, "mono8")
+    assert set(image.data) == {77}
+    notes = seen.messages["/camera/annotations"][0]
+    assert notes.texts[0].text == "pad p=0.97" and len(notes.circles) == 1
+    # the CNN's cross at its bearing: 64 + f tan(right), 64 - f tan(forward)
+    f = 64 / np.tan(np.radians(22.5))
+    centre = np.mean([(p.x, p.y) for p in notes.points[0].points], axis=0)
+    assert centre == pytest.approx([64 + f * 0.05, 64 + f * 0.02], abs=1e-3)
+    scene = seen.messages["/scene"][0]
+    ids = {e.id for e in scene.entities}
+    assert {"ground", "pad", "vehicle", "frustum", "estimated_pad", "wind"} <= ids
+    tf = {t.child_frame_id: t for t in seen.messages["/tf"][0].transforms}
+    assert tf["vehicle"].translation.z == pytest.approx(-30.0)
+    state = seen.messages["/live/state"][0]
+    assert state["command"]["thrust_norm"] == pytest.approx(0.55)
+    assert state["estimate"]["n"] == pytest.approx(2.3) and state["truth"]["n"] == 2.0
+
+
+def test_card_fly_live_serves_the_companions_view_of_a_vision_flight(tmp_path):
+    """``visland fly --live PORT``: the companion serves its camera, the CNN's bearing and its
+    estimate over the truth; the flight lands as it does without a viewer."""
+    port = _free_tcp_port()
+    result: dict = {}
+
+    def run() -> None:
+        result["report"] = fly(
+            FlyConfig(
+                policy=DEFAULT_VISION_POLICY,
+                episodes=1,
+                out=str(tmp_path / "run"),
+                progress=False,
+                live=str(port),
+                companion_args=("--max-age-ms", "3000"),
+                sitl_args=("--lockstep-timeout-s", "5"),
+            )
+        )
+
+    flight = threading.Thread(target=run)
+    flight.start()
+    try:
+        seen = watch(port, TOPICS, per_topic=3, timeout_s=60.0)
+    finally:
+        flight.join(180)
+    report = result["report"]
+    assert report.summary.success_rate == 1.0, report.per_episode
+    image = seen.messages["/camera/image"][-1]
+    assert (image.width, image.height) == (128, 128) and len(set(image.data)) > 10
+    assert any(n.texts for n in seen.messages["/camera/annotations"])  # the CNN's bearing
+    ids = {e.id for m in seen.messages["/scene"] for e in m.entities}
+    assert {"pad", "vehicle", "frustum"} <= ids
+    states = seen.messages["/live/state"]
+    assert all("truth" in s and "command" in s for s in states)  # the SITL's truth beside it
