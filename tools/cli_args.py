@@ -125,6 +125,8 @@ def add_live_argument(p: argparse.ArgumentParser, who: str) -> None:
 def _live(text: str) -> str:
     from companion.live import parse_live
 
+    if not text:  # the default: off
+        return text
     try:
         parse_live(text)
     except ValueError as exc:
