@@ -123,3 +123,54 @@ def test_card_fly_live_serves_the_companions_view_of_a_vision_flight(tmp_path):
     assert {"pad", "vehicle", "frustum"} <= ids
     states = seen.messages["/live/state"]
     assert all("truth" in s and "command" in s for s in states)  # the SITL's truth beside it
+    # the recorded flights, replayed live: the companion's own log names its policy (run again
+    # for the CNN and the estimate); the SITL's log has the truth
+    from tools.log_replay import ReplayConfig, replay_live
+
+    (companion_log,) = (tmp_path / "run" / "companion").glob("*.mcap")
+    (sitl_log,) = (tmp_path / "run" / "sitl").glob("*.mcap")
+    for log, key in ((companion_log, "estimate"), (sitl_log, "truth")):
+        port = _free_tcp_port()
+        out: dict = {}
+        cfg = ReplayConfig(file=log, live=str(port), speed=0.0, wait_s=30.0)
+        player = threading.Thread(target=lambda cfg=cfg, out=out: out.update(r=replay_live(cfg)))
+        player.start()
+        try:
+            seen = watch(port, TOPICS, per_topic=50, timeout_s=60.0)
+        finally:
+            player.join(60)
+        assert out["r"].watched and out["r"].frames > 100
+        late = seen.messages["/live/state"][-1]
+        assert key in late and "command" in late, late
+        if key == "estimate":
+            assert out["r"].policy == DEFAULT_VISION_POLICY or out["r"].policy.endswith(".pt")
+            assert any(n.texts for n in seen.messages["/camera/annotations"])
+
+
+def test_log_replay_of_a_missing_file_exits_2_naming_it(tmp_path):
+    from helpers import visland
+
+    port = str(_free_tcp_port())
+    proc = visland("log", "replay", str(tmp_path / "nope.mcap"), "--live", port, "--wait-s", "0")
+    assert proc.returncode == 2 and "nope.mcap" in proc.stderr
+    proc = visland("log", "replay", str(tmp_path / "x.mcap"), "--live", "host:port")
+    assert proc.returncode == 2 and "[HOST:]PORT" in proc.stderr
+
+
+def test_the_shipped_layout_shows_only_topics_the_live_view_serves():
+    import json
+    from pathlib import Path
+
+    layout = json.loads(Path("docs/foxglove/visland.json").read_text())
+    panels = layout["configById"]
+    served = TOPICS | {"/events"}
+    named = set()
+    for config in panels.values():
+        text = json.dumps(config)
+        named |= {t for t in served if f'"{t}' in text}
+        for path in config.get("paths", []):
+            topic = path["value"].split(".")[0]
+            assert topic in served, path
+    assert {"/camera/image", "/camera/annotations", "/scene", "/live/state", "/events"} <= named
+    text = json.dumps(layout["layout"])
+    assert all(panel in text for panel in panels)  # every panel is placed

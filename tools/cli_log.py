@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tools.cli_args import print_result
+from tools.cli_args import add_live_argument, print_result
 
 __all__ = ["register_log"]
 
@@ -32,9 +32,33 @@ def _cmd_log_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_log_replay(args: argparse.Namespace) -> int:
+    from tools.cli_args import print_json
+    from tools.log_replay import ReplayConfig, replay_live
+
+    cfg = ReplayConfig(
+        file=args.file,
+        live=args.live,
+        speed=args.speed,
+        policy=args.policy,
+        wait_s=args.wait_s,
+    )
+    print(f"visland log replay: {args.file} on ws://{args.live} (Foxglove: Open connection)")
+    report = replay_live(cfg)
+    if args.json:
+        print_json(report.to_dict())
+    else:
+        print(
+            f"replayed {report.frames} frames and {report.events} events, {report.sim_s:.1f} s "
+            f"of flight in {report.wall_s:.1f} s"
+            + ("" if report.watched else " (no client subscribed)")
+        )
+    return 0
+
+
 def register_log(sub: argparse._SubParsersAction) -> None:
-    """Add ``log`` (``info``, ``plot``) to the ``visland`` subcommands."""
-    lg = sub.add_parser("log", help="look into an MCAP flight log: info, plot")
+    """Add ``log`` (``info``, ``plot``, ``replay``) to the ``visland`` subcommands."""
+    lg = sub.add_parser("log", help="look into an MCAP flight log: info, plot, replay")
     lg_sub = lg.add_subparsers(dest="what", required=True)
     li = lg_sub.add_parser("info", help="topics, counts, schemas, duration, metadata, result")
     li.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
@@ -46,3 +70,30 @@ def register_log(sub: argparse._SubParsersAction) -> None:
     lp.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
     lp.add_argument("--out", type=Path, default=None, help="PNG path (default: FILE's stem.png)")
     lp.set_defaults(func=_cmd_log_plot)
+    lr = lg_sub.add_parser(
+        "replay",
+        help="play a recorded flight live in Foxglove: camera, scene, transforms, time series",
+    )
+    lr.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
+    add_live_argument(lr, "the replay serves it")
+    lr.set_defaults(live="8765")
+    lr.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="times the flight's own pace; 0: no pauses (default 1)",
+    )
+    lr.add_argument(
+        "--policy",
+        default=None,
+        help="a vision checkpoint run again on the logged observations to draw its CNN bearing "
+        "and estimate (default: a companion log's own policy, if it is a file; else none)",
+    )
+    lr.add_argument(
+        "--wait-s",
+        type=float,
+        default=10.0,
+        help="wait this long for a Foxglove client before playing (default 10; 0: at once)",
+    )
+    lr.add_argument("--json", action="store_true", help="print one JSON object")
+    lr.set_defaults(func=_cmd_log_replay)
