@@ -22,12 +22,14 @@ from companion.contract.records import (
     EpisodeScenarioRecord,
     GroundTruthRecord,
     ObservationRecord,
+    PolicyEstimateRecord,
     RecordError,
 )
 from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_OBSERVATION,
+    TOPIC_POLICY_ESTIMATE,
     TOPIC_RESULT,
     TOPIC_SCENARIO,
 )
@@ -85,8 +87,10 @@ def write_control_step(
     gt: GroundTruth,
     command: Command | None,
     source: str,
+    policy_state: Any = None,
 ) -> None:
-    """One camera frame: image, observation, ground truth (+ pose) and the command sent."""
+    """One camera frame: image, observation, ground truth (+ pose), the command sent and, for
+    a learned policy (``policy_state`` with perception or an estimator), its estimate."""
     t = gt.time_s
     log.write_image(obs.image_time_s, obs.image, obs.frame_id)
     log.write_record(TOPIC_OBSERVATION, obs.image_time_s, ObservationRecord.from_observation(obs))
@@ -96,6 +100,9 @@ def write_control_step(
         log.write_record(
             TOPIC_COMMAND, t, CommandRecord.from_command(command, obs.frame_id, source)
         )
+    estimate = PolicyEstimateRecord.from_state(policy_state, obs.frame_id)
+    if estimate is not None:
+        log.write_record(TOPIC_POLICY_ESTIMATE, t, estimate)
 
 
 def write_episode_result(log: FlightLogWriter, result: EpisodeResult) -> None:

@@ -75,6 +75,8 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
             render_camera=not args.no_camera,
             progress=not args.json,
             backend=backend,
+            keep_logs=None if args.keep_logs is None else str(args.keep_logs),
+            keep=args.keep,
         )
     png = None
     if args.plot is not None:
@@ -129,6 +131,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     args.episodes = _EVAL_EPISODES if args.episodes is None else args.episodes
     args.seed = EVAL_SEED if args.seed is None else args.seed
     if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
+        if args.keep_logs is not None:
+            print(
+                "visland eval: --keep-logs is for in-process flights; --transport mavlink keeps "
+                "every flight's SITL and companion logs in --out (visland fly)",
+                file=sys.stderr,
+            )
+            return 2
         return cmd_fly(args)
     with backend_from_args(args, args.workers) as backend:
         report = evaluate(
@@ -244,6 +253,21 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     )
     e.add_argument(
         "--no-camera", action="store_true", help="skip rendering (privileged policies only)"
+    )
+    e.add_argument(
+        "--keep-logs",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="keep the MCAP flight logs of --keep flights in DIR (camera, ground truth, "
+        "observation, command, the policy's estimate), named <condition>_s<seed>_ep<i>.mcap; "
+        "their paths in the table and in per_episode[i].log (default: none kept)",
+    )
+    e.add_argument(
+        "--keep",
+        choices=("failed", "all"),
+        default="failed",
+        help="with --keep-logs: the failed flights' logs (default) or all",
     )
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument(

@@ -38,6 +38,7 @@ from companion.contract.topics import (
     TOPIC_GROUNDTRUTH,
     TOPIC_IMAGE,
     TOPIC_OBSERVATION,
+    TOPIC_POLICY_ESTIMATE,
 )
 from companion.flightlog import read_log
 from companion.live import LiveFrame, LiveView, live_frame, parse_live
@@ -51,6 +52,7 @@ _TOPICS = (
     TOPIC_COMPANION_OBSERVATION,
     TOPIC_COMMAND,
     TOPIC_COMPANION_COMMAND,
+    TOPIC_POLICY_ESTIMATE,
     TOPIC_EVENTS,
 )
 
@@ -141,6 +143,7 @@ def replay_live(cfg: ReplayConfig, view: LiveView | None = None) -> ReplayReport
         truth: GroundTruth | None = None
         obs_rec: Any = None
         command = None
+        estimate: dict[str, Any] | None = None
         t_first = stream[0][0] if stream else 0.0
         start = time.monotonic()
         for t, topic, msg in stream:
@@ -157,12 +160,14 @@ def replay_live(cfg: ReplayConfig, view: LiveView | None = None) -> ReplayReport
                 obs_rec = CompanionObservationRecord.from_dict(msg)
             elif topic in (TOPIC_COMMAND, TOPIC_COMPANION_COMMAND):
                 command = _command(msg)
+            elif topic == TOPIC_POLICY_ESTIMATE:
+                estimate = msg
             elif topic == TOPIC_EVENTS:
                 events += 1
                 view.event(t, f"{msg.get('kind')}: {msg.get('text')}")
             elif topic == TOPIC_IMAGE:
                 frames += 1
-                frame = _frame(t, _image(msg), truth, obs_rec, command)
+                frame = _frame(t, _image(msg), truth, obs_rec, command, estimate)
                 if policy is not None and obs_rec is not None:
                     obs = _observation(obs_rec, _image(msg))
                     _, state = policy.act(obs, None, state)
@@ -197,12 +202,28 @@ def _observation(rec: Any, image: np.ndarray) -> Any:
 
 
 def _frame(
-    t: float, image: np.ndarray, truth: GroundTruth | None, obs_rec: Any, command: Any
+    t: float,
+    image: np.ndarray,
+    truth: GroundTruth | None,
+    obs_rec: Any,
+    command: Any,
+    estimate: dict[str, Any] | None = None,
 ) -> LiveFrame:
-    """A frame from the logged truth, observation and command (no policy run)."""
+    """A frame from the logged truth, observation, command and (an in-process flight of a
+    learned policy) the policy's logged estimate — no policy run."""
     from companion.live.frame import quat_from_euler
 
     frame = LiveFrame(time_s=t, image=image, command=command)
+    if estimate is not None:
+        if estimate.get("pad_probability") is not None:
+            frame.perception = (
+                float(estimate["tan_right"]),
+                float(estimate["tan_forward"]),
+                float(estimate["pad_probability"]),
+            )
+        if estimate.get("rel_pos_ned_m") is not None:
+            frame.estimate_rel_ned_m = np.asarray(estimate["rel_pos_ned_m"], float)
+            frame.estimate_sigma_m = np.asarray(estimate["sigma_ned_m"], float)
     if obs_rec is not None:
         frame.quat_wxyz = quat_from_euler(*(float(a) for a in obs_rec.attitude_rad))
         frame.range_m = None if obs_rec.range_m is None else float(obs_rec.range_m)

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import sys
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -28,6 +30,7 @@ from training.exec.transport import Transport
 from training.reports import (
     BackendInfo,
     CollectReport,
+    EpisodeRow,
     EvalReport,
     FlyReport,
     LandingSummary,
@@ -59,6 +62,36 @@ class EvalConfig:
     progress: bool = True
     backend: Backend | None = None
     """Where the episodes fly (None: this host, ``workers`` processes)."""
+    keep_logs: str | None = None
+    """Keep flight logs in this folder (None: none are written): each kept flight's MCAP
+    (camera, ground truth, observation, command, the policy's estimate) named
+    ``<condition>_s<seed>_ep<i>.mcap``, its path in the report's row (``log``)."""
+    keep: str = "failed"
+    """Which flights ``keep_logs`` keeps: ``failed`` (not a success) or ``all``."""
+    condition: str = "eval"
+    """The kept logs' name prefix (a suite's condition name)."""
+
+
+KEEP = ("failed", "all")
+
+
+def _keep_logs(
+    cfg: EvalConfig, staging: Path, rows: tuple[EpisodeRow, ...]
+) -> tuple[EpisodeRow, ...]:
+    """Move the flights ``cfg.keep`` asks for from ``staging`` into ``cfg.keep_logs`` under
+    their condition, seed and episode; drop the rest; each row's ``log`` is its kept file."""
+    out_dir = Path(str(cfg.keep_logs))
+    kept = []
+    for row in rows:
+        src = staging / log_name(cfg.seed, row.episode)
+        path = None
+        if src.exists() and (cfg.keep == "all" or not row.success):
+            dst = out_dir / f"{cfg.condition}_s{cfg.seed}_ep{row.episode:04d}.mcap"
+            src.replace(dst)
+            path = str(dst)
+        kept.append(replace(row, log=path))
+    shutil.rmtree(staging, ignore_errors=True)
+    return tuple(kept)
 
 
 def _fly(
@@ -102,11 +135,23 @@ def _scenario_name(scenario: str | Scenario | None) -> str:
 def evaluate(cfg: EvalConfig) -> EvalReport:
     if cfg.episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    if cfg.keep not in KEEP:
+        raise ValueError(f"keep = {cfg.keep!r}; expected one of {KEEP}")
+    staging = None
+    if cfg.keep_logs is not None:
+        Path(cfg.keep_logs).mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{cfg.condition}_", dir=cfg.keep_logs))
     spec = RolloutSpec(
-        policy=cfg.policy, seed=cfg.seed, scenario=cfg.scenario, render_camera=cfg.render_camera
+        policy=cfg.policy,
+        seed=cfg.seed,
+        scenario=cfg.scenario,
+        render_camera=cfg.render_camera,
+        log_dir=None if staging is None else str(staging),
     )
     desc = f"eval {cfg.policy}"
     flown = _fly(spec, list(range(cfg.episodes)), cfg.backend, cfg.workers, cfg.progress, desc)
+    if staging is not None:
+        flown["per_episode"] = _keep_logs(cfg, staging, flown["per_episode"])
     return EvalReport(
         policy=cfg.policy,
         transport=Transport.INPROCESS.value,
@@ -188,3 +233,12 @@ def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) ->
         f"  success rate {100 * s.success_rate:.1f} %   timeouts {timeouts}"
         f"   policy counters {counters}\n"
     )
+    kept = [
+        r for r in getattr(report, "per_episode", ()) if r.log and not isinstance(report, FlyReport)
+    ]
+    if kept:
+        out.write(f"  flight logs kept ({len(kept)}):\n")
+        for r in kept:
+            what = "success" if r.success else ("timeout" if not r.landed else "failed")
+            err = "n/a" if r.landing_error_m is None else f"{r.landing_error_m:.2f} m"
+            out.write(f"    episode {r.episode:4d}  {what:<8} error {err:>9}  {r.log}\n")

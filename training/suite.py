@@ -178,10 +178,13 @@ def run_suite(
     render_camera: bool = True,
     progress: bool = True,
     backend: Backend | None = None,
+    keep_logs: str | None = None,
+    keep: str = "failed",
 ) -> SuiteReport:
     """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
     processes, or on ``backend``). ``episodes``/``seed`` override the suite file's
-    (``episodes`` every condition's, its own count included)."""
+    (``episodes`` every condition's, its own count included). ``keep_logs``/``keep``: each
+    condition's kept flight logs, named by it (:class:`EvalConfig`)."""
     n = suite.episodes if episodes is None else episodes
     s = suite.seed if seed is None else seed
     reports: dict[str, EvalReport] = {}
@@ -198,6 +201,9 @@ def run_suite(
                 render_camera=render_camera,
                 progress=progress,
                 backend=backend,
+                keep_logs=keep_logs,
+                keep=keep,
+                condition=cond.name,
             )
         )
     return SuiteReport(suite=suite.path, policy=policy, seed=s, episodes=n, conditions=reports)
@@ -249,6 +255,12 @@ def format_suite_table(report: SuiteReport, out: TextIO) -> None:
             f"  {name:<{width}}  {r.episodes:8d}  {100 * r.summary.success_rate:9.1f}"
             f"  {mean}  {worst}  {touchdown}  {r.summary.timeouts:8d}\n"
         )
+    kept = [(name, row) for name, r in conds.items() for row in r.per_episode if row.log]
+    if kept:
+        out.write(f"  flight logs kept ({len(kept)}):\n")
+        for name, row in kept:
+            what = "success" if row.success else ("timeout" if not row.landed else "failed")
+            out.write(f"    {name:<{width}}  episode {row.episode:4d}  {what:<8} {row.log}\n")
 
 
 def suite_markdown(report: SuiteReport, command: str, plot: str | None = None) -> str:

@@ -44,6 +44,7 @@ from companion.contract.topics import (
     SCHEMA_LABEL,
     SCHEMA_LINK_STATS,
     SCHEMA_OBSERVATION,
+    SCHEMA_POLICY_ESTIMATE,
     SCHEMA_PRECLAND,
     SCHEMA_RX_ERROR,
 )
@@ -64,6 +65,7 @@ __all__ = [
     "LinkStatsRecord",
     "LogRecord",
     "ObservationRecord",
+    "PolicyEstimateRecord",
     "Pose",
     "PoseInFrameRecord",
     "PreclandRecord",
@@ -348,6 +350,42 @@ class CommandRecord(LogRecord):
 
 
 @dataclass(**RECORD)
+class PolicyEstimateRecord(LogRecord):
+    """``/policy/estimate``: a learned policy's belief after frame ``frame_id`` (in-process
+    flights): the CNN's bearing and pad probability, and the pad estimator's vehicle position
+    and velocity relative to the pad (NED) with the position's 1-sigma (null before a fix)."""
+
+    SCHEMA = SCHEMA_POLICY_ESTIMATE
+    frame_id: int
+    tan_right: float | None
+    tan_forward: float | None
+    pad_probability: float | None
+    rel_pos_ned_m: Vector | None
+    rel_vel_ned_m_s: Vector | None
+    sigma_ned_m: Vector | None
+
+    @classmethod
+    def from_state(cls, state: Any, frame_id: int) -> PolicyEstimateRecord | None:
+        """The record of a policy state with perception or an estimator (None: neither, e.g.
+        the MPC's)."""
+        raw = getattr(state, "last_perception", None)
+        est = getattr(state, "estimator", None)
+        if raw is None and est is None:
+            return None
+        fixed = est is not None and bool(np.all(est.initialised))
+        logit = None if raw is None else max(-50.0, min(50.0, float(raw[2])))
+        return cls(
+            frame_id=frame_id,
+            tan_right=None if raw is None else float(raw[0]),
+            tan_forward=None if raw is None else float(raw[1]),
+            pad_probability=None if logit is None else 1.0 / (1.0 + math.exp(-logit)),
+            rel_pos_ned_m=est.x[:, 0] if fixed else None,
+            rel_vel_ned_m_s=est.x[:, 1] if fixed else None,
+            sigma_ned_m=np.sqrt(np.maximum(est.cov[:, 0, 0], 0.0)) if fixed else None,
+        )
+
+
+@dataclass(**RECORD)
 class LabelRecord(LogRecord):
     """``/label/command`` (``visland relabel``): the expert's Command for ``frame_id`` and the
     recorded one beside it (NaN / null when the log has no command for that frame)."""
@@ -492,6 +530,7 @@ RECORDS: dict[str, type[LogRecord]] = {
         GroundTruthRecord,
         ObservationRecord,
         CommandRecord,
+        PolicyEstimateRecord,
         LabelRecord,
         EpisodeScenarioRecord,
         EpisodeResultRecord,

@@ -39,6 +39,7 @@ __all__ = [
     "SCHEMA_LABEL",
     "SCHEMA_LINK_STATS",
     "SCHEMA_OBSERVATION",
+    "SCHEMA_POLICY_ESTIMATE",
     "SCHEMA_PRECLAND",
     "SCHEMA_RX_ERROR",
     "TOPIC_AUTOPILOT_COMMAND",
@@ -57,6 +58,7 @@ __all__ = [
     "TOPIC_MAVLINK_IN",
     "TOPIC_MAVLINK_OUT",
     "TOPIC_OBSERVATION",
+    "TOPIC_POLICY_ESTIMATE",
     "TOPIC_PRECLAND",
     "TOPIC_RESULT",
     "TOPIC_RX_ERRORS",
@@ -79,6 +81,9 @@ TOPIC_GROUNDTRUTH_POSE = "/groundtruth/pose"
 """The same pose as ``foxglove.PoseInFrame`` for Foxglove's 3D panel."""
 TOPIC_COMMAND = "/command"
 """The Command flown for the period after a frame, keyed by ``frame_id``."""
+TOPIC_POLICY_ESTIMATE = "/policy/estimate"
+"""A learned policy's belief after a frame (in-process flights): the CNN's bearing and pad
+probability, the pad estimator's relative position, velocity and 1-sigma."""
 TOPIC_SCENARIO = "/episode/scenario"
 """The episode's initial state and seed, first in the file."""
 TOPIC_RESULT = "/episode/result"
@@ -122,6 +127,7 @@ SCHEMA_EVENT = "visland.Event"
 SCHEMA_OBSERVATION = "visland.Observation"
 SCHEMA_GROUNDTRUTH = "visland.GroundTruth"
 SCHEMA_COMMAND = "visland.Command"
+SCHEMA_POLICY_ESTIMATE = "visland.PolicyEstimate"
 SCHEMA_EPISODE_SCENARIO = "visland.EpisodeScenario"
 SCHEMA_EPISODE_RESULT = "visland.EpisodeResult"
 SCHEMA_AUTOPILOT_COMMAND = "visland.AutopilotCommand"
@@ -141,6 +147,7 @@ SCHEMAS: dict[str, str] = {
     TOPIC_GROUNDTRUTH: SCHEMA_GROUNDTRUTH,
     TOPIC_GROUNDTRUTH_POSE: SCHEMA_GROUNDTRUTH_POSE,
     TOPIC_COMMAND: SCHEMA_COMMAND,
+    TOPIC_POLICY_ESTIMATE: SCHEMA_POLICY_ESTIMATE,
     TOPIC_SCENARIO: SCHEMA_EPISODE_SCENARIO,
     TOPIC_RESULT: SCHEMA_EPISODE_RESULT,
     TOPIC_AUTOPILOT_COMMAND: SCHEMA_AUTOPILOT_COMMAND,
@@ -162,6 +169,7 @@ _ROLLOUT_TOPICS = frozenset(
         TOPIC_GROUNDTRUTH,
         TOPIC_GROUNDTRUTH_POSE,
         TOPIC_COMMAND,
+        TOPIC_POLICY_ESTIMATE,
         TOPIC_SCENARIO,
         TOPIC_RESULT,
     }

@@ -184,7 +184,7 @@ def fly_episode(
         while result is None:
             command, state = policy.act(obs, truth, state)
             if log is not None:
-                write_control_step(log, obs, truth, command, source)
+                write_control_step(log, obs, truth, command, source, state)
             contact = sim.step(command)
             steps += 1
             truth = sim.ground_truth()
