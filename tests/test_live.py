@@ -174,3 +174,43 @@ def test_the_shipped_layout_shows_only_topics_the_live_view_serves():
     assert {"/camera/image", "/camera/annotations", "/scene", "/live/state", "/events"} <= named
     text = json.dumps(layout["layout"])
     assert all(panel in text for panel in panels)  # every panel is placed
+
+
+def test_card_sitl_live_serves_the_truth_with_the_pad_on_its_rover(tmp_path):
+    """``visland sitl --live PORT``: the SITL's view — the true vehicle, the pad where its rover
+    has driven it, the command flown — while the expert lands on the rover's roof."""
+    port = _free_tcp_port()
+    result: dict = {}
+
+    def run() -> None:
+        result["report"] = fly(
+            FlyConfig(
+                policy="expert",
+                scenario="configs/sites/rover_fast.toml",
+                episodes=1,
+                seed=500,
+                render=True,
+                out=str(tmp_path / "run"),
+                progress=False,
+                sitl_args=("--live", str(port), "--lockstep-timeout-s", "5"),
+                companion_args=("--max-age-ms", "3000"),
+            )
+        )
+
+    flight = threading.Thread(target=run)
+    flight.start()
+    try:
+        seen = watch(port, TOPICS, per_topic=60, timeout_s=60.0)
+    finally:
+        flight.join(180)
+    assert result["report"].summary.success_rate == 1.0
+    pads = [
+        t.translation
+        for m in seen.messages["/tf"]
+        for t in m.transforms
+        if t.child_frame_id == "pad"
+    ]
+    assert abs(pads[-1].x - pads[0].x) + abs(pads[-1].y - pads[0].y) > 1.0  # the rover drove
+    states = seen.messages["/live/state"]
+    assert any("command" in s for s in states) and all("truth" in s for s in states)
+    assert seen.messages["/camera/image"][-1].width == 128

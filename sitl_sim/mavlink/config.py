@@ -69,6 +69,9 @@ class SitlConfig:
         120.0, "sim seconds in HOLD without a take-over before the episode is abandoned"
     )
     groundtruth: bool = option(False, "publish ground truth as ODOMETRY (privileged clients)")
+    live: str = option(
+        "", "serve a live view of the truth in Foxglove on [HOST:]PORT ('visland[live]'); '' = off"
+    )
     signing_key: str | None = option(
         None, "MAVLink 2 signing: 64 hex digits, or a passphrase (key = SHA-256 of it)", str
     )

@@ -83,6 +83,7 @@ from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
 from sitl_sim.mavlink.flight_log import FlightLog
 from sitl_sim.mavlink.handlers import Handlers
 from sitl_sim.mavlink.links import Links, link_impairment
+from sitl_sim.mavlink.live import SitlLive
 from sitl_sim.mavlink.log_queue import LogQueue
 from sitl_sim.mavlink.precland_loop import PreclandLoop
 from sitl_sim.mavlink.publisher import Publisher
@@ -157,6 +158,7 @@ class MavlinkSitl:
         self.perf = LoopPerf()
         """Wall time per part of the loop while flying, with the sim seconds and frames flown
         meanwhile (logged at exit as ``perf: {json}``)."""
+        self.live = SitlLive(config.live) if config.live else None
         self.log_queue = LogQueue(self.perf)
         self.flight_log = FlightLog(clock=self.clock, open_writer=self.log_queue.open_writer)
         self.publisher = Publisher(
@@ -329,6 +331,8 @@ class MavlinkSitl:
         self._closed = True
         self.links.close()
         self.sim.close()
+        if self.live is not None:
+            self.live.close()
 
     def __enter__(self) -> MavlinkSitl:
         return self
@@ -365,6 +369,8 @@ class MavlinkSitl:
         running = self._physics_running()
         if running:
             cmd = self._current_command()
+            if self.live is not None:
+                self.live.flown(cmd)
             if self.clock.phase % self._substeps == 0:
                 frame_id = self.state.frame_id - 1 if self._control_step() else None
                 t = perf.now()
@@ -506,6 +512,9 @@ class MavlinkSitl:
             self.links.flush()  # the telemetry stamped at the frame's time goes first
             self.links.send_camera(encode_frame(frame.image, frame_id % 2**32, stamp_us))
             t = perf.add("camera", t)
+            if self.live is not None:
+                rng = self.sim.radar.true_range(gt.pos_ned_m, gt.quat_wxyz, gt.time_s)  # no draw
+                self.live.frame(frame, gt, self.autopilot.mode_label, rng)
         else:
             self.camera_frames_dropped += 1
             self.flight_log.event(
