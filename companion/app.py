@@ -21,6 +21,7 @@ how far the recomputed commands are from the recorded ones; ``--check`` runs the
 from __future__ import annotations
 
 import argparse
+import ctypes
 import dataclasses
 import json
 import logging
@@ -235,6 +236,7 @@ class Companion:
         out = summary.to_dict()
         flog.close(summary=summary)
         self.outcomes.append(out)
+        release_free_memory()
         print(
             f"visland companion: flight {flight.outcome.index} {flight.outcome.result}: "
             f"{flight.outcome.reason} ({flight.outcome.policy_commands} policy commands) "
@@ -317,6 +319,25 @@ class Companion:
         deadline = self._clock() + seconds
         while self._clock() < deadline and self.link.conn is not None:
             self._pump(0.02)
+
+
+def release_free_memory() -> None:
+    """Hand the C heap's free pages back to the OS between flights (glibc ``malloc_trim``; a
+    no-op elsewhere). Without it a companion's resident memory crept up ~45 kB a flight with no
+    Python object left behind (``visland soak``: +8.9 MB over 180 flights, flat with it): each
+    flight's log buffers and solver arrays are freed into a heap that fragments, not returned."""
+    global _LIBC
+    if _LIBC is None:
+        try:
+            _LIBC = ctypes.CDLL("libc.so.6")
+            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
+        except (OSError, AttributeError):
+            _LIBC = False
+    if _LIBC:
+        _LIBC.malloc_trim(0)
+
+
+_LIBC: Any = None
 
 
 def run(cfg: CompanionConfig, policy: Any, policy_name: str) -> dict[str, Any]:

@@ -273,6 +273,43 @@ def _register_readme(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_cmd_readme)
 
 
+def _cmd_soak(args: argparse.Namespace) -> int:
+    from tools.soak import SoakConfig, format_soak, soak
+    from training.exec.fly import FlyError
+
+    cfg = config_from_args(SoakConfig, args, scenario=scenario_arg(args), progress=not args.json)
+    try:
+        report = soak(cfg)
+    except FlyError as exc:
+        print(f"visland soak: failed: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print_json(report.to_dict())
+    else:
+        print(format_soak(report))
+    return 0 if report.ok else 1
+
+
+def _register_soak(sub: argparse._SubParsersAction) -> None:
+    sk = sub.add_parser(
+        "soak",
+        help="a field day: one companion process through many lockstep flights; its memory, "
+        "descriptors and latency judged (exit 1 when one fails)",
+    )
+    sk.add_argument("--flights", type=int, default=500, help="consecutive flights (default 500)")
+    sk.add_argument(
+        "--policy", default="expert", help="what the companion flies (default: expert, no camera)"
+    )
+    sk.add_argument(
+        "--warmup", type=int, default=20, help="flights before the baseline (default 20)"
+    )
+    sk.add_argument("--scenario", type=Path, default=None, help="scenario TOML (default nominal)")
+    sk.add_argument("--seed", type=int, default=EVAL_SEED, help=f"seed (default {EVAL_SEED})")
+    sk.add_argument("--out", default=None, help="run folder (default: a temporary one)")
+    sk.add_argument("--json", action="store_true", help="print one JSON object")
+    sk.set_defaults(func=_cmd_soak)
+
+
 def _register_fly(sub: argparse._SubParsersAction) -> None:
     from training.exec.choose import add_backend_arguments
 
@@ -363,3 +400,4 @@ def register_sim(sub: argparse._SubParsersAction) -> None:
     cp.set_defaults(func=_cmd_companion)
     _register_install_service(cp)
     _register_fly(sub)
+    _register_soak(sub)

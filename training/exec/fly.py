@@ -22,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -99,6 +100,9 @@ class FlyConfig:
     live: str = ""
     """``[HOST:]PORT``: the companion serves the live view there (the SITL then sends its truth
     as ODOMETRY, drawn beside the estimate); '' = off."""
+    monitor: Callable[[int, int], None] | None = field(default=None, compare=False)
+    """Called about every 0.5 s while the pair flies with ``(companion pid, episodes ended so
+    far)`` (``visland soak`` samples the companion's memory and descriptors with it)."""
 
 
 AUTOPILOTS = ("px4", "ardupilot")
@@ -298,6 +302,8 @@ def fly(cfg: FlyConfig) -> FlyReport:
             )
             done_shown = -1
             while sitl.poll() is None:
+                if cfg.monitor is not None:
+                    cfg.monitor(comp.pid, sitl_log.read_text(errors="replace").count(" ended: "))
                 if time.monotonic() - t0 > timeout_s + 30:
                     raise FlyError(f"run not finished after {timeout_s + 30:.0f} s")
                 if comp.poll() is not None:

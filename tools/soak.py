@@ -1,0 +1,166 @@
+"""``visland soak``: a field day for the companion — one process through many consecutive
+flights against the SITL (lockstep), watched from outside.
+
+While :func:`training.exec.fly.fly` flies, the companion's resident memory (``VmRSS``) and open
+file descriptors are read from ``/proc/<pid>`` as each flight ends; afterwards each flight's
+frame→setpoint latency comes from its log. Judged (:data:`LIMITS`): memory growth after the
+``warmup`` flights, descriptors constant after them, and the latency p99 of the last tenth of
+the flights against the first tenth after the warm-up (a leak, a growing list, a file left open
+or a slowing loop shows up in one of them long before a field day is over).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.record import latency_stats
+from training.seeds import EVAL_SEED
+
+__all__ = ["LIMITS", "SoakConfig", "SoakReport", "soak"]
+
+LIMITS = {"rss_growth_mb": 10.0, "p99_ratio": 1.5, "p99_slack_ms": 1.0}
+"""Pass: resident memory grows at most 10 MB after the warm-up; descriptors end as they were
+after it; the last tenth's latency p99 is at most 1.5 x the first tenth's + 1 ms (a loaded
+machine's scheduler moves a p99 by tens of percent; a leak moves it without bound)."""
+
+
+@dataclass(frozen=True)
+class SoakConfig:
+    flights: int = 500
+    policy: str = "expert"
+    """What the companion flies (``expert`` needs no camera: the most flights per minute)."""
+    seed: int = EVAL_SEED
+    scenario: str | None = None
+    warmup: int = 20
+    """Flights before the memory and descriptor baseline is taken (imports, caches, JITs)."""
+    out: str | None = None
+    """Run folder (None: a temporary one)."""
+    progress: bool = True
+
+
+@dataclass
+class SoakReport:
+    flights: int
+    success_rate: float
+    wall_s: float
+    rss_mb: dict[str, float]
+    """``warmup`` (after the warm-up flights), ``end``, ``growth``, ``max``."""
+    fds: dict[str, int]
+    """``warmup``, ``end``, ``max``."""
+    latency_p99_ms: dict[str, float]
+    """``first`` tenth after the warm-up, ``last`` tenth, every flight's ``max``."""
+    passed: dict[str, bool]
+    samples: list[dict[str, float]] = field(default_factory=list)
+    """Per flight ended: ``flight``, ``rss_mb``, ``fds``."""
+    out: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return all(self.passed.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "ok": self.ok}
+
+
+def _proc_sample(pid: int) -> tuple[float, int] | None:
+    """(resident MB, open descriptors) of ``pid``, None once it is gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return None
+    kb = next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmRSS:"))
+    return kb / 1024.0, fds
+
+
+def soak(cfg: SoakConfig) -> SoakReport:
+    """Fly ``cfg.flights`` flights through one companion process and judge it (module doc).
+
+    Raises:
+        ValueError: fewer flights than the warm-up plus ten.
+        training.exec.fly.FlyError: a process failed.
+    """
+    from training.exec.fly import FlyConfig, fly
+
+    if cfg.flights < cfg.warmup + 10:
+        raise ValueError(f"--flights {cfg.flights}: expected at least --warmup + 10")
+    samples: dict[int, tuple[float, int]] = {}
+
+    def monitor(pid: int, ended: int) -> None:
+        if ended not in samples:
+            sample = _proc_sample(pid)
+            if sample is not None:
+                samples[ended] = sample
+                if cfg.progress and ended % 50 == 0:
+                    print(
+                        f"soak: {ended}/{cfg.flights} flights, companion {sample[0]:.1f} MB, "
+                        f"{sample[1]} fds",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+
+    report = fly(
+        FlyConfig(
+            policy=cfg.policy,
+            episodes=cfg.flights,
+            seed=cfg.seed,
+            scenario=cfg.scenario,
+            out=cfg.out,
+            progress=False,
+            monitor=monitor,
+        )
+    )
+    logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
+    p99 = [latency_stats([log])["p99_ms"] for log in logs]
+    after = [n for n in sorted(samples) if n >= cfg.warmup]
+    base = samples[after[0]] if after else samples[max(samples)]
+    end = samples[max(samples)]
+    tenth = max(1, (len(p99) - cfg.warmup) // 10)
+    first = float(np.median(p99[cfg.warmup : cfg.warmup + tenth]))
+    last = float(np.median(p99[-tenth:]))
+    growth = end[0] - base[0]
+    return SoakReport(
+        flights=report.episodes,
+        success_rate=report.summary.success_rate,
+        wall_s=report.wall_s,
+        rss_mb={
+            "warmup": base[0],
+            "end": end[0],
+            "growth": growth,
+            "max": max(s[0] for s in samples.values()),
+        },
+        fds={"warmup": base[1], "end": end[1], "max": max(s[1] for s in samples.values())},
+        latency_p99_ms={"first": first, "last": last, "max": float(max(p99))},
+        passed={
+            "memory": growth <= LIMITS["rss_growth_mb"],
+            "descriptors": end[1] <= base[1],
+            "latency": last <= LIMITS["p99_ratio"] * first + LIMITS["p99_slack_ms"],
+            "landings": report.summary.success_rate == 1.0,
+        },
+        samples=[{"flight": n, "rss_mb": s[0], "fds": s[1]} for n, s in sorted(samples.items())],
+        out=str(report.out),
+    )
+
+
+def format_soak(r: SoakReport) -> str:
+    mark = {True: "ok", False: "FAILED"}
+    return "\n".join(
+        [
+            f"soak: {r.flights} flights through one companion in {r.wall_s:.0f} s, "
+            f"{100 * r.success_rate:.1f} % landed ({mark[r.passed['landings']]})",
+            f"  memory: {r.rss_mb['warmup']:.1f} MB after the warm-up, {r.rss_mb['end']:.1f} MB at "
+            f"the end: {r.rss_mb['growth']:+.2f} MB (limit +{LIMITS['rss_growth_mb']:.0f}; "
+            f"{mark[r.passed['memory']]})",
+            f"  descriptors: {r.fds['warmup']} after the warm-up, {r.fds['end']} at the end "
+            f"({mark[r.passed['descriptors']]})",
+            f"  latency p99: {r.latency_p99_ms['first']:.2f} ms over the first tenth, "
+            f"{r.latency_p99_ms['last']:.2f} ms over the last ({mark[r.passed['latency']]})",
+            f"  logs: {r.out}",
+        ]
+    )
