@@ -26,6 +26,7 @@ import numpy as np
 
 from companion.camera import RESTART_WINDOW_S, ReceivedFrame
 from companion.contract import PAD_ODOMETRY_COMPONENT, GroundTruth, Observation
+from companion.contract.messages import quat_to_rotation
 
 __all__ = [
     "SUBSCRIBES",
@@ -127,17 +128,6 @@ class OdometrySample(GroundTruth):
     rx_s: float = 0.0
 
 
-def _rotation(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def odometry_from_msg(msg: Any, rx_s: float = 0.0) -> OdometrySample | None:
     """ODOMETRY (pose in LOCAL_NED; velocity in BODY_FRD or LOCAL_NED) -> NED sample, or None
     for frames this companion does not understand or non-finite values."""
@@ -154,7 +144,7 @@ def odometry_from_msg(msg: Any, rx_s: float = 0.0) -> OdometrySample | None:
         return None
     q = q / norm
     if msg.child_frame_id in (_MAV_FRAME_BODY_FRD, _MAV_FRAME_BODY_NED):
-        vel = _rotation(q) @ vel
+        vel = quat_to_rotation(q) @ vel
     elif msg.child_frame_id != _MAV_FRAME_LOCAL_NED:
         return None
     return OdometrySample(

@@ -29,6 +29,19 @@ def _free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
+def _watched_flight(cfg: FlyConfig, port: int, per_topic: int):
+    """``fly(cfg)`` on a thread while a Foxglove-protocol client watches ``port``: the report
+    and what the client saw."""
+    result: dict = {}
+    flight = threading.Thread(target=lambda: result.update(report=fly(cfg)))
+    flight.start()
+    try:
+        seen = watch(port, TOPICS, per_topic=per_topic, timeout_s=60.0)
+    finally:
+        flight.join(180)
+    return result["report"], seen
+
+
 def test_parse_live_takes_host_and_port_and_names_a_bad_one():
     assert parse_live("8765") == ("127.0.0.1", 8765)
     assert parse_live("0.0.0.0:9000") == ("0.0.0.0", 9000)
@@ -93,28 +106,16 @@ def test_card_fly_live_serves_the_companions_view_of_a_vision_flight(tmp_path):
     """``visland fly --live PORT``: the companion serves its camera, the CNN's bearing and its
     estimate over the truth; the flight lands as it does without a viewer."""
     port = _free_tcp_port()
-    result: dict = {}
-
-    def run() -> None:
-        result["report"] = fly(
-            FlyConfig(
-                policy=DEFAULT_VISION_POLICY,
-                episodes=1,
-                out=str(tmp_path / "run"),
-                progress=False,
-                live=str(port),
-                companion_args=("--max-age-ms", "3000"),
-                sitl_args=("--lockstep-timeout-s", "5"),
-            )
-        )
-
-    flight = threading.Thread(target=run)
-    flight.start()
-    try:
-        seen = watch(port, TOPICS, per_topic=3, timeout_s=60.0)
-    finally:
-        flight.join(180)
-    report = result["report"]
+    cfg = FlyConfig(
+        policy=DEFAULT_VISION_POLICY,
+        episodes=1,
+        out=str(tmp_path / "run"),
+        progress=False,
+        live=str(port),
+        companion_args=("--max-age-ms", "3000"),
+        sitl_args=("--lockstep-timeout-s", "5"),
+    )
+    report, seen = _watched_flight(cfg, port, per_topic=3)
     assert report.summary.success_rate == 1.0, report.per_episode
     image = seen.messages["/camera/image"][-1]
     assert (image.width, image.height) == (128, 128) and len(set(image.data)) > 10
@@ -180,30 +181,19 @@ def test_card_sitl_live_serves_the_truth_with_the_pad_on_its_rover(tmp_path):
     """``visland sitl --live PORT``: the SITL's view — the true vehicle, the pad where its rover
     has driven it, the command flown — while the expert lands on the rover's roof."""
     port = _free_tcp_port()
-    result: dict = {}
-
-    def run() -> None:
-        result["report"] = fly(
-            FlyConfig(
-                policy="expert",
-                scenario="configs/sites/rover_fast.toml",
-                episodes=1,
-                seed=500,
-                render=True,
-                out=str(tmp_path / "run"),
-                progress=False,
-                sitl_args=("--live", str(port), "--lockstep-timeout-s", "5"),
-                companion_args=("--max-age-ms", "3000"),
-            )
-        )
-
-    flight = threading.Thread(target=run)
-    flight.start()
-    try:
-        seen = watch(port, TOPICS, per_topic=60, timeout_s=60.0)
-    finally:
-        flight.join(180)
-    assert result["report"].summary.success_rate == 1.0
+    cfg = FlyConfig(
+        policy="expert",
+        scenario="configs/sites/rover_fast.toml",
+        episodes=1,
+        seed=500,
+        render=True,
+        out=str(tmp_path / "run"),
+        progress=False,
+        sitl_args=("--live", str(port), "--lockstep-timeout-s", "5"),
+        companion_args=("--max-age-ms", "3000"),
+    )
+    report, seen = _watched_flight(cfg, port, per_topic=60)
+    assert report.summary.success_rate == 1.0
     pads = [
         t.translation
         for m in seen.messages["/tf"]

@@ -28,6 +28,8 @@ __all__ = [
     "ContractError",
     "GroundTruth",
     "Observation",
+    "quat_from_euler",
+    "quat_to_rotation",
     "rotation_zyx",
 ]
 
@@ -48,6 +50,33 @@ def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
             [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
             [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
             [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def quat_to_rotation(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation body FRD -> world NED of a unit quaternion ``(w, x, y, z)``."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` of ZYX Euler angles (yaw, then pitch, then roll)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
         ]
     )
 

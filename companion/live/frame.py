@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from companion.contract import Command, GroundTruth, Observation
+from companion.contract.messages import quat_from_euler
 
 __all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "live_frame", "parse_live", "quat_from_euler"]
 
@@ -122,21 +123,6 @@ def live_frame(
         frame.truth_rel_ned_m = np.asarray(truth.pad_relative[0], float)
         frame.wind_ned_m_s = truth.wind_ned_m_s
     return frame
-
-
-def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """(w, x, y, z) of ZYX Euler angles (ATTITUDE's)."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
 
 
 def _float(v: Any) -> float | None:

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
+from companion.contract.messages import quat_to_rotation
 from companion.live.frame import LiveFrame, _float
 
 __all__ = [
@@ -60,18 +61,6 @@ def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
     from foxglove.messages import Color
 
     return Color(r=r, g=g, b=b, a=a)
-
-
-def _rotation(q_wxyz) -> np.ndarray:
-    """Body FRD -> NED of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = (float(v) for v in q_wxyz)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def raw_image(f: LiveFrame) -> Any:
@@ -179,7 +168,7 @@ def image_annotations(f: LiveFrame) -> Any:
 
 def _project(offset_ned: np.ndarray, quat_wxyz: np.ndarray) -> tuple[float, float, float] | None:
     """The pixel (u, v) and depth of a point ``offset_ned`` from the camera (None: behind)."""
-    body = _rotation(quat_wxyz).T @ offset_ned  # FRD
+    body = quat_to_rotation(quat_wxyz).T @ offset_ned  # FRD
     if body[2] <= 1e-3:
         return None
     c = IMAGE_SIZE_PX / 2
