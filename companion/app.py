@@ -183,7 +183,7 @@ class Companion:
             "flight": {"index": index, "shadow": self.cfg.shadow, "mode": self.cfg.mode},
             "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
         }
-        flog = self.flight_log = CompanionLog(path, meta, self._clock)
+        flog = self.flight_log = CompanionLog(path, meta, self._clock, self._log_failed)
         ctx = FlightContext(
             self.flight_cfg,
             self.link,
@@ -200,6 +200,17 @@ class Companion:
 
             return LandingTargetController(ctx, self.tracker, flog, index)
         return FlightController(ctx, self.runtime, flog, index)
+
+    def _log_failed(self, text: str) -> None:
+        """The flight log stopped (a full card): fly on, and say so — on stderr, in the flight's
+        events and to the pilot as a STATUSTEXT (WARNING)."""
+        print(
+            f"visland companion: {text}; the flight goes on unlogged", file=sys.stderr, flush=True
+        )
+        self.link_events.append(f"log_stopped: {text}")
+        if self.flight is not None:
+            self.flight.outcome.events.append(f"log_stopped: {text}")
+        self.link.send_statustext(4, "visland: flight log stopped (disk full?)")
 
     def _drop_unflown(self, reason: str) -> None:
         """Stop the flight that never began (still WAITING): remove its log and note it in
@@ -349,6 +360,8 @@ def run(cfg: CompanionConfig, policy: Any, policy_name: str) -> dict[str, Any]:
             previous[sig] = signal.signal(
                 sig, lambda s, _f: companion.stop(f"signal {signal.Signals(s).name}")
             )
+        if hasattr(signal, "SIGXFSZ"):  # a file-size limit fails the write (EFBIG), not the flight
+            previous[signal.SIGXFSZ] = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         return companion.run()
     finally:

@@ -399,6 +399,16 @@ class FlightLogWriter:
             finally:
                 self._fh.close()
 
+    def abandon(self) -> None:
+        """Close the file without writing more (a write failed: a full disk): what reached it
+        reads back as a truncated log."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._fh.close()
+            except OSError:
+                pass  # closing flushes Python's buffer: the disk is still full
+
     def __enter__(self) -> FlightLogWriter:
         return self
 

@@ -70,10 +70,15 @@ __all__ = [
 class CompanionLog:
     """One flight's companion log.
 
+    A write that fails (a full SD card, a file-size limit, an I/O error) never stops the flight:
+    logging stops, the file keeps what reached it (a truncated log that reads back), and
+    ``on_failure`` is told once (:attr:`failed` says why).
+
     Args:
         path: the MCAP file.
         metadata: MCAP metadata records (``config``, ``flight``, ``policy``...).
         clock: the companion's monotonic clock.
+        on_failure: called once with the reason when logging stops.
     """
 
     def __init__(
@@ -81,13 +86,36 @@ class CompanionLog:
         path: str | Path,
         metadata: dict[str, dict[str, Any]],
         clock: Callable[[], float] = time.monotonic,
+        on_failure: Callable[[str], None] | None = None,
     ) -> None:
-        self.writer = FlightLogWriter(path, metadata)
-        self.path = self.writer.path
+        self.path = Path(path)
         self._clock = clock
         self.t0 = clock()
         self._pending: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
         self.deferring = False
+        self.failed: str | None = None
+        self._on_failure = on_failure
+        self.writer: FlightLogWriter | None = None
+        try:
+            self.writer = FlightLogWriter(path, metadata)
+        except OSError as exc:
+            self._fail(exc)
+
+    def _fail(self, exc: OSError) -> None:
+        self.failed = f"{exc.strerror or type(exc).__name__} ({self.path})"
+        self._pending.clear()
+        if self.writer is not None:
+            self.writer.abandon()
+        if self._on_failure is not None:
+            self._on_failure(f"flight log stopped: {self.failed}")
+
+    def _write(self, write: Callable[..., None], args: tuple[Any, ...]) -> None:
+        if self.failed is not None:
+            return
+        try:
+            write(*args)
+        except OSError as exc:
+            self._fail(exc)
 
     def rel(self, monotonic_s: float) -> float:
         return monotonic_s - self.t0
@@ -95,25 +123,31 @@ class CompanionLog:
     def _put(self, write: Callable[..., None], *args: Any) -> None:
         """``write(*args)`` (a writer method, its log time first after the topic) now, or
         queued while :attr:`deferring`."""
+        if self.failed is not None:
+            return
         if self.deferring:
             self._pending.append((write, args))
         else:
-            write(*args)
+            self._write(write, args)
 
     def flush_pending(self) -> None:
         """Write what was queued while answering a frame (receipt order kept)."""
         self.deferring = False
         pending, self._pending = self._pending, []
         for write, args in pending:
-            write(*args)
+            self._write(write, args)
 
     def _put_record(self, topic: str, t: float, record: LogRecord) -> None:
+        if self.writer is None or self.failed is not None:
+            return
         self._put(self.writer.write_record, topic, max(0.0, self.rel(t)), record)
 
     def message(self, msg: Any, rx_s: float) -> None:
         """A message from the autopilot as received (its fields are read when the write runs:
         a received message is never changed), with ``rx_s``; the pad's ODOMETRY on a SITL
         link also with its ``src_component`` (the replay tells the two streams apart by it)."""
+        if self.writer is None or self.failed is not None:
+            return
         extra: dict[str, Any] = {"rx_s": rx_s}
         if msg.get_srcComponent() == PAD_ODOMETRY_COMPONENT:
             extra["src_component"] = PAD_ODOMETRY_COMPONENT
@@ -131,6 +165,7 @@ class CompanionLog:
         self._put(self._write_frame, frame)
 
     def _write_frame(self, frame: ReceivedFrame) -> None:
+        assert self.writer is not None  # queued only while writing
         t = max(0.0, self.rel(frame.rx_s))
         record = RawImageRecord.mono8(
             frame.image,
@@ -162,9 +197,13 @@ class CompanionLog:
 
     def close(self, summary: CompanionSummaryRecord | None = None) -> None:
         self.flush_pending()
+        if self.failed is not None or self.writer is None:
+            return
         if summary is not None:
-            self.writer.write_record(TOPIC_COMPANION_SUMMARY, self.rel(self._clock()), summary)
-        self.writer.close()
+            t = self.rel(self._clock())
+            self._write(self.writer.write_record, (TOPIC_COMPANION_SUMMARY, t, summary))
+        if self.failed is None:
+            self._write(self.writer.close, ())
 
 
 # --------------------------------------------------------------------------- reading back

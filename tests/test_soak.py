@@ -35,3 +35,39 @@ def test_soak_refuses_fewer_flights_than_it_can_judge():
 def test_a_field_day_of_500_flights(tmp_path):
     r = soak(SoakConfig(flights=500, out=str(tmp_path / "run"), progress=False))
     assert r.ok, r.to_dict()
+
+
+def test_card_a_full_card_mid_flight_stops_the_log_not_the_flight(tmp_path):
+    """The companion's log hits a 300 kB file-size limit (as a full SD card fails a write)
+    mid-flight: it lands all the same, tells the pilot (STATUSTEXT) and its stderr, and the part
+    written reads back as a truncated log."""
+    import sys
+
+    from companion.flightlog import read_log
+    from training.exec.fly import FlyConfig, fly
+
+    limited = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000)); "
+        "from training.companion_process import main; sys.argv = ['companion', *sys.argv[1:]]; "
+        "sys.exit(main())"
+    )
+    report = fly(
+        FlyConfig(
+            policy="models/visland_vision.pt",
+            episodes=1,
+            out=str(tmp_path / "run"),
+            progress=False,
+            companion_command=(sys.executable, "-c", limited),
+            companion_args=("--max-age-ms", "3000"),
+            sitl_args=("--lockstep-timeout-s", "5"),
+        )
+    )
+    assert report.summary.success_rate == 1.0, report.per_episode
+    (log_path,) = (tmp_path / "run" / "companion").glob("*.mcap")
+    log = read_log(log_path)
+    assert log.truncated and log.topic("/camera/image")  # the part written reads back
+    assert log_path.stat().st_size <= 300_000
+    assert "flight log stopped" in (tmp_path / "run" / "companion.log").read_text()
+    (sitl_log,) = (tmp_path / "run" / "sitl").glob("*.mcap")
+    texts = [m["text"] for m in read_log(sitl_log).topic("/mavlink/in/STATUSTEXT")]
+    assert any("flight log stopped" in t for t in texts), texts

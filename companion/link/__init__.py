@@ -73,6 +73,7 @@ def _reads_through(**parts: tuple[str, ...]) -> Callable[[type], type]:
         "send_setpoint",
         "send_landing_target",
         "send_frame_marker",
+        "send_statustext",
         "command",
         "ack",
         "request_mode",

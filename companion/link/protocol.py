@@ -227,6 +227,13 @@ class LinkProtocol:
         self.connection.counters.tx_landing_targets += 1
         return handed
 
+    def send_statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT to the autopilot (and through it to the ground station): what the pilot
+        must know now (at most 50 characters, as MAVLink carries)."""
+        if not self.connection.is_open:
+            return
+        self.connection.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
+
     def send_frame_marker(self, time_boot_ms: int, frame_id: int) -> None:
         """NAMED_VALUE_INT ``VL_FRAME`` = frame id, stamped with the frame's time: a SITL
         frame processed without a LANDING_TARGET (the lockstep answer; an autopilot only logs
