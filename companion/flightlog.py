@@ -26,6 +26,7 @@ says so (``FlightLog.truncated``); a file that is not MCAP at all raises :class:
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import math
 import operator
@@ -404,10 +405,8 @@ class FlightLogWriter:
         reads back as a truncated log."""
         if not self._closed:
             self._closed = True
-            try:
+            with contextlib.suppress(OSError):  # closing flushes Python's buffer: still full
                 self._fh.close()
-            except OSError:
-                pass  # closing flushes Python's buffer: the disk is still full
 
     def __enter__(self) -> FlightLogWriter:
         return self

@@ -316,3 +316,13 @@ def test_the_camera_of_a_vehicle_come_down_beside_the_rover_still_gives_frames()
         assert image.shape == (128, 128) and image.any()
     finally:
         sim.close()
+
+
+def test_the_site_ablation_shows_the_expert_needs_the_pads_motion():
+    """``python -m tools.site_ablation``: the expert given the pad's whole state lands on a
+    fast rover; given only where it is, or nothing, it does not."""
+    from tools.site_ablation import ablate
+
+    rows = {r["variant"]: r for r in ablate(["rover_fast"], episodes=2)}
+    assert rows["full"]["success"] == 2 and rows["full"]["error_max_m"] < 0.1
+    assert rows["position_only"]["success"] == 0 and rows["still_pad"]["on_pad"] == 0
