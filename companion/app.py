@@ -44,6 +44,7 @@ from companion.config import (
 )
 from companion.contract.companion_records import CompanionSummaryRecord
 from companion.contract.perf import LoopPerf, pin_to_cpus
+from companion.contract.records import EventKind
 from companion.flight import FlightContext
 from companion.link import LinkError, mavlink
 from companion.offboard import FlightController
@@ -107,6 +108,7 @@ class Companion:
         self.perf = LoopPerf()
         """Wall time per part of the loop while a flight is in the air (the report's
         ``perf``)."""
+        self._wall_offset: float | None = None
         self.live = None
         if cfg.live:
             from companion.live import LiveView, parse_live
@@ -201,6 +203,25 @@ class Companion:
             return LandingTargetController(ctx, self.tracker, flog, index)
         return FlightController(ctx, self.runtime, flog, index)
 
+    def _watch_wall_clock(self) -> None:
+        """Note a step of the wall clock (NTP syncing on a board that booted without a clock,
+        a pilot setting the date): control and staleness run on the monotonic clock and the
+        log's times on the epoch taken when it was opened plus monotonic seconds, so a step
+        changes neither — it is said, in the flight's events and on stderr."""
+        offset = time.time() - self._clock()
+        if self._wall_offset is None:
+            self._wall_offset = offset
+            return
+        step = offset - self._wall_offset
+        if abs(step) < WALL_STEP_S:
+            return
+        self._wall_offset = offset
+        text = f"wall clock stepped by {step:+.1f} s (control and log times unaffected)"
+        print(f"visland companion: {text}", file=sys.stderr, flush=True)
+        self.link_events.append(f"clock_step: {text}")
+        if self.flight is not None:
+            self.flight.note(EventKind.CLOCK_STEP, text)
+
     def _log_failed(self, text: str) -> None:
         """The flight log stopped (a full card): fly on, and say so — on stderr, in the flight's
         events and to the pilot as a STATUSTEXT (WARNING)."""
@@ -267,6 +288,7 @@ class Companion:
             self.flight = self._new_flight(index)
             while not self._stop.is_set():
                 t = perf.mark(self._in_air())
+                self._watch_wall_clock()
                 if cfg.max_wall_s is not None and self._clock() - t0 > cfg.max_wall_s:
                     self.stop(f"max_wall_s = {cfg.max_wall_s} reached")
                     break
@@ -349,6 +371,8 @@ def release_free_memory() -> None:
 
 
 _LIBC: Any = None
+WALL_STEP_S = 1.0
+"""A change of the wall clock against the monotonic one by this much is a step (drift is ppm)."""
 
 
 def run(cfg: CompanionConfig, policy: Any, policy_name: str) -> dict[str, Any]:

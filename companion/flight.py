@@ -242,6 +242,10 @@ class FlightMachine(ABC):
             return f"range {None if rng is None else rng.range_m} below engage_min_range_m"
         return None
 
+    def note(self, kind: EventKind, text: str) -> None:
+        """An event of the process's (a link change, a wall-clock step) in this flight's log."""
+        self._event(kind, text)
+
     def _event(self, kind: EventKind, text: str) -> None:
         self.log.event(self._clock(), kind, text, state=self.state.value)
         if self.live is not None:

@@ -4,6 +4,7 @@ The default suite flies a short day; the 500-flight one is ``slow``."""
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import pytest
@@ -71,3 +72,47 @@ def test_card_a_full_card_mid_flight_stops_the_log_not_the_flight(tmp_path):
     (sitl_log,) = (tmp_path / "run" / "sitl").glob("*.mcap")
     texts = [m["text"] for m in read_log(sitl_log).topic("/mavlink/in/STATUSTEXT")]
     assert any("flight log stopped" in t for t in texts), texts
+
+
+def test_card_the_wall_clock_stepping_an_hour_mid_flight_changes_nothing_but_a_note(tmp_path):
+    """NTP steps the board's clock by +1 h during a flight: no staleness failsafe (control runs
+    on the monotonic clock), the log's times go on without a jump, and the step is noted."""
+    import sys
+
+    from companion.flightlog import read_log
+    from training.exec.fly import FlyConfig, fly
+
+    stepped = (
+        "import sys, threading, time\n"
+        "real, real_ns = time.time, time.time_ns\n"
+        "def later():\n"
+        "    time.sleep(2.5)\n"
+        "    time.time = lambda: real() + 3600.0\n"
+        "    time.time_ns = lambda: real_ns() + 3_600_000_000_000\n"
+        "threading.Thread(target=later, daemon=True).start()\n"
+        "from training.companion_process import main\n"
+        "sys.argv = ['companion', *sys.argv[1:]]\n"
+        "sys.exit(main())\n"
+    )
+    report = fly(
+        FlyConfig(
+            policy="expert",
+            episodes=2,
+            out=str(tmp_path / "run"),
+            progress=False,
+            companion_command=(sys.executable, "-c", stepped),
+        )
+    )
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert report.companion_flights == {"landed": 2}  # no failsafe
+    logs = sorted((tmp_path / "run" / "companion").glob("*.mcap"))
+    notes = [
+        e["text"]
+        for log in logs
+        for e in read_log(log).topic("/events")
+        if e["kind"] == "clock_step"
+    ]
+    assert len(notes) == 1 and "+3600" in notes[0], notes
+    for log in logs:
+        times = [m["time_s"] for m in read_log(log).topic("/companion/command")]
+        assert times == sorted(times) and max(b - a for a, b in itertools.pairwise(times)) < 5.0

@@ -122,6 +122,7 @@ class EventKind(enum.StrEnum):
     LINK_LOST = "link_lost"
     LINK_RECONNECTED = "link_reconnected"
     LINK_RESTARTED = "link_restarted"
+    CLOCK_STEP = "clock_step"
     LINK_PEER = "link_peer"
     LINK_PORT_ERROR = "link_port_error"
     LINK_PORT_REOPENED = "link_port_reopened"
