@@ -56,6 +56,7 @@ from companion.contract.companion_records import CompanionLandingTargetRecord
 from companion.contract.records import EventKind
 from companion.flight import FlightContext, FlightMachine, FlightRecorder
 from companion.link import mavlink
+from companion.live import live_frame
 from companion.policy_net.geometry import rotation_zyx
 from companion.states import FlightResult, FlightState
 from companion.telemetry import assemble_observation
@@ -169,6 +170,11 @@ class PadTracker:
     def reset(self) -> None:
         self._state = self.policy.initial_state()
         self._last_seen_s = -math.inf
+
+    @property
+    def state(self) -> Any:
+        """The policy state of the last step (its CNN output and estimator: the live view's)."""
+        return self._state
 
     def step(self, observation: Observation) -> TrackResult:
         """Never raises: a failing step is reported (and nothing is tracked)."""
@@ -314,7 +320,8 @@ class LandingTargetController(FlightMachine):
             self.tracker.reset()  # an estimate built on stale inputs is not one
             result = None
         else:
-            result = self.tracker.step(assemble_observation(frame, store, None))
+            obs = assemble_observation(frame, store, None)
+            result = self.tracker.step(obs)
             body.update(visibility=result.visibility, seen=result.seen, error=result.error)
             if result.target_rel_ned_m is not None:
                 fields = landing_target_fields(result.target_rel_ned_m, store.attitude.attitude_rad)
@@ -352,6 +359,13 @@ class LandingTargetController(FlightMachine):
             latency_ms=((sent or self._clock()) - frame.rx_s) * 1e3,
         )
         self.log.landing_target(now, record)
+        if result is not None and self.live is not None and self.live.watched:  # after the send
+            truth = store.groundtruth_at(frame.time_s)
+            self.live.publish(
+                live_frame(
+                    obs, truth, self.tracker.state, None, self.state.value, self.link.counters
+                )
+            )
 
     # ------------------------------------------------------------------ time
 

@@ -204,3 +204,23 @@ def test_card_sitl_live_serves_the_truth_with_the_pad_on_its_rover(tmp_path):
     states = seen.messages["/live/state"]
     assert any("command" in s for s in states) and all("truth" in s for s in states)
     assert seen.messages["/camera/image"][-1].width == 128
+
+
+def test_card_landing_target_mode_serves_its_camera_and_estimate_live(tmp_path):
+    """``fly --companion-mode landing-target --live``: the companion's CNN bearing and
+    estimate go to the viewer while the autopilot lands."""
+    port = _free_tcp_port()
+    cfg = FlyConfig(
+        policy=DEFAULT_VISION_POLICY,
+        companion_mode="landing-target",
+        episodes=1,
+        out=str(tmp_path / "run"),
+        progress=False,
+        live=str(port),
+        companion_args=("--max-age-ms", "3000"),
+        sitl_args=("--lockstep-timeout-s", "5"),
+    )
+    report, seen = _watched_flight(cfg, port, per_topic=20)
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert any(n.texts for n in seen.messages["/camera/annotations"])
+    assert any("estimate" in s and "truth" in s for s in seen.messages["/live/state"])
