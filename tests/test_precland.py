@@ -292,16 +292,23 @@ def test_precland_no_searches_left_falls_back_at_once_and_params_are_px4s():
 # --------------------------------------------------------------------------- bad input
 
 
-def test_malformed_landing_targets_are_counted_and_never_steer_the_vehicle(tmp_path):
-    ports = [free_udp_port() for _ in range(3)]
-    cfg = SitlConfig(
+def _in_process_sitl(ports, log_dir, **fields) -> SitlConfig:
+    """A SITL on ``ports`` (MAVLink, remote, camera) for a test to tick in process: no ground
+    station, no rendering, logs in ``log_dir``; ``fields`` set the rest."""
+    return SitlConfig(
         mavlink_port=ports[0],
         remote_port=ports[1],
         camera_port=ports[2],
         gcs=False,
         render=False,
-        log_dir=str(tmp_path),
+        log_dir=str(log_dir),
+        **fields,
     )
+
+
+def test_malformed_landing_targets_are_counted_and_never_steer_the_vehicle(tmp_path):
+    ports = [free_udp_port() for _ in range(3)]
+    cfg = _in_process_sitl(ports, tmp_path)
     import socket
 
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -350,16 +357,8 @@ def _true_target_flight(tmp_path, scenario: str, episode: int, params: str):
     from sitl_sim.physics.dynamics import quat_to_rotation
 
     ports = free_ports()
-    cfg = SitlConfig(
-        mavlink_port=ports[0],
-        remote_port=ports[1],
-        camera_port=ports[2],
-        gcs=False,
-        render=False,
-        log_dir=str(tmp_path / f"ep{episode}"),
-        scenario=scenario,
-        seed=500,
-        param=params,
+    cfg = _in_process_sitl(
+        ports, tmp_path / f"ep{episode}", scenario=scenario, seed=500, param=params
     )
     import socket
 
