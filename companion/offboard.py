@@ -374,7 +374,7 @@ class FlightController(FlightMachine):
             self.live.publish(
                 live_frame(
                     obs,
-                    self.store.groundtruth_at(at),
+                    gt if gt is not None else self.store.groundtruth_at(at),
                     self.runtime.next_state(),
                     cmd,
                     self.state.value,

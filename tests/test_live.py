@@ -29,6 +29,21 @@ def _free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
+def _vision_live(tmp_path, port: int, **fields) -> FlyConfig:
+    """One lockstep flight of the shipped vision model with the companion's live view on
+    ``port`` (``fields``: e.g. the companion mode)."""
+    return FlyConfig(
+        policy=DEFAULT_VISION_POLICY,
+        episodes=1,
+        out=str(tmp_path / "run"),
+        progress=False,
+        live=str(port),
+        companion_args=("--max-age-ms", "3000"),
+        sitl_args=("--lockstep-timeout-s", "5"),
+        **fields,
+    )
+
+
 def _watched_flight(cfg: FlyConfig, port: int, per_topic: int):
     """``fly(cfg)`` on a thread while a Foxglove-protocol client watches ``port``: the report
     and what the client saw."""
@@ -106,16 +121,7 @@ def test_card_fly_live_serves_the_companions_view_of_a_vision_flight(tmp_path):
     """``visland fly --live PORT``: the companion serves its camera, the CNN's bearing and its
     estimate over the truth; the flight lands as it does without a viewer."""
     port = _free_tcp_port()
-    cfg = FlyConfig(
-        policy=DEFAULT_VISION_POLICY,
-        episodes=1,
-        out=str(tmp_path / "run"),
-        progress=False,
-        live=str(port),
-        companion_args=("--max-age-ms", "3000"),
-        sitl_args=("--lockstep-timeout-s", "5"),
-    )
-    report, seen = _watched_flight(cfg, port, per_topic=3)
+    report, seen = _watched_flight(_vision_live(tmp_path, port), port, per_topic=3)
     assert report.summary.success_rate == 1.0, report.per_episode
     image = seen.messages["/camera/image"][-1]
     assert (image.width, image.height) == (128, 128) and len(set(image.data)) > 10
@@ -210,16 +216,7 @@ def test_card_landing_target_mode_serves_its_camera_and_estimate_live(tmp_path):
     """``fly --companion-mode landing-target --live``: the companion's CNN bearing and
     estimate go to the viewer while the autopilot lands."""
     port = _free_tcp_port()
-    cfg = FlyConfig(
-        policy=DEFAULT_VISION_POLICY,
-        companion_mode="landing-target",
-        episodes=1,
-        out=str(tmp_path / "run"),
-        progress=False,
-        live=str(port),
-        companion_args=("--max-age-ms", "3000"),
-        sitl_args=("--lockstep-timeout-s", "5"),
-    )
+    cfg = _vision_live(tmp_path, port, companion_mode="landing-target")
     report, seen = _watched_flight(cfg, port, per_topic=20)
     assert report.summary.success_rate == 1.0, report.per_episode
     assert any(n.texts for n in seen.messages["/camera/annotations"])

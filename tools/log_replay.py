@@ -41,7 +41,7 @@ from companion.contract.topics import (
     TOPIC_POLICY_ESTIMATE,
 )
 from companion.flightlog import read_log
-from companion.live import LiveFrame, LiveView, live_frame, parse_live
+from companion.live import LiveFrame, LiveView, live_frame, parse_live, with_truth
 
 __all__ = ["ReplayConfig", "ReplayReport", "replay_live"]
 
@@ -167,9 +167,10 @@ def replay_live(cfg: ReplayConfig, view: LiveView | None = None) -> ReplayReport
                 view.event(t, f"{msg.get('kind')}: {msg.get('text')}")
             elif topic == TOPIC_IMAGE:
                 frames += 1
-                frame = _frame(t, _image(msg), truth, obs_rec, command, estimate)
+                image = _image(msg)
+                frame = _frame(t, image, truth, obs_rec, command, estimate)
                 if policy is not None and obs_rec is not None:
-                    obs = _observation(obs_rec, _image(msg))
+                    obs = _observation(obs_rec, image)
                     _, state = policy.act(obs, None, state)
                     frame = live_frame(obs, truth, state, None)
                     frame.command = command
@@ -228,10 +229,5 @@ def _frame(
         frame.quat_wxyz = quat_from_euler(*(float(a) for a in obs_rec.attitude_rad))
         frame.range_m = None if obs_rec.range_m is None else float(obs_rec.range_m)
     if truth is not None:
-        frame.vehicle_pos_ned_m = truth.pos_ned_m
-        frame.quat_wxyz = truth.quat_wxyz
-        frame.pad_pos_ned_m = truth.pad_pos_ned_m
-        frame.pad_quat_wxyz = truth.pad_quat_wxyz
-        frame.truth_rel_ned_m = truth.pad_relative[0]
-        frame.wind_ned_m_s = truth.wind_ned_m_s
+        with_truth(frame, truth).quat_wxyz = truth.quat_wxyz
     return frame

@@ -12,7 +12,7 @@ import numpy as np
 from companion.contract import Command, GroundTruth, Observation
 from companion.contract.messages import quat_from_euler
 
-__all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "live_frame", "parse_live", "quat_from_euler"]
+__all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "live_frame", "parse_live", "with_truth"]
 
 DEFAULT_LIVE_PORT = 8765
 """Foxglove's default WebSocket port."""
@@ -117,11 +117,18 @@ def live_frame(
         else {k: int(v) for k, v in vars(link).items() if isinstance(v, int)},
     )
     if truth is not None:
-        frame.vehicle_pos_ned_m = np.asarray(truth.pos_ned_m, float)
-        frame.pad_pos_ned_m = truth.pad_pos_ned_m
-        frame.pad_quat_wxyz = truth.pad_quat_wxyz
-        frame.truth_rel_ned_m = np.asarray(truth.pad_relative[0], float)
-        frame.wind_ned_m_s = truth.wind_ned_m_s
+        with_truth(frame, truth)
+    return frame
+
+
+def with_truth(frame: LiveFrame, truth: GroundTruth) -> LiveFrame:
+    """``frame`` placed in the true world: the vehicle, the pad, the vehicle relative to the
+    pad and the wind of ``truth`` (the attitude stays the frame's)."""
+    frame.vehicle_pos_ned_m = np.asarray(truth.pos_ned_m, float)
+    frame.pad_pos_ned_m = truth.pad_pos_ned_m
+    frame.pad_quat_wxyz = truth.pad_quat_wxyz
+    frame.truth_rel_ned_m = np.asarray(truth.pad_relative[0], float)
+    frame.wind_ned_m_s = truth.wind_ned_m_s
     return frame
 
 

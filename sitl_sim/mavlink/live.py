@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.live import LiveFrame, LiveView, parse_live
+from companion.live import LiveFrame, LiveView, parse_live, with_truth
 
 if TYPE_CHECKING:
     from companion.contract import Command, GroundTruth
@@ -45,22 +45,16 @@ class SitlLive:
             self._mode = mode
         if not self.view.watched:
             return
-        self.view.publish(
-            LiveFrame(
-                time_s=frame.exposure_time_s,
-                image=frame.image,
-                vehicle_pos_ned_m=np.asarray(truth.pos_ned_m, float),
-                quat_wxyz=np.asarray(truth.quat_wxyz, float),
-                pad_pos_ned_m=truth.pad_pos_ned_m,
-                pad_quat_wxyz=truth.pad_quat_wxyz,
-                pad_size_m=self.pad_size_m,
-                truth_rel_ned_m=np.asarray(truth.pad_relative[0], float),
-                command=self.command,
-                range_m=range_m,
-                wind_ned_m_s=truth.wind_ned_m_s,
-                state=mode,
-            )
+        live = LiveFrame(
+            time_s=frame.exposure_time_s,
+            image=frame.image,
+            quat_wxyz=np.asarray(truth.quat_wxyz, float),
+            pad_size_m=self.pad_size_m,
+            command=self.command,
+            range_m=range_m,
+            state=mode,
         )
+        self.view.publish(with_truth(live, truth))
 
     def close(self) -> None:
         self.view.close()

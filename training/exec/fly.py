@@ -302,8 +302,11 @@ def fly(cfg: FlyConfig) -> FlyReport:
             )
             done_shown = -1
             while sitl.poll() is None:
+                ended = None
+                if cfg.monitor is not None or cfg.progress:
+                    ended = sitl_log.read_text(errors="replace").count(" ended: ")
                 if cfg.monitor is not None:
-                    cfg.monitor(comp.pid, sitl_log.read_text(errors="replace").count(" ended: "))
+                    cfg.monitor(comp.pid, ended)
                 if time.monotonic() - t0 > timeout_s + 30:
                     raise FlyError(f"run not finished after {timeout_s + 30:.0f} s")
                 if comp.poll() is not None:
@@ -311,11 +314,9 @@ def fly(cfg: FlyConfig) -> FlyReport:
                         f"companion exited with {comp.returncode} while the SITL was still "
                         f"flying:\n{_tail(comp_log)}"
                     )
-                if cfg.progress:
-                    n = sitl_log.read_text(errors="replace").count(" ended: ")
-                    if n != done_shown:
-                        done_shown = n
-                        print(f"fly: {n}/{cfg.episodes} episodes", file=sys.stderr, flush=True)
+                if cfg.progress and ended != done_shown:
+                    done_shown = ended
+                    print(f"fly: {ended}/{cfg.episodes} episodes", file=sys.stderr, flush=True)
                 time.sleep(0.5)
             if sitl.returncode != 0:
                 raise FlyError(f"SITL exited with {sitl.returncode}:\n{_tail(sitl_log)}")
