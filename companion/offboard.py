@@ -59,6 +59,13 @@ _FAILSAFE_MODE_WAIT_S = 3.0
 _LAND_REREQUEST_S = 1.5
 
 
+def _action(failsafe: Failsafe) -> str:
+    """What the companion does on ``failsafe`` (the shadow and bench log what it would)."""
+    if failsafe.reason is FailsafeReason.PAD_NOT_FOUND:
+        return "stop setpoints (no LAND)"
+    return "request LAND"
+
+
 def _frame_ms(frame: ReceivedFrame) -> int:
     return round(frame.time_s * 1e6) // 1000
 
@@ -85,6 +92,8 @@ class FlightController(FlightMachine):
         self._touchdown = TouchdownDetector(ctx.cfg.touchdown_range_m)
         self._flight_start_rx = math.inf
         self._hover: float | None = None
+        self._no_land = False
+        """The failsafe requests no LAND (pad not found: the offboard-loss action applies)."""
         self._bench_failsafe: FailsafeReason | None = None
         """The bench's last would-be failsafe (each new reason is logged once)."""
 
@@ -333,7 +342,8 @@ class FlightController(FlightMachine):
         self.perf.add_inner("policy", t_policy)
         self.perf.count("policy_steps")
         if result.command is None:
-            self._failsafe(Failsafe(FailsafeReason.POLICY_ERROR, str(result.error)))
+            why = FailsafeReason.PAD_NOT_FOUND if result.pad_not_found else None
+            self._failsafe(Failsafe(why or FailsafeReason.POLICY_ERROR, str(result.error)))
             return
         raw = result.command
         cmd, clamped = self.safety.clamp(raw)
@@ -399,11 +409,19 @@ class FlightController(FlightMachine):
         if self.cfg.bench:  # logged once per reason; the bench keeps computing
             if failsafe.reason is not self._bench_failsafe:
                 self._bench_failsafe = failsafe.reason
-                self._event(EventKind.FAILSAFE_SHADOW, f"would request LAND: {failsafe}")
+                self._event(EventKind.FAILSAFE_SHADOW, f"would {_action(failsafe)}: {failsafe}")
             return
         if self.cfg.shadow:
-            self._event(EventKind.FAILSAFE_SHADOW, f"would request LAND: {failsafe}")
+            self._event(EventKind.FAILSAFE_SHADOW, f"would {_action(failsafe)}: {failsafe}")
             self._finish(FlightResult.SHADOW, f"failsafe (shadow): {failsafe}")
+            return
+        if failsafe.reason is FailsafeReason.PAD_NOT_FOUND:  # LAND would land blind
+            self._no_land = True
+            self._enter(
+                FlightState.FAILSAFE,
+                f"{failsafe}: setpoints stopped, no LAND; the autopilot's offboard-loss "
+                "action applies",
+            )
             return
         self._enter(FlightState.FAILSAFE, f"{failsafe}: LAND requested, setpoints stopped")
         self._request_land()
@@ -471,7 +489,11 @@ class FlightController(FlightMachine):
                     f"touchdown; no disarm seen within {_TOUCHDOWN_DISARM_WAIT_S:g} s",
                 )
         elif state is FlightState.FAILSAFE:
-            if not self._land_confirmed and now - self._last_mode_req_s > _LAND_REREQUEST_S:
+            if (
+                not self._land_confirmed
+                and not self._no_land
+                and now - self._last_mode_req_s > _LAND_REREQUEST_S
+            ):
                 self._request_land()
 
     def _prestream(self, now: float) -> None:

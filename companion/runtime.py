@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.contract import Command, GroundTruth, Observation, Policy, PolicyState
+from companion.policy_net.guard import PadNotFound
 
 _log = logging.getLogger("companion.runtime")
 
@@ -44,6 +45,9 @@ class StepResult:
     command: Command | None
     error: str | None
     compute_s: float
+    pad_not_found: bool = False
+    """The error is the landing guard's :class:`~companion.policy_net.guard.PadNotFound`: the
+    flight must end without landing (not a policy fault)."""
 
 
 class PolicyRuntime:
@@ -110,6 +114,8 @@ class PolicyRuntime:
             command, state = self.policy.act(observation, groundtruth, self._state)
             if not isinstance(command, Command):
                 raise TypeError(f"act() returned {type(command).__name__}, not a Command")
+        except PadNotFound as exc:  # the guard gave up: a failsafe of its own
+            return StepResult(None, str(exc), time.perf_counter() - t0, pad_not_found=True)
         except Exception as exc:  # any policy failure becomes a named failsafe, never a crash
             return StepResult(None, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0)
         self._state = state

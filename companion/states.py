@@ -34,7 +34,8 @@ class FlightState(enum.Enum):
 
 
 class FailsafeReason(enum.StrEnum):
-    """Why the companion stopped flying the policy and requested LAND."""
+    """Why the companion stopped flying the policy (and, but for ``PAD_NOT_FOUND``,
+    requested LAND)."""
 
     CAMERA_STALE = "camera_stale"
     """The newest camera frame was received more than ``max_age_s`` ago."""
@@ -46,6 +47,10 @@ class FailsafeReason(enum.StrEnum):
     """The policy raised or produced a non-finite command."""
     OFFBOARD_UNCONFIRMED = "offboard_unconfirmed"
     """OFFBOARD was acknowledged but never shown in the HEARTBEAT."""
+    PAD_NOT_FOUND = "pad_not_found"
+    """The landing guard held below its floor without a confirmed pad for its whole timeout
+    (``companion.policy_net.guard``): the companion stops its setpoints and requests nothing —
+    the autopilot's offboard-loss action applies (never LAND: that would land blind)."""
 
 
 @dataclass(frozen=True)

@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from companion.contract.record_base import RECORD
+from companion.contract.record_base import ABSENT, RECORD
 from companion.contract.records import EpisodeResultRecord
 from sitl_sim.physics.dynamics import ContactEvent
 
 __all__ = [
+    "OFF_PAD_M",
     "SUCCESS_MAX_ERROR_M",
     "SUCCESS_MAX_TILT_DEG",
     "SUCCESS_MAX_VERTICAL_SPEED_M_S",
@@ -29,6 +30,9 @@ __all__ = [
 SUCCESS_MAX_ERROR_M = 1.0
 SUCCESS_MAX_VERTICAL_SPEED_M_S = 1.0
 SUCCESS_MAX_TILT_DEG = 20.0
+OFF_PAD_M = 2.0
+"""A touchdown further than this from the pad centre is an *off-pad touchdown*: an unsafe
+failure (the vehicle came down on whatever lay there), counted apart from aborts."""
 
 _RESULT_KEYS = EpisodeResultRecord.required_field_names()
 """The result's own keys: those every ``/episode/result`` message has (the SITL's are extras)."""
@@ -58,6 +62,8 @@ class EpisodeResult(EpisodeResultRecord):
         """The result in a logged ``/episode/result`` message, or in a report's row (their
         other keys left out; a metric logged as null, NaN when written, is NaN again)."""
         site = {k: bool(values[k]) for k in _SITE_KEYS if values.get(k) is not None}
+        if values.get("failsafe") is not None:
+            site["failsafe"] = str(values["failsafe"])
         return cls(
             **{k: math.nan if values[k] is None else values[k] for k in _RESULT_KEYS}, **site
         )
@@ -96,6 +102,17 @@ class EpisodeResult(EpisodeResultRecord):
             **site,
         )
 
+    @property
+    def off_pad(self) -> bool:
+        """Touched down more than :data:`OFF_PAD_M` from the pad: an unsafe failure."""
+        return bool(self.landed) and not self.landing_error_m <= OFF_PAD_M
+
+    @classmethod
+    def aborted_by(cls, reason: str, time_s: float, pos_ned_m) -> EpisodeResult:
+        """The pilot ended the flight in the air (``reason``, e.g. ``pad_not_found``):
+        ``pos_ned_m`` relative to the pad then; a failure, with no touchdown."""
+        return replace(cls.timeout(time_s, pos_ned_m, None), failsafe=str(reason))
+
     @classmethod
     def timeout(cls, time_s: float, pos_ned_m, vel_ned_m_s) -> EpisodeResult:
         """A flight that never came down: ``pos_ned_m`` relative to the pad
@@ -129,7 +146,10 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
     Timeouts count as failures; a flight that never touched down has no landing error (its
     distance at the timeout is in its own row) nor touchdown speed, so the landing-error and
     speed stats cover the ``landed`` episodes only, and ``timeouts`` says how many were left
-    out so nothing is hidden (all timed out: the stats are NaN, null in JSON).
+    out so nothing is hidden (all timed out: the stats are NaN, null in JSON). ``aborts``
+    are the flights the pilot ended in the air (``failsafe``: pad not found), counted apart
+    from the timeouts; ``off_pad`` the touchdowns more than :data:`OFF_PAD_M` from the pad,
+    the unsafe failures.
     """
     n = len(results)
     landed = [r for r in results if r.landed]
@@ -142,5 +162,7 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
         "tilt_deg": _stats([r.tilt_deg for r in results]),
         "time_s": _stats([r.time_s for r in results]),
         "success_rate": (sum(r.success for r in results) / n) if n else math.nan,
-        "timeouts": sum(not r.landed for r in results),
+        "timeouts": sum(not r.landed and r.failsafe is ABSENT for r in results),
+        "aborts": sum(r.failsafe is not ABSENT for r in results),
+        "off_pad": sum(r.off_pad for r in results),
     }

@@ -82,14 +82,14 @@ def test_a_timed_out_flight_never_enters_the_landing_error_mean():
     assert s.landed == 1 and s.landing_error_m.mean == pytest.approx(0.4)
     out = StringIO()
     format_table(report, out)
-    assert "mean    0.400" in out.getvalue() and "(over 1 landed; 1 timed out)" in out.getvalue()
+    assert "mean    0.400" in out.getvalue() and "(over 1 landed; 1 never touched down)" in out.getvalue()
 
     report = _report(timeout, timeout)
     assert report.summary.landed == 0 and math.isnan(report.summary.landing_error_m.mean)
     out = StringIO()
     format_table(report, out)
     text = out.getvalue()
-    assert "landing error          n/a (all 2 episodes timed out)" in text, text
+    assert "landing error          n/a (none of 2 episodes touched down)" in text, text
     assert "mean    0.000" not in text and "timeouts 2" in text
 
 

@@ -77,6 +77,7 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
             backend=backend,
             keep_logs=None if args.keep_logs is None else str(args.keep_logs),
             keep=args.keep,
+            settings=args.settings,
         )
     png = None
     if args.plot is not None:
@@ -109,6 +110,24 @@ def _blind_vision_policy(args: argparse.Namespace) -> str | None:
     )
 
 
+def _settings(args: argparse.Namespace) -> tuple[tuple[str, Any], ...] | str:
+    """``--estimator KEY=VALUE`` flags as (key, value) pairs, checked against the
+    checkpoint's config fields (a bad one: the message why)."""
+    given = args.estimator or []
+    if not given:
+        return ()
+    from companion.policy_net.config import CheckpointError, NetConfig
+
+    if args.policy in ("expert", "cascade"):
+        return f"--estimator: {args.policy!r} has no estimator; it is for a checkpoint"
+    try:
+        pairs = dict(NetConfig.parse_setting(text) for text in given)
+        NetConfig().with_settings(pairs)  # ranges and the checks between keys
+    except CheckpointError as exc:
+        return f"--estimator: {exc}"
+    return tuple(pairs.items())
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from tools.cli_sim import cmd_fly
     from training.evaluate import EvalConfig, evaluate, format_table
@@ -122,6 +141,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         from sitl_sim.scenario import load_scenario
 
         load_scenario(args.scenario)
+    settings = _settings(args)
+    if isinstance(settings, str):
+        print(f"visland eval: error: {settings}", file=sys.stderr)
+        return 2
+    args.settings = settings
     if args.suite is not None:
         return _cmd_eval_suite(args)
     if args.plot is not None or args.markdown is not None:
@@ -131,6 +155,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     args.episodes = _EVAL_EPISODES if args.episodes is None else args.episodes
     args.seed = EVAL_SEED if args.seed is None else args.seed
     if args.transport == Transport.MAVLINK:  # SITL + companion processes over UDP: visland fly
+        if args.settings:
+            print(
+                "visland eval: --estimator is for in-process flights (the companion reads the "
+                "checkpoint's own settings)",
+                file=sys.stderr,
+            )
+            return 2
         if args.keep_logs is not None:
             print(
                 "visland eval: --keep-logs is for in-process flights; --transport mavlink keeps "
@@ -268,6 +299,14 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
         choices=("failed", "all"),
         default="failed",
         help="with --keep-logs: the failed flights' logs (default) or all",
+    )
+    e.add_argument(
+        "--estimator",
+        action="append",
+        metavar="KEY=VALUE",
+        help="fly a checkpoint with one of its estimator or landing-guard settings changed "
+        "(repeatable; e.g. land_floor_m=15, land_floor_m=none, unsure_threshold=0.6): the "
+        "sweeps behind a choice as commands; the JSON records them under 'estimator'",
     )
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument(

@@ -70,6 +70,8 @@ class EvalConfig:
     """Which flights ``keep_logs`` keeps: ``failed`` (not a success) or ``all``."""
     condition: str = "eval"
     """The kept logs' name prefix (a suite's condition name)."""
+    settings: tuple[tuple[str, Any], ...] = ()
+    """A checkpoint's estimator and guard values replaced (``--estimator KEY=VALUE``)."""
 
 
 KEEP = ("failed", "all")
@@ -147,6 +149,7 @@ def evaluate(cfg: EvalConfig) -> EvalReport:
         scenario=cfg.scenario,
         render_camera=cfg.render_camera,
         log_dir=None if staging is None else str(staging),
+        settings=cfg.settings,
     )
     desc = f"eval {cfg.policy}"
     flown = _fly(spec, list(range(cfg.episodes)), cfg.backend, cfg.workers, cfg.progress, desc)
@@ -158,6 +161,7 @@ def evaluate(cfg: EvalConfig) -> EvalReport:
         seed=cfg.seed,
         scenario=_scenario_name(cfg.scenario),
         episodes=len(flown["per_episode"]),
+        estimator=dict(cfg.settings) or None,
         **flown,
     )
 
@@ -213,10 +217,11 @@ def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) ->
 
     def row(name: str, stats: Stats, unit: str, landed_only: bool = False) -> None:
         if stats.mean is None or math.isnan(stats.mean):  # nothing touched down: no statistic
-            why = f"all {n} episodes timed out" if landed_only and n else "no value"
+            why = f"none of {n} episodes touched down" if landed_only and n else "no value"
             out.write(f"  {name:<22} n/a ({why})\n")
             return
-        over = f" (over {landed} landed; {timeouts} timed out)" if landed_only and timeouts else ""
+        up = n - landed
+        over = f" (over {landed} landed; {up} never touched down)" if landed_only and up else ""
         out.write(
             f"  {name:<22} min {stats.min:8.3f}  max {stats.max:8.3f}  mean {stats.mean:8.3f}"
             f"  std {stats.std:8.3f} {unit}{over}\n"
@@ -229,8 +234,9 @@ def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) ->
     row("tilt at touchdown", s.tilt_deg, "deg", landed_only=True)
     row("time to touchdown", s.time_s, "s")
     counters = {} if isinstance(report, FlyReport) else report.policy_stats
+    unsafe = "" if s.off_pad is None else f"   off pad {s.off_pad}   aborts {s.aborts}"
     out.write(
-        f"  success rate {100 * s.success_rate:.1f} %   timeouts {timeouts}"
+        f"  success rate {100 * s.success_rate:.1f} %{unsafe}   timeouts {timeouts}"
         f"   policy counters {counters}\n"
     )
     kept = [

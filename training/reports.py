@@ -60,6 +60,12 @@ class LandingSummary(Record):
     time_s: Stats
     success_rate: float | None
     timeouts: int
+    aborts: int | None = field(default=None, metadata=_OMIT)
+    """Flights the pilot ended in the air (pad not found): failures, not touchdowns; absent
+    in reports written before the landing guard."""
+    off_pad: int | None = field(default=None, metadata=_OMIT)
+    """Touchdowns more than 2 m from the pad (``sitl_sim.metrics.OFF_PAD_M``): the unsafe
+    failures; absent in reports written before they were counted."""
 
     @classmethod
     def of(cls, results: Sequence[EpisodeResult]) -> LandingSummary:
@@ -87,6 +93,8 @@ class EpisodeRow(Record):
     """On a site: the vehicle came down on the pad's own surface (absent on the nominal one)."""
     tipped_over: bool | None = field(default=None, metadata=_OMIT)
     """On a site: the surface it came down on was too steep to stand on."""
+    failsafe: str | None = field(default=None, metadata=_OMIT)
+    """Why the pilot ended the flight in the air (``pad_not_found``); absent otherwise."""
     touchdown_ne_m: tuple[float, float] | None = field(
         default=None, metadata={"omit_none": True, "what": "[north, east] in m"}
     )
@@ -128,6 +136,9 @@ class EvalReport(Record):
     wall_s: float
     backend: BackendInfo | None = field(default=None, metadata=_OMIT)
     """Absent in runs evaluated before execution backends existed."""
+    estimator: dict[str, Any] | None = field(default=None, metadata=_OMIT)
+    """The checkpoint's estimator and guard values this evaluation replaced
+    (``--estimator``); absent when it flew the checkpoint's own."""
     per_episode: tuple[EpisodeRow, ...]
 
 

@@ -180,11 +180,13 @@ def run_suite(
     backend: Backend | None = None,
     keep_logs: str | None = None,
     keep: str = "failed",
+    settings: tuple[tuple[str, Any], ...] = (),
 ) -> SuiteReport:
     """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
     processes, or on ``backend``). ``episodes``/``seed`` override the suite file's
     (``episodes`` every condition's, its own count included). ``keep_logs``/``keep``: each
-    condition's kept flight logs, named by it (:class:`EvalConfig`)."""
+    condition's kept flight logs, named by it (:class:`EvalConfig`); ``settings``: a
+    checkpoint's estimator and guard values replaced (``--estimator``)."""
     n = suite.episodes if episodes is None else episodes
     s = suite.seed if seed is None else seed
     reports: dict[str, EvalReport] = {}
@@ -204,6 +206,7 @@ def run_suite(
                 keep_logs=keep_logs,
                 keep=keep,
                 condition=cond.name,
+                settings=settings,
             )
         )
     return SuiteReport(suite=suite.path, policy=policy, seed=s, episodes=n, conditions=reports)
@@ -236,9 +239,16 @@ def _on_pad(r: EvalReport) -> tuple[int, int] | None:
     return sum(bool(row.touched_pad) for row in rows), len(rows)
 
 
+def _unsafe(r: EvalReport) -> tuple[str, str]:
+    """A condition's off-pad touchdowns (the unsafe failures) and aborts, as table cells ("-"
+    in a report written before they were counted)."""
+    s = r.summary
+    return tuple("-" if v is None else str(v) for v in (s.off_pad, s.aborts))  # type: ignore[return-value]
+
+
 def format_suite_table(report: SuiteReport, out: TextIO) -> None:
-    """One row per condition: episodes, success, landing error mean/max, touchdown speed mean,
-    timeouts ("-": no episode touched down)."""
+    """One row per condition: episodes, success, landing error mean/max, touchdown speed mean
+    ("-": no episode touched down), off-pad touchdowns, aborts, timeouts."""
     conds = report.conditions
     width = max([len("condition"), *(len(n) for n in conds)])
     out.write(
@@ -247,13 +257,15 @@ def format_suite_table(report: SuiteReport, out: TextIO) -> None:
     )
     out.write(
         f"  {'condition':<{width}}  episodes  success %  error mean m  error max m"
-        "  touchdown mean m/s  timeouts\n"
+        "  touchdown mean m/s  off pad  aborts  timeouts\n"
     )
     for name, r in conds.items():
         mean, worst, touchdown = _cells(r, (12, 11, 18))
+        off_pad, aborts = _unsafe(r)
         out.write(
             f"  {name:<{width}}  {r.episodes:8d}  {100 * r.summary.success_rate:9.1f}"
-            f"  {mean}  {worst}  {touchdown}  {r.summary.timeouts:8d}\n"
+            f"  {mean}  {worst}  {touchdown}  {off_pad:>7}  {aborts:>6}"
+            f"  {r.summary.timeouts:8d}\n"
         )
     kept = [(name, row) for name, r in conds.items() for row in r.per_episode if row.log]
     if kept:
@@ -284,28 +296,32 @@ def suite_markdown(report: SuiteReport, command: str, plot: str | None = None) -
         f"{report.episodes} episodes per condition (the table says where a condition has "
         f"its own count), evaluation seed {report.seed} "
         "(disjoint from every training and selection seed). Success: touched down within "
-        "the pad's success radius, upright and slow (training/evaluate.py).",
+        "the pad's success radius, upright and slow (training/evaluate.py). *Off pad*: "
+        "touchdowns more than 2 m from the pad — the unsafe failures; *aborts*: flights the "
+        "policy ended in the air because it found no pad (a failure, not a touchdown; "
+        "companion/policy_net/guard.py).",
         "",
     ]
     sites = any(_on_pad(r) is not None for r in report.conditions.values())
     if sites:
         lines.append(
             "On a site (a moving pad, a slope, rocks) the metrics are in the pad's frame and "
-            "*on pad %* is the share of touchdowns on the pad's own surface; *off pad* counts "
-            "touchdowns elsewhere (the ground beside a rover, the sea, a rock)."
+            "*on pad %* is the share of touchdowns on the pad's own surface; *not on pad* "
+            "counts touchdowns elsewhere (the ground beside a rover, the sea, a rock)."
         )
         lines.append("")
-    extra = " on pad % | off pad |" if sites else ""
+    extra = " on pad % | not on pad |" if sites else ""
     lines += [
         "| condition | episodes | success % | error mean m | error max m "
-        f"| touchdown mean m/s | timeouts |{extra}",
-        "|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if sites else ""),
+        f"| touchdown mean m/s | off pad | aborts | timeouts |{extra}",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if sites else ""),
     ]
     for name, r in report.conditions.items():
         mean, worst, touchdown = _cells(r)
+        off_pad, aborts = _unsafe(r)
         row = (
             f"| {name} | {r.episodes} | {100 * r.summary.success_rate:.1f} "
-            f"| {mean} | {worst} | {touchdown} | {r.summary.timeouts} |"
+            f"| {mean} | {worst} | {touchdown} | {off_pad} | {aborts} | {r.summary.timeouts} |"
         )
         if sites:
             counts = _on_pad(r)

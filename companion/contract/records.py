@@ -441,6 +441,10 @@ class EpisodeResultRecord(LogRecord):
     surface; the metrics above are then in the pad's frame. Absent on the nominal flat site."""
     tipped_over: bool | Absent = ABSENT
     """On a site: the surface it came down on was too steep to stand on (a failure)."""
+    failsafe: str | Absent = ABSENT
+    """The pilot ended the flight itself, never touching down: the reason (``pad_not_found``:
+    the landing guard found no pad, ``companion.policy_net.guard``). An abort is a failure,
+    not an unsafe one; absent when the flight ran to a touchdown or the timeout."""
     link_stats: Mapping[str, int] | Absent = ABSENT
     gcs_link_stats: Mapping[str, int] | Absent = ABSENT
     lockstep_timeouts: int | Absent = ABSENT

@@ -9,6 +9,7 @@ module             its one job                                                  
 ``config``         :class:`NetConfig` (stored in checkpoints), :class:`CheckpointError`  no
 ``geometry``       pad position from a bearing, the controller's input features      no
 ``estimator``      :class:`PadEstimator`: Kalman filter of position and velocity     no
+``guard``          :class:`LandingGuard`: never land blind (:class:`PadNotFound`)     no
 ``core``           :class:`PolicyCore`: all but the networks behind ``act``           no
 ``networks``       :class:`PerceptionCNN` and :class:`ControlLSTM`                   yes
 ``policy``         :class:`LearnedPolicy`: ``PolicyCore`` over the torch networks    yes
@@ -56,6 +57,7 @@ from companion.policy_net.geometry import (
     position_from_bearing,
     rotation_zyx,
 )
+from companion.policy_net.guard import GuardState, LandingGuard, PadNotFound
 
 if TYPE_CHECKING:
     from companion.policy_net.checkpoint import (
@@ -75,9 +77,12 @@ __all__ = [
     "CheckpointError",
     "ControlLSTM",
     "EstimatorState",
+    "GuardState",
+    "LandingGuard",
     "LearnedPolicy",
     "NetConfig",
     "PadEstimator",
+    "PadNotFound",
     "PerceptionCNN",
     "PolicyCore",
     "PolicyState",

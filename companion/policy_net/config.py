@@ -7,7 +7,8 @@ in every checkpoint. No torch here: the estimator reads it too.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
@@ -33,13 +34,26 @@ ESTIMATOR_FIELDS = (
     "accel_bias_walk_m_s2",
     "radar_gate_sigma",
     "latency_compensation",
+    "land_floor_m",
+    "confirm_fixes",
+    "confirm_threshold",
+    "search_altitude_m",
+    "pad_timeout_s",
 )
-"""The :class:`NetConfig` fields that shape only the pad estimator and the fix, not a network's
-weights: a trained network flies with any values of them."""
+"""The :class:`NetConfig` fields that shape only the pad estimator, the fix and the landing
+guard, not a network's weights: a trained network flies with any values of them."""
 
 
 class CheckpointError(ValueError):
     """A checkpoint file is missing, corrupt, of another format, or does not fit its network."""
+
+
+def _check_setting_key(key: str) -> None:
+    if key not in ESTIMATOR_FIELDS:
+        raise CheckpointError(
+            f"estimator setting {key!r}: not one that a trained network flies with any value "
+            f"of; expected one of {', '.join(ESTIMATOR_FIELDS)}"
+        )
 
 
 @dataclass(frozen=True)
@@ -123,6 +137,23 @@ class NetConfig:
     (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward
     to now with the estimated velocity; a repeated image (a lost frame) gives no new fix."""
 
+    # Never land blind (companion.policy_net.guard). On by default: a checkpoint saved before
+    # these keys existed flies as it did whenever it confirms the pad above the floor.
+    land_floor_m: float | None = 12.0
+    """Below this altitude (m, the estimator's) a vision policy descends only with a confirmed
+    pad; without one the guard holds and climbs, and gives up after ``pad_timeout_s``. None:
+    no guard."""
+    confirm_fixes: int = 5
+    """Horizontal fixes the estimator took (sure, or unsure through the gate) that confirm the
+    pad."""
+    confirm_threshold: float | None = None
+    """The pad probability a taken fix needs to count towards ``confirm_fixes``; None: any
+    fix the estimator took (sure, or unsure through the gate)."""
+    search_altitude_m: float = 30.0
+    """Where the guard climbs to, to widen the view, and holds."""
+    pad_timeout_s: float = 30.0
+    """Time in the guard without a confirmed pad after which the flight ends: pad not found."""
+
     def __post_init__(self) -> None:
         if self.kind not in ("vision", "privileged"):
             raise CheckpointError(
@@ -136,7 +167,12 @@ class NetConfig:
             raise CheckpointError(
                 f"net config radar_gate_sigma: expected >= 0 (0: off), got {self.radar_gate_sigma}"
             )
-        for key in ("visibility_threshold", "acquire_threshold", "unsure_threshold"):
+        for key in (
+            "visibility_threshold",
+            "acquire_threshold",
+            "unsure_threshold",
+            "confirm_threshold",
+        ):
             value = getattr(self, key)
             if value is not None and not 0.0 <= value <= 1.0:
                 raise CheckpointError(f"net config {key}: expected in [0, 1], got {value}")
@@ -153,6 +189,24 @@ class NetConfig:
         if not (math.isfinite(self.unsure_sigma_scale) and self.unsure_sigma_scale >= 1.0):
             raise CheckpointError(
                 f"net config unsure_sigma_scale: expected >= 1, got {self.unsure_sigma_scale}"
+            )
+        floor = self.land_floor_m
+        if floor is not None and not (math.isfinite(floor) and 0.0 < floor <= 200.0):
+            raise CheckpointError(
+                f"net config land_floor_m: expected in (0, 200] m or None, got {floor}"
+            )
+        if floor is not None and not self.search_altitude_m >= floor:
+            raise CheckpointError(
+                f"net config search_altitude_m: expected >= land_floor_m ({floor}), got "
+                f"{self.search_altitude_m}"
+            )
+        if not (isinstance(self.confirm_fixes, int) and self.confirm_fixes >= 1):
+            raise CheckpointError(
+                f"net config confirm_fixes: expected an integer >= 1, got {self.confirm_fixes!r}"
+            )
+        if not (math.isfinite(self.pad_timeout_s) and self.pad_timeout_s > 0.0):
+            raise CheckpointError(
+                f"net config pad_timeout_s: expected > 0 s, got {self.pad_timeout_s}"
             )
         if len(self.accel_bias_sigma_m_s2) != 3 or min(self.accel_bias_sigma_m_s2) <= 0:
             raise CheckpointError(
@@ -172,6 +226,45 @@ class NetConfig:
         if math.isfinite(hover_thrust_norm) and 0.0 < hover_thrust_norm < 1.0:
             return float(hover_thrust_norm)
         return self.hover_thrust_norm
+
+    def with_settings(self, settings: Mapping[str, Any]) -> NetConfig:
+        """This config with :data:`ESTIMATOR_FIELDS` values replaced (``visland eval
+        --estimator``): a trained network flies with any of them. A key outside them or a bad
+        value is a :class:`CheckpointError` naming it."""
+        for key in settings:
+            _check_setting_key(key)
+        return replace(self, **dict(settings))
+
+    @staticmethod
+    def parse_setting(text: str) -> tuple[str, Any]:
+        """``KEY=VALUE`` of an :data:`ESTIMATOR_FIELDS` key, the value read as the field's
+        type: ``none`` for an optional one, ``true``/``false``, an integer, a number, or three
+        comma-separated numbers. A CheckpointError names what is wrong."""
+        key, sep, raw = text.partition("=")
+        key, raw = key.strip(), raw.strip()
+        if not sep or not key or not raw:
+            raise CheckpointError(f"estimator setting {text!r}: expected KEY=VALUE")
+        _check_setting_key(key)
+        default = getattr(NetConfig(), key)
+        hint = NetConfig.__dataclass_fields__[key].type
+        try:
+            if raw.lower() == "none":
+                if "None" not in str(hint):
+                    raise ValueError("this setting cannot be none")
+                value: Any = None
+            elif isinstance(default, bool) or str(hint) == "bool":
+                if raw.lower() not in ("true", "false"):
+                    raise ValueError("expected true or false")
+                value = raw.lower() == "true"
+            elif isinstance(default, tuple):
+                value = tuple(float(v) for v in raw.split(","))
+            elif str(hint) == "int":
+                value = int(raw)
+            else:
+                value = float(raw)
+        except ValueError as exc:
+            raise CheckpointError(f"estimator setting {key}={raw}: {exc}") from None
+        return key, value
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

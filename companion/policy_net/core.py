@@ -32,6 +32,7 @@ from companion.policy_net.geometry import (
     position_from_bearing,
     rotation_zyx,
 )
+from companion.policy_net.guard import GuardState, LandingGuard
 from companion.roi import RoiConfig, RoiState
 
 __all__ = ["PolicyCore", "PolicyState", "attitude_at"]
@@ -58,6 +59,12 @@ class PolicyState:
     """Time stamp of the newest radar reading used as an altitude fix: over a real link the
     reading at hand is often the previous one again (DISTANCE_SENSOR late or lost), and a
     reading is measured once."""
+    fixes: int = 0
+    """Horizontal fixes the estimator took this flight at a pad probability of at least
+    ``confirm_threshold`` (the landing guard's confirmation of the pad)."""
+    guard: GuardState | None = None
+    """The landing guard's state (:mod:`companion.policy_net.guard`); None: no guard (a
+    privileged policy, ``land_floor_m`` None)."""
     roi: RoiState | None = None
     """With ``PolicyCore.roi``: the full-resolution window this step's frame is cut with
     (:mod:`companion.roi`); the step maps the CNN's bearing through it and sets the next."""
@@ -151,6 +158,9 @@ class PolicyCore(ABC):
 
     def _init_core(self) -> None:
         self._estimator = PadEstimator(self.config)
+        self._guard = LandingGuard(self.config)
+        threshold = self.config.confirm_threshold
+        self._confirm_at = 0.0 if threshold is None else threshold
 
     # the backend's networks -------------------------------------------------------------
 
@@ -177,7 +187,8 @@ class PolicyCore(ABC):
     def initial_state(self) -> PolicyState:
         est = None if self.privileged else self._estimator.initial_state()
         roi = None if self.privileged or self.roi is None else self.roi.start()
-        return PolicyState(lstm=self.zero_state(), estimator=est, roi=roi)
+        guard = None if self.privileged or self.config.land_floor_m is None else GuardState()
+        return PolicyState(lstm=self.zero_state(), estimator=est, roi=roi, guard=guard)
 
     def features(
         self, observation: Observation, groundtruth: Any, state: PolicyState
@@ -398,7 +409,12 @@ class PolicyCore(ABC):
                 state.roi, seen, estimate, rotation_zyx(*attitude_rad), self.config.control_dt_s
             )
             state = replace(state, roi=roi)
-        return feats, replace(state, estimator=est, last_perception=raw)
+        return feats, replace(
+            state,
+            estimator=est,
+            last_perception=raw,
+            fixes=state.fixes + int(est.took_horizontal and vis >= self._confirm_at),
+        )
 
     def act(
         self, observation: Observation, groundtruth: Any, state: PolicyState
@@ -411,4 +427,14 @@ class PolicyCore(ABC):
         if not np.all(np.isfinite(cmd)):
             raise ValueError(f"policy output not finite at frame {observation.frame_id}: {cmd}")
         command = Command(thrust_norm=float(np.clip(cmd[0], 0.0, 1.0)), rate_frd_rad_s=cmd[1:])
+        if state.guard is not None and state.estimator is not None:
+            command, guard = self._guard.step(
+                state.guard,
+                state.estimator,
+                state.fixes,
+                observation.attitude_rad,
+                observation.hover_thrust_norm,
+                command,
+            )
+            state = replace(state, guard=guard)
         return command, replace(state, lstm=lstm)

@@ -23,9 +23,12 @@ class EstimatorState:
     initialised: np.ndarray
     """(3,) bool: the axis has had a measurement."""
     rejected: int = 0
+    """Consecutive horizontal fixes refused by the innovation gate."""
     rejected_altitude: int = 0
     """Consecutive altitude (radar) fixes refused by ``radar_gate_sigma``."""
-    """Consecutive horizontal fixes refused by the innovation gate."""
+    took_horizontal: bool = False
+    """This step's horizontal fix (sure or unsure) was taken: it started or updated the
+    estimate's position (the landing guard counts them to confirm the pad)."""
 
 
 MAX_STEP_DT_S = 1.0
@@ -129,6 +132,7 @@ class PadEstimator:
             if init[axis]:
                 x[axis] = f @ x[axis] + b * acc[axis]
                 cov[axis] = f @ cov[axis] @ f.T + q
+        took = False
         if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
@@ -185,6 +189,7 @@ class PadEstimator:
                         axes = axes[2:]
                 else:
                     rejected = 0
+            took = 0 in axes
             for axis in axes:
                 z = float(fix_ned_m[axis])
                 if not init[axis]:
@@ -199,5 +204,10 @@ class PadEstimator:
                 x[axis] = x[axis] + k * (z - h @ x[axis])
                 cov[axis] = p - np.outer(k, ph)
         return EstimatorState(
-            x=x, cov=cov, initialised=init, rejected=rejected, rejected_altitude=rejected_alt
+            x=x,
+            cov=cov,
+            initialised=init,
+            rejected=rejected,
+            rejected_altitude=rejected_alt,
+            took_horizontal=took,
         )

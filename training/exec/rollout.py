@@ -16,6 +16,8 @@ from typing import Any, Protocol, runtime_checkable
 
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
+from companion.policy_net.guard import PadNotFound
+from companion.states import FailsafeReason
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.env import LandingEnv
 from sitl_sim.flight_record import (
@@ -41,8 +43,17 @@ __all__ = [
 ]
 
 
-def make_policy(name: str, env: LandingEnv):
-    """``expert`` (the MPC), ``cascade`` (the PD baseline), or a checkpoint path."""
+Settings = tuple[tuple[str, Any], ...]
+"""(key, value) pairs of :data:`companion.policy_net.ESTIMATOR_FIELDS` (hashable: a spec is a
+cache key)."""
+
+
+def make_policy(name: str, env: LandingEnv, settings: Settings = ()):
+    """``expert`` (the MPC), ``cascade`` (the PD baseline), or a checkpoint path;
+    ``settings``: estimator and guard values a checkpoint flies with instead of its own
+    (``NetConfig.with_settings``)."""
+    if settings and name in ("expert", "cascade"):
+        raise ValueError(f"estimator settings: {name!r} has no estimator (a checkpoint has)")
     if name == "expert":
         from expert.mpc import MpcExpert
 
@@ -60,7 +71,11 @@ def make_policy(name: str, env: LandingEnv):
     from companion.policy_net import load_policy
 
     torch.set_num_threads(1)  # one policy per worker process; workers run in parallel
-    return load_policy(name)
+    policy = load_policy(name)
+    if not settings:
+        return policy
+    cfg = policy.config.with_settings(dict(settings))
+    return type(policy)(cfg, policy.control, policy.perception, policy.metadata)
 
 
 @runtime_checkable
@@ -92,6 +107,9 @@ class RolloutSpec:
     render_camera: bool = True
     log_dir: str | None = None
     """Write one MCAP flight log per episode here (None: no logs)."""
+    settings: Settings = ()
+    """A checkpoint's estimator and guard values replaced, as (key, value) pairs
+    (``visland eval --estimator``; ``NetConfig.with_settings``)."""
 
 
 @dataclass(frozen=True)
@@ -182,7 +200,14 @@ def fly_episode(
         result = None
         where_ne = None
         while result is None:
-            command, state = policy.act(obs, truth, state)
+            try:
+                command, state = policy.act(obs, truth, state)
+            except PadNotFound:  # the guard gave up in the air: an abort, not a touchdown
+                result = EpisodeResult.aborted_by(
+                    FailsafeReason.PAD_NOT_FOUND, truth.time_s, truth.pad_relative[0]
+                )
+                where_ne = truth.pad_relative[0]
+                break
             if log is not None:
                 write_control_step(log, obs, truth, command, source, state)
             contact = sim.step(command)
@@ -232,7 +257,7 @@ def _worker_init(spec: RolloutSpec, policy_file: str | None = None) -> None:
         render_camera=spec.render_camera,
     )
     _WORKER["env"] = env
-    _WORKER["policy"] = make_policy(policy_file or spec.policy, env)
+    _WORKER["policy"] = make_policy(policy_file or spec.policy, env, spec.settings)
     _WORKER["spec"] = spec
     _WORKER["commit"] = git_commit()
 
