@@ -82,7 +82,8 @@ def test_a_timed_out_flight_never_enters_the_landing_error_mean():
     assert s.landed == 1 and s.landing_error_m.mean == pytest.approx(0.4)
     out = StringIO()
     format_table(report, out)
-    assert "mean    0.400" in out.getvalue() and "(over 1 landed; 1 never touched down)" in out.getvalue()
+    text = out.getvalue()
+    assert "mean    0.400" in text and "(over 1 landed; 1 never touched down)" in text
 
     report = _report(timeout, timeout)
     assert report.summary.landed == 0 and math.isnan(report.summary.landing_error_m.mean)

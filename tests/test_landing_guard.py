@@ -83,7 +83,7 @@ def test_below_the_floor_without_a_confirmed_pad_it_climbs_level_then_gives_up()
     assert cmd is NETWORK and not state.holding
     # down again without it, until the timeout: 3 s in all, counted across both holds
     state = GuardState(held_s=state.held_s, engaged=state.engaged)
-    with pytest.raises(PadNotFound, match="pad not found.*4 of 5 fixes"):
+    with pytest.raises(PadNotFound, match=r"pad not found.*4 of 5 fixes"):
         for _ in range(40):
             _, state = _step(guard, state, _estimate(10.0, False), 4)
     assert state.engaged == 2

@@ -135,6 +135,31 @@ def test_the_standard_suite_loads():
     assert (suite.episodes, suite.seed) == (50, 1_000_000)
 
 
+def test_the_compound_suite_holds_conditions_that_come_together():
+    suite = load_suite(REPO / "configs/suites/compound.toml")
+    by = {c.name: c.scenario for c in suite.conditions}
+    assert list(by) == [
+        "low_sun_every_ground",
+        "mars_wind_faults_low_sun",
+        "rover_wind",
+        "deck_low_sun",
+        "no_pad_in_view",
+    ]
+    low = by["low_sun_every_ground"].visual
+    families = {"regolith", "mars_rocks", "sand", "grass", "asphalt", "gravel"}
+    assert set(low.terrain) == families and low.sun_elevation_deg[1] <= 25.0
+    train = load_scenario(REPO / "configs/scenario_visual.toml").visual.texture_seed
+    assert low.texture_seed[0] > train[1]  # unseen ground
+    mars = by["mars_wind_faults_low_sun"]
+    assert mars.world.name == "mars"
+    assert None not in (mars.wind, mars.sensors, mars.vehicle, mars.visual)
+    assert by["rover_wind"].wind is not None
+    assert by["deck_low_sun"].visual.sun_elevation_deg[1] <= 25
+    # the pad is out of view: at least 150 m off from at most 60 m up (a 45 deg view: 25 m)
+    far = by["no_pad_in_view"]
+    assert far.north_east_m[0] >= 150.0 and far.altitude_m[1] <= 60.0
+
+
 @pytest.mark.parametrize(
     ("body", "expected"),
     [

@@ -143,12 +143,14 @@ class NetConfig:
     """Below this altitude (m, the estimator's) a vision policy descends only with a confirmed
     pad; without one the guard holds and climbs, and gives up after ``pad_timeout_s``. None:
     no guard."""
-    confirm_fixes: int = 5
+    confirm_fixes: int = 10
     """Horizontal fixes the estimator took (sure, or unsure through the gate) that confirm the
     pad."""
-    confirm_threshold: float | None = None
+    confirm_threshold: float | None = 0.75
     """The pad probability a taken fix needs to count towards ``confirm_fixes``; None: any
-    fix the estimator took (sure, or unsure through the gate)."""
+    fix the estimator took (sure, or unsure through the gate). Chosen on the validation seed
+    (docs/DESIGN.md, decisions): unsure fixes of ground without a pad pass the gate often
+    enough to confirm a pad that is not there."""
     search_altitude_m: float = 30.0
     """Where the guard climbs to, to widen the view, and holds."""
     pad_timeout_s: float = 30.0
