@@ -86,6 +86,10 @@ def test_demo_flies_the_shipped_model_over_mavlink_and_reports_it(tmp_path):
     assert report["latency_ms"]["commands"] > 50
     start = report["initial_states"][0]["pos_ned_m"]
     assert 75.0 <= -start[2] <= 100.0  # paper 4.1 altitudes
+    # ... and it lands: on the pad, slowly, upright (the shipped model's first evaluation flight)
+    (row,) = report["per_episode"]
+    assert row["success"] and row["landing_error_m"] < 0.5, row
+    assert report["summary"]["off_pad"] == 0 and report["summary"]["aborts"] == 0
 
     # The companion's log has no ground truth: a picture of it alone cannot show a path, and
     # plot_flights says so instead of drawing nothing.
@@ -103,8 +107,9 @@ def test_make_demo_default_three_landings(tmp_path):
     t0 = time.monotonic()
     proc = visland("demo", "--out", str(out))
     wall = time.monotonic() - t0
-    _check_demo_output(proc, out, 3, proc.stdout)
+    report = _check_demo_output(proc, out, 3, proc.stdout)
     assert wall < 300  # the limit after install
+    assert all(row["success"] for row in report["per_episode"]), report["per_episode"]
 
 
 def _group(pgid: int) -> list[int]:
