@@ -110,6 +110,13 @@ def _limits(robust: bool) -> str:
     )
 
 
+def _run_scenario(run: Path) -> str:
+    """The scenario file the run flew (its ``profile.json``); the paper's by default."""
+    path = run / "profile.json"
+    scenario = json.loads(path.read_text()).get("scenario") if path.exists() else None
+    return scenario or "configs/scenario.toml (paper 4.1)"
+
+
 def ship(run: str | Path, out: str | Path = "models", name: str = SHIPPED_MODEL.name) -> Path:
     """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>``, export its ONNX graphs beside
     it (the board runtime; a previous model's export there would otherwise be refused as stale)
@@ -185,7 +192,7 @@ def ship(run: str | Path, out: str | Path = "models", name: str = SHIPPED_MODEL.
     data_where = (
         f"across the training worlds of `{worlds}` (each stage's flights split by share)"
         if worlds
-        else "paper 4.1 initial states (`configs/scenario.toml`)"
+        else f"the initial states of `{_run_scenario(run)}`"
     )
     suite_section = _suite_section(metrics, dst.name)
     card = f"""# visland vision landing policy — model card

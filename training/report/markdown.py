@@ -56,20 +56,23 @@ def table3(metrics: Metrics) -> str:
     rows = metrics.rows
     lines = [
         "| policy | source | min error (m) | max error (m) | mean error (m) | std error (m) "
-        "| touchdown speed mean / max (m/s) | success | timeouts |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| touchdown speed mean / max (m/s) | success | timeouts | off pad / aborts |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for key, label in ROWS.items():
         r = rows[key].summary
         e, v = r.landing_error_m, r.touchdown_speed_m_s
+        # touchdowns > 2 m from the pad (unsafe) / flights ended in the air (pad not found);
+        # "—" in metrics written before they were counted
+        unsafe = "—" if r.off_pad is None else f"{r.off_pad} / {r.aborts}"
         lines.append(
             f"| {label} | **ours** | {fmt(e.min)} | {fmt(e.max)} | {fmt(e.mean)} | "
             f"{fmt(e.std)} | {fmt(v.mean)} / {fmt(v.max)} | {pct(r.success_rate)} | "
-            f"{r.timeouts} |"
+            f"{r.timeouts} | {unsafe} |"
         )
         paper = PAPER_TABLE3.get(key)
         if paper is None:
-            lines.append(f"| {label} | paper | — | — | — | — | — | — | — |")
+            lines.append(f"| {label} | paper | — | — | — | — | — | — | — | — |")
         else:
             td = (
                 f"≈ {PAPER_VISION_TERMINAL_SPEED_M_S:g} (§5.5, qualitative)"
@@ -78,7 +81,7 @@ def table3(metrics: Metrics) -> str:
             )
             lines.append(
                 f"| {label} | paper | {paper['min']:.2f} | {paper['max']:.2f} | "
-                f"{paper['mean']:.2f} | {paper['std']:.2f} | {td} | not reported | — |"
+                f"{paper['mean']:.2f} | {paper['std']:.2f} | {td} | not reported | — | — |"
             )
     return "\n".join(lines)
 
