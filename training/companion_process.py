@@ -6,7 +6,10 @@ baseline) into policy objects built from the same vehicle/sim configs as the SIT
 them to :func:`companion.app.main`. Any other ``--policy`` is a learned checkpoint
 (``untrained`` / ``untrained-privileged``: a randomly initialised network of the shipped size,
 for latency benchmarks). Both privileged pilots read the companion's ODOMETRY record
-(a ``companion.contract.GroundTruth``), so the SITL must run with ``--groundtruth``.
+(a ``companion.contract.GroundTruth``), so the SITL must run with ``--groundtruth``, and both
+model the world they fly in: ``--planet NAME`` (this shell's own flag, default earth) is the
+SITL scenario's planet — ``visland fly`` passes it; an Earth expert on Mars hovers until the
+episode times out.
 """
 
 from __future__ import annotations
@@ -42,12 +45,14 @@ def sim_companion_args() -> tuple[str, ...]:
     )
 
 
-def resolve_policy(name: str, cfg: Any = None) -> Any:
-    """``expert`` | ``cascade`` | ``untrained`` | ``untrained-privileged`` | checkpoint path."""
+def resolve_policy(name: str, cfg: Any = None, planet: str = "earth") -> Any:
+    """``expert`` | ``cascade`` | ``untrained`` | ``untrained-privileged`` | checkpoint path;
+    the privileged pilots model ``planet``."""
     if name in ("expert", "cascade"):
         from sitl_sim.config import load_sim, load_vehicle
+        from sitl_sim.config import planet as planet_named
 
-        vehicle, sim = load_vehicle(), load_sim()
+        vehicle, sim = load_vehicle(), load_sim().with_planet(planet_named(planet))
         if name == "expert":
             from expert.mpc import MpcExpert
 
@@ -75,9 +80,17 @@ def resolve_policy(name: str, cfg: Any = None) -> Any:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from companion.app import main as app_main
+    import argparse
+    from functools import partial
 
-    return app_main(argv, resolve_policy=resolve_policy, prog="visland companion")
+    from companion.app import main as app_main
+    from sitl_sim.config import PLANETS
+
+    world = argparse.ArgumentParser(add_help=False)
+    world.add_argument("--planet", choices=sorted(PLANETS), default="earth")
+    known, rest = world.parse_known_args(sys.argv[1:] if argv is None else argv)
+    resolve = partial(resolve_policy, planet=known.planet)
+    return app_main(rest, resolve_policy=resolve, prog="visland companion")
 
 
 if __name__ == "__main__":

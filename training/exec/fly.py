@@ -129,6 +129,16 @@ _handed_out: set[int] = set()
 _ports_lock = threading.Lock()
 
 
+def _planet_args(cfg: FlyConfig) -> list[str]:
+    """``--planet`` for a privileged pilot of the companion shell (it models the world the
+    SITL's scenario flies: the MPC on Mars with Earth's gravity would hover, never land)."""
+    if cfg.policy not in ("expert", "cascade") or cfg.companion_command or not cfg.scenario:
+        return []
+    from sitl_sim.scenario import load_scenario
+
+    return ["--planet", load_scenario(cfg.scenario).world.name]
+
+
 def free_udp_port() -> int:
     """A UDP port free on 127.0.0.1 now (never the same twice in this process)."""
     with _ports_lock:
@@ -271,6 +281,7 @@ def fly(cfg: FlyConfig) -> FlyReport:
         *sim_companion_args(),  # the simulator's flight settings over the hardware defaults
         "--policy",
         cfg.policy,
+        *_planet_args(cfg),
         "--connect",
         f"udpin:127.0.0.1:{remote}",
         "--camera",
