@@ -153,13 +153,13 @@ def _eval(tmp_path, *extra: str) -> dict:
 
 def test_eval_without_the_pad_in_view_aborts_instead_of_landing_blind(tmp_path):
     guarded = _eval(tmp_path)
-    assert guarded["summary"]["aborts"] == 2 and guarded["summary"]["off_pad"] == 0, guarded
+    assert guarded["aborts"] == 2 and guarded["off_pad"] == 0, guarded
     for row in guarded["per_episode"]:
         assert row["failsafe"] == "pad_not_found" and not row["landed"]
     # the same flights without the guard (--estimator): they land blind, far off the pad
     blind = _eval(tmp_path, "--estimator", "land_floor_m=none")
     assert blind["estimator"] == {"land_floor_m": None}
-    assert blind["summary"]["off_pad"] == 2 and blind["summary"]["aborts"] == 0
+    assert blind["off_pad"] == 2 and blind["aborts"] == 0
     assert all(row["landing_error_m"] > 100 for row in blind["per_episode"])
 
 
