@@ -92,8 +92,6 @@ class FlightController(FlightMachine):
         self._touchdown = TouchdownDetector(ctx.cfg.touchdown_range_m)
         self._flight_start_rx = math.inf
         self._hover: float | None = None
-        self._no_land = False
-        """The failsafe requests no LAND (pad not found: the offboard-loss action applies)."""
         self._bench_failsafe: FailsafeReason | None = None
         """The bench's last would-be failsafe (each new reason is logged once)."""
 
@@ -342,8 +340,12 @@ class FlightController(FlightMachine):
         self.perf.add_inner("policy", t_policy)
         self.perf.count("policy_steps")
         if result.command is None:
-            why = FailsafeReason.PAD_NOT_FOUND if result.pad_not_found else None
-            self._failsafe(Failsafe(why or FailsafeReason.POLICY_ERROR, str(result.error)))
+            why = (
+                FailsafeReason.PAD_NOT_FOUND
+                if result.pad_not_found
+                else FailsafeReason.POLICY_ERROR
+            )
+            self._failsafe(Failsafe(why, str(result.error)))
             return
         raw = result.command
         cmd, clamped = self.safety.clamp(raw)
@@ -416,7 +418,6 @@ class FlightController(FlightMachine):
             self._finish(FlightResult.SHADOW, f"failsafe (shadow): {failsafe}")
             return
         if failsafe.reason is FailsafeReason.PAD_NOT_FOUND:  # LAND would land blind
-            self._no_land = True
             self._enter(
                 FlightState.FAILSAFE,
                 f"{failsafe}: setpoints stopped, no LAND; the autopilot's offboard-loss "
@@ -489,9 +490,10 @@ class FlightController(FlightMachine):
                     f"touchdown; no disarm seen within {_TOUCHDOWN_DISARM_WAIT_S:g} s",
                 )
         elif state is FlightState.FAILSAFE:
+            failsafe = self.outcome.failsafe
             if (
                 not self._land_confirmed
-                and not self._no_land
+                and (failsafe is None or failsafe.reason is not FailsafeReason.PAD_NOT_FOUND)
                 and now - self._last_mode_req_s > _LAND_REREQUEST_S
             ):
                 self._request_land()

@@ -247,20 +247,20 @@ class NetConfig:
         if not sep or not key or not raw:
             raise CheckpointError(f"estimator setting {text!r}: expected KEY=VALUE")
         _check_setting_key(key)
-        default = getattr(NetConfig(), key)
-        hint = NetConfig.__dataclass_fields__[key].type
+        hint = str(NetConfig.__dataclass_fields__[key].type)  # e.g. "float | None"
+        kind = hint.removesuffix(" | None")
         try:
             if raw.lower() == "none":
-                if "None" not in str(hint):
+                if kind == hint:
                     raise ValueError("this setting cannot be none")
                 value: Any = None
-            elif isinstance(default, bool) or str(hint) == "bool":
+            elif kind == "bool":
                 if raw.lower() not in ("true", "false"):
                     raise ValueError("expected true or false")
                 value = raw.lower() == "true"
-            elif isinstance(default, tuple):
+            elif kind.startswith("tuple"):
                 value = tuple(float(v) for v in raw.split(","))
-            elif str(hint) == "int":
+            elif kind == "int":
                 value = int(raw)
             else:
                 value = float(raw)

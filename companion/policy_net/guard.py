@@ -107,7 +107,9 @@ class LandingGuard:
         if floor is None or not est.initialised[2]:
             return command, state  # no altitude yet: the first radar fix comes with step one
         altitude = -float(est.x[2, 0])
-        if self.confirmed(est, fixes) or (not state.holding and altitude >= floor):
+        if not state.holding and (altitude >= floor or self.confirmed(est, fixes)):
+            return command, state
+        if self.confirmed(est, fixes):  # the pad came into view while holding: the network
             return command, GuardState(held_s=state.held_s, engaged=state.engaged)
         held = state.held_s + cfg.control_dt_s
         if held >= cfg.pad_timeout_s:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -74,8 +74,7 @@ def make_policy(name: str, env: LandingEnv, settings: Settings = ()):
     policy = load_policy(name)
     if not settings:
         return policy
-    cfg = policy.config.with_settings(dict(settings))
-    return type(policy)(cfg, policy.control, policy.perception, policy.metadata)
+    return replace(policy, config=policy.config.with_settings(dict(settings)))
 
 
 @runtime_checkable
