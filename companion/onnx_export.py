@@ -15,7 +15,7 @@ import io
 import json
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,8 @@ class OnnxExport:
     check_samples: int
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        """The ``--json`` document: every field, in declaration order."""
+        return asdict(self)
 
 
 def _onnx_bytes(module: nn.Module, args: tuple, inputs, outputs, dynamic) -> bytes:

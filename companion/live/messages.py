@@ -221,6 +221,14 @@ def scene_update(f: LiveFrame, trail) -> Any:
     def entity(frame_id: str, ident: str, **parts) -> Any:
         return SceneEntity(timestamp=when, frame_id=frame_id, id=ident, **parts)
 
+    def lines(frame_id: str, ident: str, kind: Any, points: list, thickness: float, color: Any):
+        """One entity of screen-space lines (``kind``: a strip or a list of segments)."""
+        line = LinePrimitive(
+            type=kind, pose=_pose(), thickness=thickness, scale_invariant=True, points=points,
+            color=color,
+        )  # fmt: skip
+        return entity(frame_id, ident, lines=[line])
+
     length, width = f.pad_size_m
     entities = [
         entity(
@@ -274,20 +282,15 @@ def scene_update(f: LiveFrame, trail) -> Any:
         ),
     ]
     if len(trail) >= 2:
+        points = [Point3(x=p[0], y=p[1], z=p[2]) for p in trail]
         entities.append(
-            entity(
+            lines(
                 "ned",
                 "trajectory",
-                lines=[
-                    LinePrimitive(
-                        type=LinePrimitiveLineType.LineStrip,
-                        pose=_pose(),
-                        thickness=2.0,
-                        scale_invariant=True,
-                        points=[Point3(x=p[0], y=p[1], z=p[2]) for p in trail],
-                        color=_color(0.2, 0.5, 1.0),
-                    )
-                ],
+                LinePrimitiveLineType.LineStrip,
+                points,
+                2.0,
+                _color(0.2, 0.5, 1.0),
             )
         )
     depth = f.range_m if f.range_m is not None and math.isfinite(f.range_m) else 10.0
@@ -299,19 +302,13 @@ def scene_update(f: LiveFrame, trail) -> Any:
     for (ax, ay), (bx, by) in zip(corners, corners[1:] + corners[:1], strict=True):
         rays += [Point3(x=ax, y=ay, z=depth), Point3(x=bx, y=by, z=depth)]
     entities.append(
-        entity(
+        lines(
             "camera",
             "frustum",
-            lines=[
-                LinePrimitive(
-                    type=LinePrimitiveLineType.LineList,
-                    pose=_pose(),
-                    thickness=1.0,
-                    scale_invariant=True,
-                    points=rays,
-                    color=_color(1.0, 1.0, 0.3, 0.8),
-                )
-            ],
+            LinePrimitiveLineType.LineList,
+            rays,
+            1.0,
+            _color(1.0, 1.0, 0.3, 0.8),
         )
     )
     if f.estimate_rel_ned_m is not None and f.vehicle_pos_ned_m is not None:
