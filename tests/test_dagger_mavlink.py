@@ -105,15 +105,20 @@ def test_fly_many_names_the_runs_that_failed(low_scenario, tmp_path):
 
 def test_an_aborted_sitl_episode_is_flown_again(tmp_path):
     """A SITL stopped mid-episode logs the result as aborted: resume must not count it."""
+    from companion.contract.records import EpisodeResultRecord
     from companion.flightlog import FlightLogWriter
+    from sitl_sim.metrics import EpisodeResult
 
     path = tmp_path / "sitl_seed0_ep0000.mcap"
-    with FlightLogWriter(path, {}) as w:
-        w.write(TOPIC_RESULT, "visland.EpisodeResult", 1.0, {"episode": 0, "aborted": True})
+    result = EpisodeResult.timeout(1.0, [0.0, 0.0, -5.0], [0.0, 0.0, 0.0]).to_dict()
+    for aborted in (True, False):
+        record = EpisodeResultRecord(episode=0, aborted=aborted, **result)
+        with FlightLogWriter(path, {}) as w:
+            w.write(TOPIC_RESULT, record.SCHEMA, 1.0, record.to_dict())
+        assert completed_episode(path) is not aborted
+    with FlightLogWriter(path, {}) as w:  # a result message that is not a whole result
+        w.write(TOPIC_RESULT, record.SCHEMA, 1.0, {"episode": 0, "aborted": False})
     assert not completed_episode(path)
-    with FlightLogWriter(path, {}) as w:
-        w.write(TOPIC_RESULT, "visland.EpisodeResult", 1.0, {"episode": 0, "aborted": False})
-    assert completed_episode(path)
 
 
 def test_pipeline_dagger_round_flies_the_learner_through_sitl_and_companion(low_scenario, tmp_path):

@@ -14,10 +14,18 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+from companion.contract.record_base import ABSENT, TIME_S, RecordError
+from companion.contract.records import (
+    CommandRecord,
+    GroundTruthRecord,
+    LabelRecord,
+    ObservationRecord,
+    RawImageRecord,
+)
 from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
@@ -31,6 +39,8 @@ from companion.flightlog import FlightLogError, read_log
 __all__ = ["DatasetError", "Episode", "load_episode", "load_episodes"]
 
 _CACHE_VERSION = 3
+
+R = TypeVar("R")
 
 
 class DatasetError(ValueError):
@@ -139,8 +149,21 @@ def _validate(ep: Episode, where: str) -> Episode:
     return ep
 
 
-def _vec(msgs: list[dict[str, Any]], key: str, n: int) -> np.ndarray:
-    return np.array([m[key] for m in msgs], dtype=float).reshape(len(msgs), n)
+def _vec(records: list[Any], key: str, n: int) -> np.ndarray:
+    return np.array([getattr(r, key) for r in records], dtype=float).reshape(len(records), n)
+
+
+def _nan_if_none(values: list[Any]) -> np.ndarray:
+    """Floats with ``None`` (null in the log) or :data:`ABSENT` (left out) as NaN."""
+    return np.array([math.nan if v is None or v is ABSENT else v for v in values], dtype=float)
+
+
+def _by_frame(messages: list[dict[str, Any]], record: type[R]) -> dict[int, tuple[R, float]]:
+    """Each message read as its contract ``record``, with the message's sim-time stamp."""
+    return {
+        (r := record.from_dict(m)).frame_id: (r, float(m[TIME_S]))  # type: ignore[attr-defined]
+        for m in messages
+    }
 
 
 def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Episode:
@@ -153,18 +176,24 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
         raise DatasetError(str(exc)) from None
     meta_ep = log.metadata.get("episode", {})
     source = str(meta_ep.get("source", "unknown"))
-    obs = {m["frame_id"]: m for m in log.topic(TOPIC_OBSERVATION)}
-    truth = {m["frame_id"]: m for m in log.topic(TOPIC_GROUNDTRUTH)}
-    flown = {m["frame_id"]: m for m in log.topic(TOPIC_COMMAND)}
+    try:
+        obs = _by_frame(log.topic(TOPIC_OBSERVATION), ObservationRecord)
+        truth = _by_frame(log.topic(TOPIC_GROUNDTRUTH), GroundTruthRecord)
+        flown = _by_frame(log.topic(TOPIC_COMMAND), CommandRecord)
+    except (KeyError, TypeError, RecordError) as exc:
+        raise DatasetError(f"{log_path}: malformed record: {exc}") from None
+    labels: dict[int, tuple[LabelRecord | CommandRecord, float]]
     if label_path is not None:
         try:
             labels_log = read_log(label_path, topics=[TOPIC_LABEL])
+            labels = dict(_by_frame(labels_log.topic(TOPIC_LABEL), LabelRecord))
         except FlightLogError as exc:
             raise DatasetError(str(exc)) from None
-        labels = {m["frame_id"]: m for m in labels_log.topic(TOPIC_LABEL)}
+        except (KeyError, TypeError, RecordError) as exc:
+            raise DatasetError(f"{label_path}: malformed record: {exc}") from None
         where_labels = str(label_path)
     elif source == "expert":
-        labels, where_labels = flown, f"{log_path} (/command, flown by the expert)"
+        labels, where_labels = dict(flown), f"{log_path} (/command, flown by the expert)"
     else:
         raise DatasetError(
             f"{log_path}: flown by {source!r}, not the expert, and no label file given "
@@ -180,18 +209,18 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             break
         contiguous.append(f)
     frames = contiguous
-    o = [obs[f] for f in frames]
+    o = [obs[f][0] for f in frames]
     t = [truth[f] for f in frames]
-    lab = [labels[f] for f in frames]
-    fl = [flown[f] for f in frames]
+    lab = [labels[f][0] for f in frames]
+    fl = [flown[f][0] for f in frames]
     images = None
     if with_images:
-        image_msgs = log.topic(TOPIC_IMAGE)
+        image_msgs = [RawImageRecord.from_dict(m) for m in log.topic(TOPIC_IMAGE)]
         if not image_msgs:
             raise DatasetError(f"{log_path}: no camera frames (flown without rendering?)")
         _, frames_arr = log.images()
         # foxglove.RawImage frame_id is "camera/<frame id>"
-        index = {int(str(m["frame_id"]).rsplit("/", 1)[-1]): i for i, m in enumerate(image_msgs)}
+        index = {int(m.frame_id.rsplit("/", 1)[-1]): i for i, m in enumerate(image_msgs)}
         missing = [f for f in frames if f not in index]
         if missing:
             raise DatasetError(f"{log_path}: no camera frame for frame {missing[0]}")
@@ -202,27 +231,23 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             source=source,
             frame_id=np.array(frames, dtype=np.int64),
             # flight time: the SITL's records carry it beside their SITL-clock stamp
-            time_s=np.array([m.get("flight_time_s", m["time_s"]) for m in t], dtype=float),
+            time_s=np.array(
+                [stamp if r.flight_time_s is ABSENT else r.flight_time_s for r, stamp in t],
+                dtype=float,
+            ),
             attitude_rad=_vec(o, "attitude_rad", 3),
             rate_frd_rad_s=_vec(o, "rate_frd_rad_s", 3),
             accel_frd_m_s2=_vec(o, "accel_frd_m_s2", 3),
-            range_m=np.array(
-                [math.nan if m["range_m"] is None else m["range_m"] for m in o], dtype=float
-            ),
-            pos_ned_m=_vec(t, "pos_ned_m", 3),
-            vel_ned_m_s=_vec(t, "vel_ned_m_s", 3),
-            quat_wxyz=_vec(t, "quat_wxyz", 4),
-            label=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in lab], dtype=float),
-            flown=np.array([[m["thrust_norm"], *m["rate_frd_rad_s"]] for m in fl], dtype=float),
-            image_time_s=np.array([m["image_time_s"] for m in o], dtype=float),
-            attitude_time_s=np.array([m["attitude_time_s"] for m in o], dtype=float),
-            hover_thrust_norm=np.array(
-                [m.get("hover_thrust_norm", math.nan) for m in o], dtype=float
-            ),
-            range_time_s=np.array(
-                [math.nan if m.get("range_time_s") is None else m["range_time_s"] for m in o],
-                dtype=float,
-            ),
+            range_m=_nan_if_none([r.range_m for r in o]),
+            pos_ned_m=_vec([r for r, _ in t], "pos_ned_m", 3),
+            vel_ned_m_s=_vec([r for r, _ in t], "vel_ned_m_s", 3),
+            quat_wxyz=_vec([r for r, _ in t], "quat_wxyz", 4),
+            label=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in lab], dtype=float),
+            flown=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in fl], dtype=float),
+            image_time_s=np.array([r.image_time_s for r in o], dtype=float),
+            attitude_time_s=np.array([r.attitude_time_s for r in o], dtype=float),
+            hover_thrust_norm=_nan_if_none([r.hover_thrust_norm for r in o]),
+            range_time_s=_nan_if_none([r.range_time_s for r in o]),
             images=images,
             result=(log.topic(TOPIC_RESULT) or [{}])[-1],
         )

@@ -14,6 +14,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
+from companion.contract.record_base import RecordError
+from companion.contract.records import EpisodeResultRecord
 from companion.contract.topics import TOPIC_RESULT
 from companion.flightlog import FlightLogError, FlightLogWriter, read_log
 from companion.policy_net.guard import PadNotFound
@@ -329,4 +331,9 @@ def completed_episode(path: Path) -> bool:
     except FlightLogError:
         return False
     results = log.topic(TOPIC_RESULT)
-    return not log.truncated and bool(results) and not results[-1].get("aborted", False)
+    if log.truncated or not results:
+        return False
+    try:
+        return EpisodeResultRecord.from_dict(results[-1]).aborted is not True
+    except (RecordError, TypeError):
+        return False  # a result message that is not a result: fly the episode again
