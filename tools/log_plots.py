@@ -17,7 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from companion.contract.records import TIME_S, EventKind, EventRecord, RecordError
+from companion.contract.companion_records import CompanionSummaryRecord
+from companion.contract.records import (
+    TIME_S,
+    EpisodeResultRecord,
+    EventKind,
+    EventRecord,
+    RecordError,
+)
 from companion.contract.topics import TOPIC_EVENTS, TOPIC_GROUNDTRUTH
 from companion.flightlog import FlightLog, read_log
 from sitl_sim.metrics import SUCCESS_MAX_ERROR_M
@@ -31,6 +38,7 @@ from tools.logtool import (
     last_result,
     log_kind,
     plot_sources,
+    result_record,
     verdict,
 )
 from training.report.figures import draw_pad
@@ -164,15 +172,15 @@ def _title(log: FlightLog, kind: str) -> str:
     head = f"{log.path.name} — {kind} log"
     if log.truncated:
         head += " (TRUNCATED: readable prefix only)"
-    r = last_result(log)
+    r = result_record(last_result(log))
     if r is None:
         return head + "\nno episode result"
-    if isinstance(r.get("result"), str):  # the companion's own account
-        return f"{head}\ncompanion: {r['result']} ({r.get('reason') or 'no reason given'})"
-    speed = r.get("touchdown_vertical_speed_m_s")
+    if isinstance(r, CompanionSummaryRecord):  # the companion's own account
+        return f"{head}\ncompanion: {r.result} ({r.reason or 'no reason given'})"
+    speed = r.touchdown_vertical_speed_m_s
     return (
-        f"{head}\n{verdict(r)}: landing error {fmt_value(r.get('landing_error_m'))} m, "
-        f"vertical speed {fmt_value(speed)} m/s, tilt {fmt_value(r.get('tilt_deg'))} deg"
+        f"{head}\n{verdict(r)}: landing error {fmt_value(r.landing_error_m)} m, "
+        f"vertical speed {fmt_value(speed)} m/s, tilt {fmt_value(r.tilt_deg)} deg"
     )
 
 
@@ -415,11 +423,11 @@ def _flight_start_s(log: FlightLog, first_sample_s: float) -> float:
 
 
 def _flight_label(path: Path, log: FlightLog, label: str | None) -> str:
-    r = last_result(log)
+    r = result_record(last_result(log))
     head = label if label is not None else path.name.removesuffix(".mcap")
-    if r is None or isinstance(r.get("result"), str):
+    if not isinstance(r, EpisodeResultRecord):
         return f"{head}: no episode result"
-    return f"{head}: {verdict(r)}, error {fmt_value(r.get('landing_error_m'))} m"
+    return f"{head}: {verdict(r)}, error {fmt_value(r.landing_error_m)} m"
 
 
 def plot_flights(
@@ -484,8 +492,8 @@ def plot_flights(
                 continue
             colour = colours[len(drawn) % len(colours)]
             label = _flight_label(path, log, labels[k] if labels is not None else None)
-            r = last_result(log)
-            successes += bool(r and r.get("success"))
+            r = result_record(last_result(log))
+            successes += isinstance(r, EpisodeResultRecord) and r.success
             t, pos, _ = _series(log, "position", src.sources["position"])
             t0 = _flight_start_s(log, float(t[0]))
             keep = t >= t0 - 1e-9

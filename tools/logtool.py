@@ -24,10 +24,23 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+from companion.contract.companion_records import (
+    CompanionCommandRecord,
+    CompanionObservationRecord,
+    CompanionSummaryRecord,
+)
+from companion.contract.record_base import RecordError
+from companion.contract.records import (
+    AutopilotCommandRecord,
+    CommandRecord,
+    EpisodeResultRecord,
+    GroundTruthRecord,
+    ObservationRecord,
+)
 from companion.contract.topics import (
     TOPIC_AUTOPILOT_COMMAND,
     TOPIC_COMMAND,
@@ -56,6 +69,7 @@ __all__ = [
     "log_info",
     "log_kind",
     "plot_sources",
+    "result_record",
     "verdict",
 ]
 
@@ -66,6 +80,7 @@ PANELS = ("position", "altitude", "attitude", "command")
 _UINT16_MAX = 65_535
 
 Getter = Callable[[dict[str, Any]], Any]
+R = TypeVar("R")
 
 
 def _radar_cm(m: dict[str, Any]) -> float | None:
@@ -77,9 +92,32 @@ def _euler(quat_wxyz: Any) -> np.ndarray:
     return euler_from_quat(np.asarray(quat_wxyz, dtype=float))
 
 
+def _record(record: type[R], get: Callable[[R], Any]) -> Getter:
+    """A getter that reads a message as its contract ``record`` (MAVLink messages are read by
+    the dialect's own field names)."""
+    return lambda m: get(record.from_dict(m))
+
+
+def _truth(get: Callable[[GroundTruthRecord], Any]) -> Getter:
+    return _record(GroundTruthRecord, get)
+
+
+def _obs(get: Callable[[ObservationRecord], Any]) -> Getter:
+    return _record(ObservationRecord, get)
+
+
+def _cobs(get: Callable[[CompanionObservationRecord], Any]) -> Getter:
+    return _record(CompanionObservationRecord, get)
+
+
+def _command(r: Any) -> tuple[float, ...]:
+    """thrust_norm, p, q, r of any command record."""
+    return (r.thrust_norm, *r.rate_frd_rad_s)
+
+
 SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
     "position": (  # NED metres
-        (TOPIC_GROUNDTRUTH, lambda m: m["pos_ned_m"], "ground truth"),
+        (TOPIC_GROUNDTRUTH, _truth(lambda r: r.pos_ned_m), "ground truth"),
         (
             TOPIC_MAVLINK_IN + "ODOMETRY",
             lambda m: (m["x"], m["y"], m["z"]),
@@ -87,28 +125,24 @@ SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
         ),
     ),
     "altitude": (  # metres above ground (ground truth) or radar range
-        (TOPIC_GROUNDTRUTH, lambda m: -m["pos_ned_m"][2], "altitude (ground truth)"),
+        (TOPIC_GROUNDTRUTH, _truth(lambda r: -r.pos_ned_m[2]), "altitude (ground truth)"),
         (TOPIC_MAVLINK_IN + "ODOMETRY", lambda m: -m["z"], "altitude (ODOMETRY)"),
-        (TOPIC_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
-        (TOPIC_COMPANION_OBSERVATION, lambda m: m["range_m"], "radar range (observation)"),
+        (TOPIC_OBSERVATION, _obs(lambda r: r.range_m), "radar range (observation)"),
+        (TOPIC_COMPANION_OBSERVATION, _cobs(lambda r: r.range_m), "radar range (observation)"),
         (TOPIC_MAVLINK_OUT + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
         (TOPIC_MAVLINK_IN + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
     ),
     "attitude": (  # roll, pitch, yaw (rad)
-        (TOPIC_GROUNDTRUTH, lambda m: _euler(m["quat_wxyz"]), "ground truth"),
-        (TOPIC_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
-        (TOPIC_COMPANION_OBSERVATION, lambda m: m["attitude_rad"], "observation"),
+        (TOPIC_GROUNDTRUTH, _truth(lambda r: _euler(r.quat_wxyz)), "ground truth"),
+        (TOPIC_OBSERVATION, _obs(lambda r: r.attitude_rad), "observation"),
+        (TOPIC_COMPANION_OBSERVATION, _cobs(lambda r: r.attitude_rad), "observation"),
         (TOPIC_MAVLINK_OUT + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
         (TOPIC_MAVLINK_IN + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
     ),
     "command": (  # thrust_norm, p, q, r
-        (TOPIC_COMMAND, lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]), "pilot"),
-        (TOPIC_COMPANION_COMMAND, lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]), "pilot"),
-        (
-            TOPIC_AUTOPILOT_COMMAND,
-            lambda m: (m["thrust_norm"], *m["rate_frd_rad_s"]),
-            "autopilot",
-        ),
+        (TOPIC_COMMAND, _record(CommandRecord, _command), "pilot"),
+        (TOPIC_COMPANION_COMMAND, _record(CompanionCommandRecord, _command), "pilot"),
+        (TOPIC_AUTOPILOT_COMMAND, _record(AutopilotCommandRecord, _command), "autopilot"),
         (
             TOPIC_MAVLINK_IN + "SET_ATTITUDE_TARGET",
             lambda m: (m["thrust"], m["body_roll_rate"], m["body_pitch_rate"], m["body_yaw_rate"]),
@@ -222,16 +256,16 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"    {name}: {', '.join(keys)}")
     if not info["metadata"]:
         lines.append("    (none)")
-    result = info["result"]
+    result = result_record(info["result"])
     if result is None:
         lines.append("  result: none (no /episode/result)")
-    elif isinstance(result.get("result"), str):  # /companion/summary
-        reason = result.get("reason") or "no reason given"
-        lines.append(f"  result (companion summary): {result['result']} ({reason})")
+    elif isinstance(result, CompanionSummaryRecord):
+        reason = result.reason or "no reason given"
+        lines.append(f"  result (companion summary): {result.result} ({reason})")
     else:
         shown = ("landed", "success", "landing_error_m", "touchdown_vertical_speed_m_s", "tilt_deg")
-        parts = [f"{k} {fmt_value(result[k])}" for k in shown if k in result]
-        if result.get("aborted"):
+        parts = [f"{k} {fmt_value(getattr(result, k))}" for k in shown]
+        if result.aborted is True:
             parts.insert(0, "ABORTED")
         lines.append(f"  result: {', '.join(parts)}")
     for line in info["plot_missing"]:
@@ -249,7 +283,8 @@ def fmt_value(value: Any, spec: str = ".3f") -> str:
 
 
 def last_result(log: FlightLog) -> dict[str, Any] | None:
-    """The episode's ``/episode/result``, else the companion's ``/companion/summary``."""
+    """The episode's ``/episode/result``, else the companion's ``/companion/summary`` (the
+    message as logged)."""
     for topic in RESULT_TOPICS:
         msgs = log.topic(topic)
         if msgs:
@@ -257,10 +292,25 @@ def last_result(log: FlightLog) -> dict[str, Any] | None:
     return None
 
 
-def verdict(r: dict[str, Any]) -> str:
+Result = EpisodeResultRecord | CompanionSummaryRecord
+
+
+def result_record(message: dict[str, Any] | None) -> Result | None:
+    """:func:`last_result`'s message as its record (None: no result, or one that is not a
+    whole record, e.g. from a truncated or foreign log)."""
+    if message is None:
+        return None
+    record = CompanionSummaryRecord if isinstance(message.get("result"), str) else None
+    try:
+        return (record or EpisodeResultRecord).from_dict(message)
+    except (RecordError, TypeError):
+        return None
+
+
+def verdict(r: EpisodeResultRecord) -> str:
     """One word or phrase for an ``/episode/result``."""
-    if r.get("aborted"):
+    if r.aborted is True:
         return "aborted"
-    if not r.get("landed"):
+    if not r.landed:
         return "timeout"
-    return "success" if r.get("success") else "landed, not a success"
+    return "success" if r.success else "landed, not a success"
