@@ -53,6 +53,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import operator
 import signal
 import sys
 import threading
@@ -68,7 +69,7 @@ from companion.contract.perf import PERF_LINE_PREFIX, LoopPerf, pin_to_cpus
 from companion.contract.records import EventKind
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
-from sitl_sim.autopilot.px4 import Autopilot, AutopilotParams, FlightMode, LandController
+from sitl_sim.autopilot.px4 import FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
 from sitl_sim.errors import SimError
 from sitl_sim.mavlink.clock import FrameWait, Pacer, SimClock
@@ -78,7 +79,7 @@ from sitl_sim.mavlink.config import (
     initial_params,
     sitl_config_from_args,
 )
-from sitl_sim.mavlink.endpoint import LinkStats, MavlinkEndpoint, SitlError
+from sitl_sim.mavlink.endpoint import LinkStats, SitlError
 from sitl_sim.mavlink.episodes import Episodes, EpisodeSetup
 from sitl_sim.mavlink.flight_log import FlightLog
 from sitl_sim.mavlink.handlers import Handlers
@@ -101,6 +102,11 @@ _FLUSH_LEAD = 5
 """In lockstep flight the telemetry batch is sent once at most this many physics steps (20 ms)
 remain before the next frame, and with the frame: two datagrams a frame instead of one per
 stream tick, each waking the companion (which then digests the batch while the SITL renders)."""
+
+
+def _reads(path: str, doc: str | None = None) -> property:
+    """A read-only property: ``self.<path>`` (dotted), read at each access."""
+    return property(operator.attrgetter(path), doc=doc)
 
 
 class MavlinkSitl:
@@ -161,34 +167,22 @@ class MavlinkSitl:
         self.live = SitlLive(config.live) if config.live else None
         self.log_queue = LogQueue(self.perf)
         self.flight_log = FlightLog(clock=self.clock, open_writer=self.log_queue.open_writer)
-        self.publisher = Publisher(
-            config=config,
-            links=self.links,
-            flight_log=self.flight_log,
-            state=self.state,
-            sim=self.sim,
-            sim_cfg=sim_cfg,
-            clock=self.clock,
-        )
+        # the loop's parts share the simulator, its clock, the flight state and the flight log
+        parts = dict(sim=self.sim, clock=self.clock, state=self.state, flight_log=self.flight_log)
+        self.publisher = Publisher(config=config, links=self.links, sim_cfg=sim_cfg, **parts)
         self.precland = PreclandLoop(
             config=config,
-            state=self.state,
             publisher=self.publisher,
-            flight_log=self.flight_log,
-            sim=self.sim,
-            clock=self.clock,
             substeps=self._substeps,
             offboard_link=self.links.offboard.name,
+            **parts,
         )
         self.handlers = Handlers(
             config=config,
             links=self.links,
             publisher=self.publisher,
-            flight_log=self.flight_log,
-            state=self.state,
             precland=self.precland,
-            sim=self.sim,
-            clock=self.clock,
+            **parts,
         )
         setup = EpisodeSetup(
             config=config,
@@ -201,14 +195,11 @@ class MavlinkSitl:
         )
         self.episodes = Episodes(
             setup=setup,
-            sim=self.sim,
-            clock=self.clock,
-            state=self.state,
             links=self.links,
             publisher=self.publisher,
             handlers=self.handlers,
             precland=self.precland,
-            flight_log=self.flight_log,
+            **parts,
         )
         self._stop = threading.Event()
         self._land_cmd: Command | None = None
@@ -222,52 +213,27 @@ class MavlinkSitl:
 
     # ------------------------------------------------------------------ public
 
-    @property
-    def time_s(self) -> float:
-        """The SITL clock: sim seconds since start (MAVLink time_boot_ms / 1000)."""
-        return self.clock.time_s
-
-    @property
-    def time_us(self) -> int:
-        return self.clock.time_us
-
-    @property
-    def autopilot(self) -> Autopilot:
-        """The autopilot flying the current episode."""
-        return self.state.autopilot
-
-    @property
-    def params(self) -> AutopilotParams:
-        """The autopilot's parameters now (PARAM_SET and the episode's airframe change them)."""
-        return self.state.autopilot.params
-
-    @property
-    def results(self) -> list[EpisodeResult]:
-        return self.episodes.results
-
-    @property
-    def lockstep_timeouts(self) -> int:
-        return self.state.lockstep_timeouts
-
-    @property
-    def pacing_overruns(self) -> int:
-        """Times the paced clock fell behind the wall clock and re-anchored."""
-        return self._pacer.overruns
-
-    @property
-    def endpoint(self) -> MavlinkEndpoint:
-        """The offboard link."""
-        return self.links.offboard
-
-    @property
-    def gcs_endpoint(self) -> MavlinkEndpoint | None:
-        """The ground-station link (None: ``gcs`` off, or its port was taken)."""
-        return self.links.gcs
-
-    @property
-    def stats(self) -> LinkStats:
-        """The offboard link's counters (read-only from other threads)."""
-        return self.links.offboard.stats
+    time_s = _reads(
+        "clock.time_s", "The SITL clock: sim seconds since start (MAVLink time_boot_ms / 1000)."
+    )
+    time_us = _reads("clock.time_us")
+    autopilot = _reads("state.autopilot", "The autopilot flying the current episode.")
+    params = _reads(
+        "state.autopilot.params",
+        "The autopilot's parameters now (PARAM_SET and the episode's airframe change them).",
+    )
+    results = _reads("episodes.results")
+    lockstep_timeouts = _reads("state.lockstep_timeouts")
+    pacing_overruns = _reads(
+        "_pacer.overruns", "Times the paced clock fell behind the wall clock and re-anchored."
+    )
+    endpoint = _reads("links.offboard", "The offboard link.")
+    gcs_endpoint = _reads(
+        "links.gcs", "The ground-station link (None: ``gcs`` off, or its port was taken)."
+    )
+    stats = _reads(
+        "links.offboard.stats", "The offboard link's counters (read-only from other threads)."
+    )
 
     @property
     def gcs_stats(self) -> LinkStats | None:
