@@ -18,12 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.contract.records import (
-    ABSENT,
-    EpisodeResultRecord,
-    EpisodeScenarioRecord,
-    EventKind,
-)
+from companion.contract.records import ABSENT, EpisodeResultRecord, EpisodeScenarioRecord, EventKind
 from companion.contract.topics import TOPIC_SCENARIO
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.metrics import EpisodeResult
