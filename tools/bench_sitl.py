@@ -117,20 +117,13 @@ def _process(report: dict[str, Any], frames: int) -> dict[str, Any]:
 
 
 def _fly(cfg: SitlBenchConfig, out: Path) -> dict[str, Any]:
+    from tools.cli_args import config_from_args
     from training.exec.fly import FlyConfig, FlyError, fly
 
-    is_file = Path(cfg.policy).is_file()
+    runtime = ("--runtime", cfg.runtime) if Path(cfg.policy).is_file() else ()
+    # the bench's policy, episodes, seed, scenario and render
     report = fly(
-        FlyConfig(
-            policy=cfg.policy,
-            episodes=cfg.episodes,
-            seed=cfg.seed,
-            scenario=cfg.scenario,
-            render=cfg.render,
-            progress=False,
-            out=str(out),
-            companion_args=("--runtime", cfg.runtime) if is_file else (),
-        )
+        config_from_args(FlyConfig, cfg, progress=False, out=str(out), companion_args=runtime)
     )
     sitl = parse_perf_line((out / "sitl.log").read_text(errors="replace"))
     try:

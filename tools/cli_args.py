@@ -139,8 +139,9 @@ def scenario_arg(args: argparse.Namespace) -> str | None:
     return str(args.scenario) if args.scenario else None
 
 
-def config_from_args(cls: type, args: argparse.Namespace, **given: Any) -> Any:
+def config_from_args(cls: type, args: argparse.Namespace | Any, **given: Any) -> Any:
     """The config dataclass ``cls`` from the flags named as its fields; ``given`` over them
-    (the fields whose flag differs in name or type)."""
+    (the fields whose flag differs in name or type). ``args`` may also be another config: its
+    fields named as ``cls``'s carry over."""
     names = [f.name for f in dataclasses.fields(cls) if f.name not in given]
     return cls(**{n: getattr(args, n) for n in names if hasattr(args, n)}, **given)

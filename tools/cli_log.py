@@ -33,16 +33,10 @@ def _cmd_log_plot(args: argparse.Namespace) -> int:
 
 
 def _cmd_log_replay(args: argparse.Namespace) -> int:
-    from tools.cli_args import print_json
+    from tools.cli_args import config_from_args, print_json
     from tools.log_replay import ReplayConfig, replay_live
 
-    cfg = ReplayConfig(
-        file=args.file,
-        live=args.live,
-        speed=args.speed,
-        policy=args.policy,
-        wait_s=args.wait_s,
-    )
+    cfg = config_from_args(ReplayConfig, args)
     print(f"visland log replay: {args.file} on ws://{args.live} (Foxglove: Open connection)")
     report = replay_live(cfg)
     if args.json:

@@ -86,6 +86,7 @@ def soak(cfg: SoakConfig) -> SoakReport:
         ValueError: fewer flights than the warm-up plus ten.
         training.exec.fly.FlyError: a process failed.
     """
+    from tools.cli_args import config_from_args
     from training.exec.fly import FlyConfig, fly
 
     if cfg.flights < cfg.warmup + 10:
@@ -105,16 +106,9 @@ def soak(cfg: SoakConfig) -> SoakReport:
                         flush=True,
                     )
 
+    # the soak's policy, seed, scenario and out
     report = fly(
-        FlyConfig(
-            policy=cfg.policy,
-            episodes=cfg.flights,
-            seed=cfg.seed,
-            scenario=cfg.scenario,
-            out=cfg.out,
-            progress=False,
-            monitor=monitor,
-        )
+        config_from_args(FlyConfig, cfg, episodes=cfg.flights, progress=False, monitor=monitor)
     )
     logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
     p99 = [latency_stats([log])["p99_ms"] for log in logs]
