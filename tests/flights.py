@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -26,7 +26,10 @@ from sitl_sim.autopilot.px4 import MavResult
 from sitl_sim.mavlink.config import SitlConfig
 from sitl_sim.mavlink.sitl import MavlinkSitl
 from tools.sitl_client import ClientTimeout, SitlClient
-from training.exec.fly import free_udp_port
+from training.exec.fly import FlyConfig, fly, free_udp_port
+
+if TYPE_CHECKING:
+    from training.reports import FlyReport
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -37,6 +40,7 @@ __all__ = [
     "SitlThread",
     "companion_command",
     "fly_cascade",
+    "fly_quietly",
     "free_ports",
     "sitl_command",
     "sitl_with_client",
@@ -153,6 +157,12 @@ def fly_cascade(
                 lander.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz), frame.time_us // 1000
             )
     raise AssertionError(f"flight not over after {timeout_s} s")
+
+
+def fly_quietly(out: str | Path, **fields: Any) -> FlyReport:
+    """``visland fly`` in process (:func:`training.exec.fly.fly`) into the run folder ``out``,
+    without a progress bar; ``fields``: the rest of its :class:`~training.exec.fly.FlyConfig`."""
+    return fly(FlyConfig(out=str(out), progress=False, **fields))
 
 
 def sitl_command(ports: Ports, log_dir: str | Path, *extra: str, max_wall_s: int = 90) -> list[str]:

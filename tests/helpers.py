@@ -17,6 +17,7 @@ from companion.contract import Command, Observation
 from sitl_sim.config import load_sim, load_vehicle
 from sitl_sim.scenario import InitialState, Scenario, scenario_from_dict
 from sitl_sim.simulator import Simulator
+from sitl_sim.site.site import Site
 from sitl_sim.world import episode_world
 from training.provenance import REPO
 
@@ -30,6 +31,7 @@ __all__ = [
     "hover_frame",
     "imu_msg",
     "range_msg",
+    "rocky_site",
     "scenario_with",
     "visland",
 ]
@@ -130,6 +132,16 @@ def scenario_with(where: str = "test.toml", **sections: Any) -> Scenario:
     """The scenario :data:`HIGH_START` plus ``sections`` (``visual={...}``, ``pad={...}``...),
     read as if from the file ``where``."""
     return scenario_from_dict({**HIGH_START, **sections}, where)
+
+
+def rocky_site(seed: int = 5, index: int = 1) -> tuple[Scenario, Site, int, tuple[float, float]]:
+    """A scenario strewn with 0.3-0.6 m rocks (6 per 100 m²), the site it draws for episode
+    ``(seed, index)``, and the index and (north, east) of that site's tallest rock."""
+    sc = scenario_with(terrain={"rocks_per_100m2": 6.0, "rock_height_m": [0.3, 0.6]})
+    site = episode_world(sc, seed, index).site
+    rocks = site.terrain.rocks
+    k = int(np.argmax(rocks.height))
+    return sc, site, k, (float(rocks.north[k]), float(rocks.east[k]))
 
 
 def _camera_sim(renderer: str | None, noiseless: bool) -> Simulator:

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import scenario_with
+from helpers import rocky_site, scenario_with
 
 from companion.contract import Command, GroundTruth
 from companion.contract.records import GroundTruthRecord
@@ -79,11 +79,7 @@ def test_a_slope_too_steep_to_stand_on_tips_the_vehicle_over():
 
 
 def test_a_hard_landing_on_a_rock_meets_its_top_and_is_scored_off_the_pad():
-    sc = scenario_with(terrain={"rocks_per_100m2": 6.0, "rock_height_m": [0.3, 0.6]})
-    site = episode_world(sc, 5, 1).site
-    rocks = site.terrain.rocks
-    k = int(np.argmax(rocks.height))
-    n, e = float(rocks.north[k]), float(rocks.east[k])
+    sc, site, _, (n, e) = rocky_site(seed=5, index=1)
     sim = _sim(sc, seed=5, index=1, start=(n, e, -6.0), vel=(0.0, 0.0, 3.0))
     event = _fall(sim)
     top = site.ground_height(n, e)

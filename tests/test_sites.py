@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import flight_frames, scenario_with
+from helpers import flight_frames, rocky_site, scenario_with
 
 from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
@@ -136,13 +136,11 @@ def test_ground_height_and_normal_on_a_known_slope():
 
 
 def test_a_ray_cast_meets_a_rock_where_its_surface_is():
-    sc = scenario_with(terrain={"rocks_per_100m2": 6.0, "rock_height_m": [0.3, 0.6]})
-    site = episode_world(sc, 5, 1).site
-    rocks = site.terrain.rocks
-    k = int(np.argmax(rocks.height))
-    n, e = float(rocks.north[k]), float(rocks.east[k])
+    _, site, k, (n, e) = rocky_site()
     top = site.ground_height(n, e)
-    assert top == pytest.approx(rocks.top(k, n, e)) and top > 0.25  # on flat ground: the rock
+    assert (
+        top == pytest.approx(site.terrain.rocks.top(k, n, e)) and top > 0.25
+    )  # on flat ground: the rock
     assert site.range_along((n, e, -20.0), (0.0, 0.0, 1.0), 0.0, 100.0) == pytest.approx(20 - top)
     # slanted rays toward the rock meet a surface: the site's height where they stop
     for direction in ((0.3, 0.2, 1.0), (-0.5, 0.1, 1.0), (0.05, -0.6, 1.0)):

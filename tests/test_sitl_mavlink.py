@@ -867,21 +867,12 @@ def test_a_flood_from_elsewhere_is_shed_and_the_remote_is_read_behind_it():
 def test_the_companions_expert_models_the_scenarios_planet(tmp_path):
     """``visland fly --policy expert`` on Mars: the companion's MPC is built for Mars (fly
     passes the scenario's ``--planet``); with Earth's gravity it hovered until the timeout."""
-    from flights import LOW_INITIAL_STATE
-
-    from training.exec.fly import FlyConfig, fly
+    from flights import LOW_INITIAL_STATE, fly_quietly
 
     scenario = tmp_path / "mars_low.toml"
     scenario.write_text(f'[initial_state]{LOW_INITIAL_STATE}\n[world]\nplanet = "mars"\n')
-    report = fly(
-        FlyConfig(
-            policy="expert",
-            episodes=1,
-            seed=3,
-            scenario=str(scenario),
-            out=str(tmp_path / "fly"),
-            progress=False,
-        )
+    report = fly_quietly(
+        tmp_path / "fly", policy="expert", episodes=1, seed=3, scenario=str(scenario)
     )
     (row,) = report.per_episode
     assert row.success and row.landing_error_m < 0.05, row

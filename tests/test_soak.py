@@ -6,11 +6,23 @@ from __future__ import annotations
 
 import itertools
 import json
+import sys
 
 import pytest
+from flights import fly_quietly
 from helpers import visland
 
 from tools.soak import LIMITS, SoakConfig, soak
+
+
+def _companion_after(prelude: str) -> tuple[str, ...]:
+    """FlyConfig.companion_command: the companion process, once ``prelude`` (Python) has run."""
+    main = (
+        "from training.companion_process import main\n"
+        "sys.argv = ['companion', *sys.argv[1:]]\n"
+        "sys.exit(main())\n"
+    )
+    return (sys.executable, "-c", f"import sys\n{prelude}\n{main}")
 
 
 def test_card_visland_soak_a_short_day_holds_memory_descriptors_and_latency(tmp_path):
@@ -42,26 +54,16 @@ def test_card_a_full_card_mid_flight_stops_the_log_not_the_flight(tmp_path):
     """The companion's log hits a 300 kB file-size limit (as a full SD card fails a write)
     mid-flight: it lands all the same, tells the pilot (STATUSTEXT) and its stderr, and the part
     written reads back as a truncated log."""
-    import sys
-
     from companion.flightlog import read_log
-    from training.exec.fly import FlyConfig, fly
 
-    limited = (
-        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000)); "
-        "from training.companion_process import main; sys.argv = ['companion', *sys.argv[1:]]; "
-        "sys.exit(main())"
-    )
-    report = fly(
-        FlyConfig(
-            policy="models/visland_vision.pt",
-            episodes=1,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_command=(sys.executable, "-c", limited),
-            companion_args=("--max-age-ms", "3000"),
-            sitl_args=("--lockstep-timeout-s", "5"),
-        )
+    limited = "import resource; resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))"
+    report = fly_quietly(
+        tmp_path / "run",
+        policy="models/visland_vision.pt",
+        episodes=1,
+        companion_command=_companion_after(limited),
+        companion_args=("--max-age-ms", "3000"),
+        sitl_args=("--lockstep-timeout-s", "5"),
     )
     assert report.summary.success_rate == 1.0, report.per_episode
     (log_path,) = (tmp_path / "run" / "companion").glob("*.mcap")
@@ -77,31 +79,19 @@ def test_card_a_full_card_mid_flight_stops_the_log_not_the_flight(tmp_path):
 def test_card_the_wall_clock_stepping_an_hour_mid_flight_changes_nothing_but_a_note(tmp_path):
     """NTP steps the board's clock by +1 h during a flight: no staleness failsafe (control runs
     on the monotonic clock), the log's times go on without a jump, and the step is noted."""
-    import sys
-
     from companion.flightlog import read_log
-    from training.exec.fly import FlyConfig, fly
 
     stepped = (
-        "import sys, threading, time\n"
+        "import threading, time\n"
         "real, real_ns = time.time, time.time_ns\n"
         "def later():\n"
         "    time.sleep(2.5)\n"
         "    time.time = lambda: real() + 3600.0\n"
         "    time.time_ns = lambda: real_ns() + 3_600_000_000_000\n"
-        "threading.Thread(target=later, daemon=True).start()\n"
-        "from training.companion_process import main\n"
-        "sys.argv = ['companion', *sys.argv[1:]]\n"
-        "sys.exit(main())\n"
+        "threading.Thread(target=later, daemon=True).start()"
     )
-    report = fly(
-        FlyConfig(
-            policy="expert",
-            episodes=2,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_command=(sys.executable, "-c", stepped),
-        )
+    report = fly_quietly(
+        tmp_path / "run", policy="expert", episodes=2, companion_command=_companion_after(stepped)
     )
     assert report.summary.success_rate == 1.0, report.per_episode
     assert report.companion_flights == {"landed": 2}  # no failsafe
