@@ -26,7 +26,7 @@ from sitl_sim.config import VehicleConfig
 from sitl_sim.physics.airframe import AirframeScales, draw_airframe
 from sitl_sim.physics.sensor_faults import SensorFaults
 from sitl_sim.physics.wind import WindModel
-from sitl_sim.render.ground import PadGeometry, PadTexture
+from sitl_sim.render.ground import PadGeometry, PadLook, PadTexture
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.pads import PadDesign
 from sitl_sim.render.visual import VisualConfig, VisualSample
@@ -108,7 +108,7 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
     )
 
 
-def _site(scenario: Scenario, seed: int, index: int, pad: PadGeometry | PadTexture) -> Site | None:
+def _site(scenario: Scenario, seed: int, index: int, pad: PadLook) -> Site | None:
     """The episode's landing site (None: flat ground and a still pad at height 0, nominal):
     the terrain drawn first (a rover follows it, a still pad lies on its slope), then the
     motion; the vehicle is sized to the pad the renderers draw."""

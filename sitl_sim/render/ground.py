@@ -37,6 +37,7 @@ __all__ = [
     "LUMA_Q8",
     "GroundMap",
     "PadGeometry",
+    "PadLook",
     "PadTexture",
     "luma",
     "nominal_ground",
@@ -151,6 +152,10 @@ class PadTexture:
     def png(self) -> Path:
         """The picture as a PNG file (for pybullet), written once per content."""
         return _png(self.rgb, "pad")
+
+
+PadLook = PadGeometry | PadTexture
+"""What the renderers draw as the pad: its geometry (the paper's pad) or a picture."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl_sim.errors import ConfigError
-from sitl_sim.render.ground import PadGeometry, PadTexture, luma
+from sitl_sim.render.ground import PadGeometry, PadLook, PadTexture, luma
 
 __all__ = [
     "ACQUIRE_PX",
@@ -178,9 +178,7 @@ class PadDesign:
         """The paper's pattern on a square: drawn from :class:`PadGeometry`'s boxes, as today."""
         return self.pattern == "paper" and self.size_m[0] == self.size_m[1]
 
-    def scene_pad(
-        self, scale: float = 1.0, colour_gain: tuple[float, ...] = (1.0,) * 6
-    ) -> PadGeometry | PadTexture:
+    def scene_pad(self, scale: float = 1.0, colour_gain: tuple[float, ...] = (1.0,) * 6) -> PadLook:
         """What the renderers draw: this pad ``scale`` times its size, its colours jittered.
 
         The paper's pattern on a square is :class:`PadGeometry` (the green square's colour

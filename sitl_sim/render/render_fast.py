@@ -31,7 +31,7 @@ from sitl_sim.config import CameraConfig
 from sitl_sim.physics.dynamics import quat_to_rotation
 from sitl_sim.render.fast_site import BODY_TO_IMAGE as _BODY_TO_IMAGE
 from sitl_sim.render.fast_site import FastSite
-from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture, luma, nominal_ground
+from sitl_sim.render.ground import GroundMap, PadGeometry, PadLook, PadTexture, luma, nominal_ground
 from sitl_sim.render.site_look import SiteLook
 from sitl_sim.render.terrain import Sun
 from sitl_sim.site.site import Site
@@ -70,7 +70,7 @@ class FastRenderer:
     def __init__(
         self,
         ground: GroundMap | None = None,
-        pad: PadGeometry | PadTexture | None = None,
+        pad: PadLook | None = None,
         site: Site | None = None,
         sun: Sun | None = None,
     ) -> None:
@@ -79,11 +79,7 @@ class FastRenderer:
         self.configure(ground or nominal_ground(), pad or PadGeometry(), site, sun)
 
     def configure(
-        self,
-        ground: GroundMap,
-        pad: PadGeometry | PadTexture,
-        site: Site | None = None,
-        sun: Sun | None = None,
+        self, ground: GroundMap, pad: PadLook, site: Site | None = None, sun: Sun | None = None
     ) -> None:
         """Show ``ground`` and ``pad`` from now on (a new episode's world), on ``site`` (None:
         the pad still on flat ground) lit by ``sun`` (None: overhead)."""
@@ -93,7 +89,7 @@ class FastRenderer:
         self._set_layers(pad)
         self._site = FastSite(SiteLook(ground, site, sun), self._layers) if site else None
 
-    def _set_layers(self, pad: PadGeometry | PadTexture) -> None:
+    def _set_layers(self, pad: PadLook) -> None:
         if isinstance(pad, PadTexture):
             # one layer: inside << 8 | grey per texel in one uint16 channel (OpenCV warps one
             # channel several times faster than two)

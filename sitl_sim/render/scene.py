@@ -29,6 +29,7 @@ from sitl_sim.render.ground import (
     GROUND_HALF_SIDE_M,
     GroundMap,
     PadGeometry,
+    PadLook,
     PadTexture,
     luma,
     nominal_ground,
@@ -96,11 +97,7 @@ class Renderer(Protocol):
     :class:`sitl_sim.render.render_fast.FastRenderer`; both draw the same ground map and pad."""
 
     def configure(
-        self,
-        ground: GroundMap,
-        pad: PadGeometry | PadTexture,
-        site: Site | None = None,
-        sun: Sun | None = None,
+        self, ground: GroundMap, pad: PadLook, site: Site | None = None, sun: Sun | None = None
     ) -> None: ...
 
     def render(
@@ -138,14 +135,12 @@ class Scene:
     GROUND_HALF_SIDE_M = GROUND_HALF_SIDE_M
     QUAD_M = 10.0
 
-    def __init__(
-        self, pad: PadGeometry | PadTexture | None = None, ground: GroundMap | None = None
-    ) -> None:
+    def __init__(self, pad: PadLook | None = None, ground: GroundMap | None = None) -> None:
         self._client = pb.connect(pb.DIRECT)
         if self._client < 0:
             raise SimError("pybullet: could not open a DIRECT client")
         self.ground: GroundMap | None = None
-        self.pad: PadGeometry | PadTexture | None = None
+        self.pad: PadLook | None = None
         self._site: SiteBodies | None = None
         self._site_key: tuple | None = None
         try:
@@ -159,11 +154,7 @@ class Scene:
         return self._client
 
     def configure(
-        self,
-        ground: GroundMap,
-        pad: PadGeometry | PadTexture,
-        site: Site | None = None,
-        sun: Sun | None = None,
+        self, ground: GroundMap, pad: PadLook, site: Site | None = None, sun: Sun | None = None
     ) -> None:
         """Show ``ground`` and ``pad`` from now on (rebuilds the bodies if they changed), on
         ``site`` (None: the pad still on flat ground) lit by ``sun`` (None: overhead)."""

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from sitl_sim.errors import SimError
-from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture
+from sitl_sim.render.ground import GroundMap, PadLook, PadTexture
 from sitl_sim.render.site_look import SiteLook, face_light
 from sitl_sim.site.terrain import GRID_M, SITE_HALF_M
 
@@ -92,7 +92,7 @@ class SiteBodies:
         pb: Any,
         client: int,
         look: SiteLook,
-        pad: PadGeometry | PadTexture,
+        pad: PadLook,
         nominal_ground: Callable[[], None],
     ) -> None:
         self._pb, self._c, self.look = pb, client, look
@@ -228,7 +228,7 @@ class SiteBodies:
         u, v = _uv(region.texel_to_ne, region.rgb.shape, vertices[:, 0], -vertices[:, 1])
         self._mesh(vertices, np.array(tris), np.column_stack([u, v]), region)
 
-    def _pad_bodies(self, pad: PadGeometry | PadTexture) -> list[int]:
+    def _pad_bodies(self, pad: PadLook) -> list[int]:
         """The pad in its own frame (x forward, y left, z up in pybullet's axes)."""
         pb, c = self._pb, self._c
         if isinstance(pad, PadTexture):

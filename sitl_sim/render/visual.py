@@ -48,7 +48,7 @@ import numpy as np
 
 from sitl_sim.config import CameraConfig
 from sitl_sim.errors import ConfigError
-from sitl_sim.render.ground import GroundMap, PadGeometry, PadTexture, nominal_ground
+from sitl_sim.render.ground import GroundMap, PadGeometry, PadLook, nominal_ground
 from sitl_sim.render.ground_image import check_ground_image, ground_image_map
 from sitl_sim.render.pads import PadDesign, find_file
 from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
@@ -236,7 +236,7 @@ class VisualSample:
             return nominal_ground()
         return terrain_map(self.terrain, self.texture_seed, self.sun)
 
-    def pad(self, base: PadGeometry | None = None) -> PadGeometry | PadTexture:
+    def pad(self, base: PadGeometry | None = None) -> PadLook:
         """The pad the renderers draw: ``[pad]``'s design (or ``base``, else the paper's pad)
         scaled by ``pad_scale``, its colours jittered."""
         if self.pad_design is not None and base is None:
