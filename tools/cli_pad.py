@@ -18,12 +18,17 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
 from tools.cli_args import print_result
 
 __all__ = ["pad_check", "register_pad"]
+
+_PadCommand = Callable[..., argparse.ArgumentParser]
+"""``(name, help, default="paper") -> parser``: the subcommand ``pad NAME``, which takes the pad
+its ``--pad`` names (default ``default``)."""
 
 
 def _cmd_pad_info(args: argparse.Namespace) -> int:
@@ -185,12 +190,17 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     pad_help = "pad file (configs/pads/NAME.toml) or a shipped pad's name"
     pd = sub.add_parser("pad", help="make the landing pad: info, print, check, acquire")
     pd_sub = pd.add_subparsers(dest="what", required=True)
-    pi = pd_sub.add_parser(
+
+    def pad_command(name: str, help: str, default: str = "paper") -> argparse.ArgumentParser:
+        p = pd_sub.add_parser(name, help=help)
+        p.add_argument("--pad", default=default, help=pad_help)
+        return p
+
+    pi = pad_command(
         "info",
-        help="the pad's width in pixels vs altitude, the highest altitude the model acquires "
-        "it from, the start altitudes, its contrast against the ground",
+        "the pad's width in pixels vs altitude, the highest altitude the model acquires it from, "
+        "the start altitudes, its contrast against the ground",
     )
-    pi.add_argument("--pad", default="paper", help=pad_help)
     pi.add_argument(
         "--camera-hfov-deg",
         type=float,
@@ -211,12 +221,11 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     pi.add_argument("--plot", type=Path, default=None, help="also write the curve as a PNG")
     pi.add_argument("--json", action="store_true", help="print one JSON object")
     pi.set_defaults(func=_cmd_pad_info)
-    pp = pd_sub.add_parser(
+    pp = pad_command(
         "print",
-        help="the pad at true scale: a PDF tiled across pages (assembly map first, overlap, "
-        "alignment marks, 10 cm scale bar), or one PNG for a print shop",
+        "the pad at true scale: a PDF tiled across pages (assembly map first, overlap, alignment "
+        "marks, 10 cm scale bar), or one PNG for a print shop",
     )
-    pp.add_argument("--pad", default="paper", help=pad_help)
     pp.add_argument(
         "--out", type=Path, default=None, help="output file (default: NAME.pdf or NAME.png)"
     )
@@ -251,19 +260,19 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     )
     pc.add_argument("--json", action="store_true", help="print one JSON object")
     pc.set_defaults(func=_cmd_pad_check)
-    _register_acquire(pd_sub, pad_help)
+    _register_acquire(pad_command)
 
 
-def _register_acquire(pd_sub: argparse._SubParsersAction, pad_help: str) -> None:
+def _register_acquire(pad_command: _PadCommand) -> None:
     from tools.bench_roi import AcquireConfig
 
     d = AcquireConfig()
-    pa = pd_sub.add_parser(
+    pa = pad_command(
         "acquire",
-        help="from how high the model acquires the pad on a full-resolution camera (rendered "
-        "frames): the 45 deg crop (no ROI) vs the region of interest around the pad",
+        "from how high the model acquires the pad on a full-resolution camera (rendered frames): "
+        "the 45 deg crop (no ROI) vs the region of interest around the pad",
+        d.pad,
     )
-    pa.add_argument("--pad", default=d.pad, help=pad_help)
     pa.add_argument(
         "--checkpoint", default=None, help="vision checkpoint (default: the shipped model)"
     )
