@@ -1,7 +1,7 @@
 """Small stand-ins the unit tests share: decoded MAVLink messages without a link, one step of
 a logged episode as the observation the companion built in flight, the CLI run as a user runs
-it, and the rendering tests' scenarios and camera frames (a high start, a short flight, one
-frame from a hovering camera)."""
+it, the scenarios of the rendering, site and config tests (a high start, a rocky site) and
+camera frames (a short flight, one frame from a hovering camera)."""
 
 from __future__ import annotations
 
@@ -124,8 +124,8 @@ HIGH_START = {
         "rate_rad_s": [0.0, 0.0],
     }
 }
-"""An [initial_state] of the nominal high start (75-100 m over the pad): the rendering tests'
-scenarios add their sections to it."""
+"""An [initial_state] of the nominal high start (75-100 m over the pad): the rendering and
+config tests' scenarios add their sections to it."""
 
 
 def scenario_with(where: str = "test.toml", **sections: Any) -> Scenario:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+from helpers import HIGH_START, scenario_with
 
 from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink.config import SitlConfig
@@ -28,21 +29,11 @@ from sitl_sim.mavlink.link_impairment import (
     LinkImpairment,
     link_config_from_table,
 )
-from sitl_sim.scenario import scenario_from_dict
 
 if TYPE_CHECKING:
     from training.reports import FlyReport
 
 REPO = Path(__file__).resolve().parent.parent
-_INITIAL = {
-    "roll_pitch_deg": [0.0, 0.0],
-    "yaw_deg": [0.0, 0.0],
-    "north_east_m": [0.0, 0.0],
-    "altitude_m": [5.0, 6.0],
-    "vel_north_east_m_s": [0.0, 0.0],
-    "vel_down_m_s": [0.0, 0.0],
-    "rate_rad_s": [0.0, 0.0],
-}
 
 
 def _stream(seed: int = 0, **cfg) -> ImpairedStream[int]:
@@ -161,13 +152,11 @@ def test_each_episode_restarts_its_fates_and_streams_do_not_shift_each_other():
 
 
 def test_link_section_parses_with_defaults_and_is_recorded_with_the_scenario():
-    sc = scenario_from_dict(
-        {"initial_state": _INITIAL, "link": {"loss_prob": 0.1, "jitter_ms": 50}}, "lossy.toml"
-    )
+    sc = scenario_with("lossy.toml", link={"loss_prob": 0.1, "jitter_ms": 50})
     assert sc.link == LinkConfig(loss_prob=0.1, jitter_ms=50.0)
     assert sc.link.delay_ms == 0.0 and sc.link.outage_s is None and sc.link.active
     assert sc.to_dict()["link"]["loss_prob"] == 0.1
-    nominal = scenario_from_dict({"initial_state": _INITIAL}, "nominal.toml")
+    nominal = scenario_with("nominal.toml")
     assert nominal.link is None and "link" not in nominal.to_dict()
     assert not link_config_from_table({}, "empty.toml").active  # an empty [link]: perfect
     cut = link_config_from_table({"outage_s": [2.0, math.inf]}, "cut.toml")
@@ -194,12 +183,12 @@ def test_link_section_parses_with_defaults_and_is_recorded_with_the_scenario():
 )
 def test_bad_link_values_and_unknown_keys_are_config_errors_naming_file_and_key(table, match):
     with pytest.raises(ConfigError, match=match):
-        scenario_from_dict({"initial_state": _INITIAL, "link": table}, "bad.toml")
+        scenario_with("bad.toml", link=table)
 
 
 def test_a_misspelt_link_section_is_refused():
     with pytest.raises(ConfigError, match=r"bad\.toml: unknown section\(s\) \['\[links\]'\]"):
-        scenario_from_dict({"initial_state": _INITIAL, "links": {}}, "bad.toml")
+        scenario_with("bad.toml", links={})
 
 
 def test_sitl_link_flags_are_checked_and_an_impaired_link_refuses_lockstep(tmp_path):
@@ -212,7 +201,7 @@ def test_sitl_link_flags_are_checked_and_an_impaired_link_refuses_lockstep(tmp_p
     scenario = tmp_path / "lossy.toml"
     scenario.write_text(
         "[initial_state]\n"
-        + "".join(f"{k} = {v}\n" for k, v in _INITIAL.items())
+        + "".join(f"{k} = {v}\n" for k, v in HIGH_START["initial_state"].items())
         + "[link]\nloss_prob = 0.1\n"
     )
     with pytest.raises(ConfigError, match=r"lossy\.toml: \[link\].*lockstep.*--no-lockstep"):
