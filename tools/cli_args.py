@@ -17,6 +17,7 @@ __all__ = [
     "add_episode_arguments",
     "add_parallel_arguments",
     "config_from_args",
+    "json_command",
     "print_json",
     "print_result",
     "scenario_arg",
@@ -65,6 +66,16 @@ def add_deprecated_alias(
     """``old`` as a hidden, warning alias of the flag ``new`` (whose value lands in ``dest``;
     ``append``: a repeatable flag)."""
     p.add_argument(old, dest=dest, type=type, new=new, append=append, action=_DeprecatedAlias)
+
+
+def json_command(
+    p: argparse.ArgumentParser,
+    func: Callable[[argparse.Namespace], int],
+    help: str = "print one JSON object",
+) -> None:
+    """A command's last flag and its action: ``--json`` (``help``), and ``p`` runs ``func``."""
+    p.add_argument("--json", action="store_true", help=help)
+    p.set_defaults(func=func)
 
 
 def print_json(obj: Any) -> None:

@@ -10,7 +10,7 @@ import argparse
 import sys
 from collections.abc import Callable
 
-from tools.cli_args import config_from_args, print_json, print_result
+from tools.cli_args import config_from_args, json_command, print_json, print_result
 
 __all__ = ["register_bench"]
 
@@ -252,5 +252,4 @@ def register_bench(sub: argparse._SubParsersAction) -> None:
         default=0,
         help="seed of the benchmark's episodes (default 0; bench rollouts: 0 stands for 900)",
     )
-    b.add_argument("--json", action="store_true", help="machine-readable output")
-    b.set_defaults(func=_cmd_bench)
+    json_command(b, _cmd_bench, "machine-readable output")

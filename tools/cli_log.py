@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tools.cli_args import add_live_argument, print_result
+from tools.cli_args import add_live_argument, json_command, print_result
 
 __all__ = ["register_log"]
 
@@ -56,8 +56,7 @@ def register_log(sub: argparse._SubParsersAction) -> None:
     lg_sub = lg.add_subparsers(dest="what", required=True)
     li = lg_sub.add_parser("info", help="topics, counts, schemas, duration, metadata, result")
     li.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
-    li.add_argument("--json", action="store_true", help="print one JSON object")
-    li.set_defaults(func=_cmd_log_info)
+    json_command(li, _cmd_log_info)
     lp = lg_sub.add_parser(
         "plot", help="PNG: top view, altitude, attitude and commands vs time (matplotlib Agg)"
     )
@@ -89,5 +88,4 @@ def register_log(sub: argparse._SubParsersAction) -> None:
         default=10.0,
         help="wait this long for a Foxglove client before playing (default 10; 0: at once)",
     )
-    lr.add_argument("--json", action="store_true", help="print one JSON object")
-    lr.set_defaults(func=_cmd_log_replay)
+    json_command(lr, _cmd_log_replay)

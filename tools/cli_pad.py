@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
-from tools.cli_args import print_result
+from tools.cli_args import json_command, print_result
 
 __all__ = ["pad_check", "register_pad"]
 
@@ -219,8 +219,7 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
         help="leave out the contrast against the simulator's ground families",
     )
     pi.add_argument("--plot", type=Path, default=None, help="also write the curve as a PNG")
-    pi.add_argument("--json", action="store_true", help="print one JSON object")
-    pi.set_defaults(func=_cmd_pad_info)
+    json_command(pi, _cmd_pad_info)
     pp = pad_command(
         "print",
         "the pad at true scale: a PDF tiled across pages (assembly map first, overlap, alignment "
@@ -258,8 +257,7 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
         default=0,
         help="rotate the photo counter-clockwise (multiple of 90) so that its top is forward",
     )
-    pc.add_argument("--json", action="store_true", help="print one JSON object")
-    pc.set_defaults(func=_cmd_pad_check)
+    json_command(pc, _cmd_pad_check)
     _register_acquire(pad_command)
 
 
@@ -297,5 +295,4 @@ def _register_acquire(pad_command: _PadCommand) -> None:
         help="also fly this many episodes of --scenario on each camera (native, crop, roi)",
     )
     pa.add_argument("--scenario", default=d.scenario, help="--flights: the scenario file")
-    pa.add_argument("--json", action="store_true", help="print one JSON object")
-    pa.set_defaults(func=_cmd_pad_acquire)
+    json_command(pa, _cmd_pad_acquire)

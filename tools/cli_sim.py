@@ -16,6 +16,7 @@ from tools.cli_args import (
     add_episode_arguments,
     add_live_argument,
     config_from_args,
+    json_command,
     print_json,
     scenario_arg,
 )
@@ -220,8 +221,7 @@ def _register_demo(sub: argparse._SubParsersAction) -> None:
         help="output folder: logs, flights.png, demo.json; a previous demo there is replaced "
         "(default runs/demo)",
     )
-    d.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
-    d.set_defaults(func=_cmd_demo)
+    json_command(d, _cmd_demo, "print the report as JSON on stdout")
 
 
 def _cmd_readme(args: argparse.Namespace) -> int:
@@ -306,8 +306,7 @@ def _register_soak(sub: argparse._SubParsersAction) -> None:
     sk.add_argument("--scenario", type=Path, default=None, help="scenario TOML (default nominal)")
     sk.add_argument("--seed", type=int, default=EVAL_SEED, help=f"seed (default {EVAL_SEED})")
     sk.add_argument("--out", default=None, help="run folder (default: a temporary one)")
-    sk.add_argument("--json", action="store_true", help="print one JSON object")
-    sk.set_defaults(func=_cmd_soak)
+    json_command(sk, _cmd_soak)
 
 
 def _register_fly(sub: argparse._SubParsersAction) -> None:

@@ -13,6 +13,7 @@ import json
 import sys
 from pathlib import Path
 
+from tools.cli_args import json_command
 from training.provenance import REPO, SHIPPED_MODEL
 
 __all__ = ["main", "register_export"]
@@ -53,8 +54,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
         default=64,
         help="random images / rollout steps on which ONNX Runtime must match torch",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=_cmd_export_onnx)
+    json_command(p, _cmd_export_onnx)
 
 
 def register_export(sub: argparse._SubParsersAction) -> None:
