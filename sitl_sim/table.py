@@ -38,8 +38,10 @@ from sitl_sim.errors import ConfigError
 
 __all__ = [
     "REQUIRED",
+    "Bounded",
     "Key",
     "Section",
+    "bounded",
     "check_number",
     "check_section",
     "choice",
@@ -384,6 +386,39 @@ def check_number(
     key = Key(_NUMBER, "1", "", lo=lo, hi=hi, lo_open=lo_open, noun="a finite number")
     if not (_is_number(value) and key.in_range(value)):
         raise ConfigError(f"{name} = {value!r}; expected {key.expected()}")
+
+
+_BOUNDS = "visland.bounds"
+
+
+def bounded(
+    default: float,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    name: str | None = None,
+) -> Any:
+    """A number field of a :class:`Bounded` record, checked by :func:`check_number` within
+    ``[lo, hi]`` on construction; ``name`` names it in the error (None: ``Class.field``)."""
+    return dataclasses.field(default=default, metadata={_BOUNDS: (lo, hi, lo_open, name)})
+
+
+class Bounded:
+    """Base of a dataclass that is not a scenario section (an autopilot's parameter table, an
+    episode's drawn factors) whose :func:`bounded` fields are checked on construction, in the
+    order they are declared.
+
+    Raises:
+        ConfigError: ``"<name> = <got>; expected a finite number <bounds>"``.
+    """
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            if _BOUNDS in f.metadata:
+                lo, hi, lo_open, name = f.metadata[_BOUNDS]
+                label = name or f"{type(self).__name__}.{f.name}"
+                check_number(label, getattr(self, f.name), lo, hi, lo_open=lo_open)
 
 
 def section_dict(obj: Any, *, drop_none: bool = False) -> dict[str, Any]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from companion.contract.autopilots import CopterMode
-from sitl_sim.table import check_number
+from sitl_sim.table import Bounded, bounded
 
 __all__ = [
     "GUID_OPTIONS_THRUST_AS_THRUST",
@@ -52,53 +52,35 @@ LOITER failed: requires position"), which this GPS-less vehicle never has."""
 
 
 @dataclass(frozen=True)
-class ArduParams:
+class ArduParams(Bounded):
     """ArduCopter parameters (defaults as ArduCopter 4.5; units as the parameter's, converted
-    in the field name where ArduPilot uses centimetres)."""
+    in the field name where ArduPilot uses centimetres; ranges as ArduCopter's parameter
+    tables, checked on construction)."""
 
-    guid_options: int = 0
+    guid_options: int = bounded(0, 0, 2**31 - 1, name="GUID_OPTIONS")
     """GUID_OPTIONS bitmask; bit 3 (8): SET_ATTITUDE_TARGET thrust is thrust (else climb rate)."""
-    guid_timeout_s: float = 3.0
+    guid_timeout_s: float = bounded(3.0, 0.1, 5.0, name="GUID_TIMEOUT")
     """GUID_TIMEOUT: no SET_ATTITUDE_TARGET this long in GUIDED_NOGPS -> level, zero climb."""
-    fs_gcs_enable: int = 0
+    fs_gcs_enable: int = bounded(0, 0, 7, name="FS_GCS_ENABLE")
     """FS_GCS_ENABLE: 0 off; any action (RTL, SmartRTL, Land, ...) lands here (no position)."""
-    fs_gcs_timeout_s: float = 5.0
+    fs_gcs_timeout_s: float = bounded(5.0, 2.0, 120.0, name="FS_GCS_TIMEOUT")
     """FS_GCS_TIMEOUT: no HEARTBEAT from SYSID_MYGCS this long -> GCS failsafe."""
-    sysid_mygcs: int = 255
+    sysid_mygcs: int = bounded(255, 1, 255, name="SYSID_MYGCS")
     """SYSID_MYGCS: the ground station whose HEARTBEAT keeps the GCS failsafe quiet."""
-    wpnav_speed_up_cm_s: float = 250.0
+    wpnav_speed_up_cm_s: float = bounded(250.0, 10.0, 1000.0, name="WPNAV_SPEED_UP")
     """WPNAV_SPEED_UP: climb rate at thrust 1.0 in the climb-rate reading, cm/s."""
-    wpnav_speed_dn_cm_s: float = 150.0
+    wpnav_speed_dn_cm_s: float = bounded(150.0, 10.0, 500.0, name="WPNAV_SPEED_DN")
     """WPNAV_SPEED_DN: descent rate at thrust 0.0 (and LAND's upper descent), cm/s."""
-    land_speed_cm_s: float = 50.0
+    land_speed_cm_s: float = bounded(50.0, 30.0, 200.0, name="LAND_SPEED")
     """LAND_SPEED: LAND's final descent rate below LAND_ALT_LOW, cm/s."""
-    land_alt_low_cm: float = 1000.0
+    land_alt_low_cm: float = bounded(1000.0, 100.0, 10000.0, name="LAND_ALT_LOW")
     """LAND_ALT_LOW: LAND descends at WPNAV_SPEED_DN above this, at LAND_SPEED below, cm."""
-    disarm_delay_s: float = 10.0
+    disarm_delay_s: float = bounded(10.0, 0.0, 127.0, name="DISARM_DELAY")
     """DISARM_DELAY: landed this long outside LAND -> auto-disarm (0: never)."""
-    plnd_enabled: int = 0
+    plnd_enabled: int = bounded(0, 0, 1, name="PLND_ENABLED")
     """PLND_ENABLED: LAND uses the precision-land target (applies at the next LAND here)."""
-    plnd_type: int = 0
+    plnd_type: int = bounded(0, 0, 6, name="PLND_TYPE")
     """PLND_TYPE: 1 = MAVLink (LANDING_TARGET); any other value lands without a target."""
-
-    def __post_init__(self) -> None:
-        # ranges of ArduCopter's parameter tables
-        checks = (
-            ("GUID_OPTIONS", self.guid_options, 0, 2**31 - 1),
-            ("GUID_TIMEOUT", self.guid_timeout_s, 0.1, 5.0),
-            ("FS_GCS_ENABLE", self.fs_gcs_enable, 0, 7),
-            ("FS_GCS_TIMEOUT", self.fs_gcs_timeout_s, 2.0, 120.0),
-            ("SYSID_MYGCS", self.sysid_mygcs, 1, 255),
-            ("WPNAV_SPEED_UP", self.wpnav_speed_up_cm_s, 10.0, 1000.0),
-            ("WPNAV_SPEED_DN", self.wpnav_speed_dn_cm_s, 10.0, 500.0),
-            ("LAND_SPEED", self.land_speed_cm_s, 30.0, 200.0),
-            ("LAND_ALT_LOW", self.land_alt_low_cm, 100.0, 10000.0),
-            ("DISARM_DELAY", self.disarm_delay_s, 0.0, 127.0),
-            ("PLND_ENABLED", self.plnd_enabled, 0, 1),
-            ("PLND_TYPE", self.plnd_type, 0, 6),
-        )
-        for name, value, low, high in checks:
-            check_number(name, value, low, high)
 
     @property
     def thrust_is_thrust(self) -> bool:

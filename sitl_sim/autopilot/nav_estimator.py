@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
-from sitl_sim.table import check_number
+from sitl_sim.table import Bounded, bounded
 
 __all__ = ["NavConfig", "NavEstimator", "rotation_from_euler"]
 
@@ -37,7 +37,7 @@ def rotation_from_euler(attitude_rad: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class NavConfig:
+class NavConfig(Bounded):
     """Noise model of the GPS-less estimator (1-sigma).
 
     Attributes:
@@ -52,15 +52,11 @@ class NavConfig:
         gravity_m_s2: the gravity the estimator assumes (Earth: a PX4 does not know the planet).
     """
 
-    initial_vel_sigma_m_s: float = 0.3
-    accel_noise_m_s2: float = 0.3
-    radar_noise_m: float = 0.05
+    initial_vel_sigma_m_s: float = bounded(0.3, 0.0)
+    accel_noise_m_s2: float = bounded(0.3, 0.0)
+    radar_noise_m: float = bounded(0.05, 0.0)
     radar_noise_fraction: float = 0.002
     gravity_m_s2: float = 9.80665
-
-    def __post_init__(self) -> None:
-        for name in ("initial_vel_sigma_m_s", "accel_noise_m_s2", "radar_noise_m"):
-            check_number(f"NavConfig.{name}", getattr(self, name), 0.0)
 
 
 class NavEstimator:

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_sim.autopilot.nav_estimator import NavEstimator, rotation_from_euler
-from sitl_sim.table import check_number
+from sitl_sim.table import Bounded, bounded
 
 __all__ = [
     "LTE_TIMEOUT_S",
@@ -147,7 +147,7 @@ def measurement_from_landing_target(
 
 
 @dataclass(frozen=True)
-class LteParams:
+class LteParams(Bounded):
     """PX4 ``LTEST_*`` (landing_target_estimator module.yaml defaults).
 
     ``mode`` 1 (Stationary) is *not* PX4's default (0, Moving): without GPS the vehicle's own
@@ -161,46 +161,35 @@ class LteParams:
     """
 
     mode: int = 1
-    acc_unc: float = 10.0
-    meas_unc: float = 0.005
-    pos_unc_in: float = 0.1
-    vel_unc_in: float = 0.1
+    acc_unc: float = bounded(10.0, 0.0, lo_open=True, name="LTEST_ACC_UNC")
+    meas_unc: float = bounded(0.005, 0.0, lo_open=True, name="LTEST_MEAS_UNC")
+    pos_unc_in: float = bounded(0.1, 0.0, lo_open=True, name="LTEST_POS_UNC_IN")
+    vel_unc_in: float = bounded(0.1, 0.0, lo_open=True, name="LTEST_VEL_UNC_IN")
 
     def __post_init__(self) -> None:
         if self.mode not in (0, 1):
             raise ValueError(f"LTEST_MODE = {self.mode}; expected 0 (Moving) or 1 (Stationary)")
-        for name in ("acc_unc", "meas_unc", "pos_unc_in", "vel_unc_in"):
-            check_number(f"LTEST_{name.upper()}", getattr(self, name), 0.0, lo_open=True)
+        super().__post_init__()
 
 
 @dataclass(frozen=True)
-class PldParams:
-    """PX4 ``PLD_*`` (navigator precland_params.c defaults)."""
+class PldParams(Bounded):
+    """PX4 ``PLD_*`` (navigator precland_params.c defaults and ranges)."""
 
-    btout_s: float = 5.0
-    hacc_rad_m: float = 1.0
+    btout_s: float = bounded(5.0, 0.0, 50.0, name="PLD_BTOUT")
+    hacc_rad_m: float = bounded(1.0, 0.0, 100.0, name="PLD_HACC_RAD")
     """Not PX4's 0.2 m: a camera estimate of a pad 75-100 m below wanders by ±0.3-0.5 m, and
     with 0.2 m per axis held for 2 s one nominal episode in six hovered in HORIZONTAL_APPROACH
     until its 90 s timeout with the vehicle 2 cm from the pad (PX4 issue #25096; PX4's own VTE
     guide says to raise it, "try 2 m"). The descent tracks the target all the way down, so the
     landing accuracy does not depend on it."""
-    fappr_alt_m: float = 0.1
-    srch_alt_m: float = 10.0
-    srch_tout_s: float = 10.0
-    max_srch: int = 3
+    fappr_alt_m: float = bounded(0.1, 0.0, 10.0, name="PLD_FAPPR_ALT")
+    srch_alt_m: float = bounded(10.0, 0.0, 100.0, name="PLD_SRCH_ALT")
+    srch_tout_s: float = bounded(10.0, 0.0, 100.0, name="PLD_SRCH_TOUT")
+    max_srch: int = bounded(3, 0, 100, name="PLD_MAX_SRCH")
 
     def __post_init__(self) -> None:
-        # ranges of PX4's precland_params.c
-        checks = (
-            ("PLD_BTOUT", self.btout_s, 0.0, 50.0),
-            ("PLD_HACC_RAD", self.hacc_rad_m, 0.0, 100.0),
-            ("PLD_FAPPR_ALT", self.fappr_alt_m, 0.0, 10.0),
-            ("PLD_SRCH_ALT", self.srch_alt_m, 0.0, 100.0),
-            ("PLD_SRCH_TOUT", self.srch_tout_s, 0.0, 100.0),
-            ("PLD_MAX_SRCH", self.max_srch, 0, 100),
-        )
-        for name, value, low, high in checks:
-            check_number(name, value, low, high)
+        super().__post_init__()
         if self.max_srch != int(self.max_srch):
             raise ValueError(f"PLD_MAX_SRCH = {self.max_srch}; expected an integer")
 

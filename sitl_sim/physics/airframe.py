@@ -40,7 +40,7 @@ import numpy as np
 
 from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Section, check_number, section_dict, section_keys, span
+from sitl_sim.table import Bounded, Section, bounded, section_dict, section_keys, span
 
 __all__ = [
     "AIRFRAME_KEYS",
@@ -107,18 +107,14 @@ AIRFRAME_KEYS = section_keys(AirframeConfig)
 
 
 @dataclass(frozen=True)
-class AirframeScales:
+class AirframeScales(Bounded):
     """One episode's drawn factors on the vehicle file (1.0: that quantity as the file says)."""
 
-    mass_scale: float = 1.0
-    inertia_scale: float = 1.0
-    thrust_scale: float = 1.0
-    motor_time_constant_scale: float = 1.0
-    drag_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        for key in AIRFRAME_KEYS:
-            check_number(f"AirframeScales.{key}", getattr(self, key), 0.0, lo_open=True)
+    mass_scale: float = bounded(1.0, 0.0, lo_open=True)
+    inertia_scale: float = bounded(1.0, 0.0, lo_open=True)
+    thrust_scale: float = bounded(1.0, 0.0, lo_open=True)
+    motor_time_constant_scale: float = bounded(1.0, 0.0, lo_open=True)
+    drag_scale: float = bounded(1.0, 0.0, lo_open=True)
 
     def apply(self, vehicle: VehicleConfig) -> VehicleConfig:
         """``vehicle`` (the vehicle file) with these factors applied: the episode's vehicle."""
