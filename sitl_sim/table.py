@@ -41,6 +41,7 @@ __all__ = [
     "Bounded",
     "Key",
     "Section",
+    "amount",
     "bounded",
     "check_number",
     "check_section",
@@ -237,6 +238,11 @@ def span(
     """A ``[lo, hi]`` key of numbers (None default: absent = off)."""
     key = Key(_SPAN, unit, doc, lo, hi, lo_open, noun, ends, strict, finite_hi)
     return _field(key, default)
+
+
+def amount(*, unit: str, hi: float, doc: str) -> Any:
+    """A ``[lo, hi]`` key of a quantity in ``[0, hi]`` that is off (``[0, 0]``) unless given."""
+    return span((0.0, 0.0), unit=unit, lo=0.0, hi=hi, doc=doc)
 
 
 def integer_span(default: tuple[int, int], *, unit: str, doc: str, lo: int, hi: int) -> Any:

@@ -32,7 +32,7 @@ import numpy as np
 from sitl_sim.errors import ConfigError
 from sitl_sim.render.pads import PadDesign, builtin_pad_paths, find_file, load_pad
 from sitl_sim.site.pad_motion import Ground, PadMotion, draw_pad_motion
-from sitl_sim.table import Section, choice, file_list, span
+from sitl_sim.table import Section, amount, choice, file_list, span
 
 __all__ = ["MOTIONS", "PAD_MOTION_STREAM", "PAD_STREAM", "PadConfig"]
 
@@ -56,11 +56,11 @@ class PadConfig(Section):
     motion: str = choice(
         "static", MOTIONS, doc="still, on a rover's roof, or on a ship's deck at sea"
     )
-    height_m: tuple[float, float] = span(
-        (0.0, 0.0), unit="m", lo=0.0, hi=10.0, doc="the pad's surface above the ground or water"
+    height_m: tuple[float, float] = amount(
+        unit="m", hi=10.0, doc="the pad's surface above the ground or water"
     )
-    speed_m_s: tuple[float, float] = span(
-        (0.0, 0.0), unit="m/s", lo=0.0, hi=20.0, doc="rover: speed; deck: drift speed"
+    speed_m_s: tuple[float, float] = amount(
+        unit="m/s", hi=20.0, doc="rover: speed; deck: drift speed"
     )
     heading_deg: tuple[float, float] = span(
         (0.0, 360.0),
@@ -77,9 +77,7 @@ class PadConfig(Section):
         doc="rover: the band its turn rate wanders "
         "in (two slow sinusoids); [r, r] a circle, [0, 0] straight",
     )
-    heave_m: tuple[float, float] = span(
-        (0.0, 0.0), unit="m", lo=0.0, hi=5.0, doc="deck: heave amplitude (peak)"
-    )
+    heave_m: tuple[float, float] = amount(unit="m", hi=5.0, doc="deck: heave amplitude (peak)")
     heave_period_s: tuple[float, float] = span(
         (6.0, 10.0),
         unit="s",
@@ -88,12 +86,8 @@ class PadConfig(Section):
         doc="deck: main period of the heave (roll and "
         "pitch: 1.15 and 0.9 x it), with two more lines at 0.55-0.8 and 1.2-1.6 x",
     )
-    roll_deg: tuple[float, float] = span(
-        (0.0, 0.0), unit="deg", lo=0.0, hi=30.0, doc="deck: roll amplitude (peak)"
-    )
-    pitch_deg: tuple[float, float] = span(
-        (0.0, 0.0), unit="deg", lo=0.0, hi=30.0, doc="deck: pitch amplitude (peak)"
-    )
+    roll_deg: tuple[float, float] = amount(unit="deg", hi=30.0, doc="deck: roll amplitude (peak)")
+    pitch_deg: tuple[float, float] = amount(unit="deg", hi=30.0, doc="deck: pitch amplitude (peak)")
     designs: tuple[PadDesign, ...] = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

@@ -31,7 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from sitl_sim.site.rocks import Rocks
-from sitl_sim.table import Section, span
+from sitl_sim.table import Section, amount, span
 
 __all__ = ["GRID_M", "SITE_HALF_M", "TERRAIN_STREAM", "Terrain", "TerrainConfig"]
 
@@ -50,18 +50,16 @@ class TerrainConfig(Section):
 
     SECTION: ClassVar[str] = "terrain"
 
-    slope_deg: tuple[float, float] = span(
-        (0.0, 0.0),
+    slope_deg: tuple[float, float] = amount(
         unit="deg",
-        lo=0.0,
         hi=30.0,
         doc="the ground's tilt at the pad (a plane), uphill toward a random azimuth",
     )
-    relief_m: tuple[float, float] = span(
-        (0.0, 0.0), unit="m", lo=0.0, hi=5.0, doc="RMS height of rolling ground away from the pad"
+    relief_m: tuple[float, float] = amount(
+        unit="m", hi=5.0, doc="RMS height of rolling ground away from the pad"
     )
-    rocks_per_100m2: tuple[float, float] = span(
-        (0.0, 0.0), unit="1/100m2", lo=0.0, hi=20.0, doc="rocks per 100 m2 (none on the pad)"
+    rocks_per_100m2: tuple[float, float] = amount(
+        unit="1/100m2", hi=20.0, doc="rocks per 100 m2 (none on the pad)"
     )
     rock_height_m: tuple[float, float] = span(
         (0.1, 0.4),
@@ -71,12 +69,8 @@ class TerrainConfig(Section):
         hi=2.0,
         doc="each rock's height, log-uniform in the span (1.1-1.8 x as wide each way)",
     )
-    craters_per_km2: tuple[float, float] = span(
-        (0.0, 0.0),
-        unit="1/km2",
-        lo=0.0,
-        hi=20000.0,
-        doc="impact craters per km2 (radius 1.5-10 m, none under the pad)",
+    craters_per_km2: tuple[float, float] = amount(
+        unit="1/km2", hi=20000.0, doc="impact craters per km2 (radius 1.5-10 m, none under the pad)"
     )
 
     def draw(self, seed: int, index: int, clear_radius_m: float) -> Terrain:
