@@ -162,12 +162,18 @@ class TelemetryStore:
     """Latest sample of each subscribed message. ``update(msg, rx_s)`` feeds it."""
 
     attitude: AttitudeSample | None = None
+    """ATTITUDE: Euler angles and body rates."""
     imu: ImuSample | None = None
+    """HIGHRES_IMU: specific force and gyro."""
     range: RangeSample | None = None
+    """DISTANCE_SENSOR, valid or not (NaN: no return)."""
     last_valid_range: RangeSample | None = None
     heartbeat: HeartbeatSample | None = None
+    """The autopilot's HEARTBEAT: mode and armed state."""
     landed: LandedSample | None = None
+    """EXTENDED_SYS_STATE's landed state."""
     odometry: OdometrySample | None = None
+    """ODOMETRY: ground truth, only from a SITL run with ``--groundtruth``."""
     pad_odometry: OdometrySample | None = None
     """On a SITL link flying a landing site: the pad's state (ODOMETRY from
     :data:`companion.contract.PAD_ODOMETRY_COMPONENT`)."""

@@ -111,14 +111,24 @@ class Scenario:
         doc="Sobol for position and velocity, uniform for the rest; or uniform for all",
     )
     world: Planet = PLANETS["earth"]
+    """``[world] planet``: gravity, air density and the vehicle's T_max there."""
     source: str = "<memory>"
+    """The file it was read from (named in every error)."""
+    # The optional sections: None = the section is absent, the nominal world bit for bit.
     wind: WindConfig | None = None
+    """``[wind]``: mean wind, Dryden turbulence, gusts (:mod:`sitl_sim.physics.wind`)."""
     visual: VisualConfig | None = None
+    """``[visual]``: ground, light and camera effects (:mod:`sitl_sim.render.visual`)."""
     pad: PadConfig | None = None
+    """``[pad]``: which pad and how it moves (:mod:`sitl_sim.render.pad_section`)."""
     terrain: TerrainConfig | None = None
+    """``[terrain]``: slope, relief, rocks, craters (:mod:`sitl_sim.site.terrain`)."""
     vehicle: AirframeConfig | None = None
+    """``[vehicle]``: the airframe's spread (:mod:`sitl_sim.physics.airframe`)."""
     sensors: SensorFaultsConfig | None = None
+    """``[sensors]``: camera, radar and IMU faults (:mod:`sitl_sim.physics.sensor_faults`)."""
     link: LinkConfig | None = None
+    """``[link]``: MAVLink impairment, real time only (:mod:`sitl_sim.mavlink.link_impairment`)."""
 
     def __post_init__(self) -> None:
         if math.isfinite(self.altitude_m[0]) and self.altitude_m[0] <= 0.0:

@@ -40,26 +40,27 @@ __all__ = ["EpisodeWorld", "episode_world"]
 class EpisodeWorld:
     """The drawn world of one episode (None fields: the section is absent, nominal world).
 
-    ``wind`` is a fresh :class:`~sitl_sim.physics.wind.WindModel` and ``sensors`` fresh
-    :class:`~sitl_sim.physics.sensor_faults.SensorFaults` (the drawn latency and IMU biases, and the
-    generators of frame drops and radar faults), each carrying its own generator; they are
-    stateful, so an EpisodeWorld is flown once (:func:`episode_world` again to re-fly).
-    ``airframe`` holds the drawn factors of ``[vehicle]``, not a vehicle: the world does not
-    depend on the vehicle file; :meth:`vehicle` applies them to one. ``pad`` is the design
-    ``[pad]`` drew; the renderers get it through ``visual`` (:meth:`VisualSample.pad
-    <sitl_sim.render.visual.VisualSample.pad>`): a scenario with ``[pad]`` and no ``[visual]``
-    gets the nominal look (full light, no effect: the same images) carrying the design, unless
-    the design is the nominal pad itself. ``site`` is the landing site (:mod:`sitl_sim.site`:
-    the ground's relief of ``[terrain]``, the pad's motion and vehicle of ``[pad]``); None when
-    neither draws anything (flat ground, a still pad at height 0), the nominal site.
+    ``wind`` and ``sensors`` carry their own generators and are stateful, so an EpisodeWorld is
+    flown once (:func:`episode_world` again to re-fly).
     """
 
     wind: WindModel | None = None
+    """``[wind]``: a fresh :class:`~sitl_sim.physics.wind.WindModel`."""
     airframe: AirframeScales | None = None
+    """``[vehicle]``'s drawn factors, not a vehicle: the world does not depend on the vehicle
+    file; :meth:`vehicle` applies them to one."""
     visual: VisualSample | None = None
+    """``[visual]``'s look (and the pad design the renderers draw)."""
     sensors: SensorFaults | None = None
+    """``[sensors]``: the drawn latency and IMU biases, the generators of frame drops and radar
+    faults (:class:`~sitl_sim.physics.sensor_faults.SensorFaults`)."""
     pad: PadDesign | None = None
+    """The design ``[pad]`` drew; the renderers get it through ``visual``
+    (:meth:`VisualSample.pad <sitl_sim.render.visual.VisualSample.pad>`): with ``[pad]`` and no
+    ``[visual]`` the nominal look carries it, unless it is the nominal pad itself."""
     site: Site | None = None
+    """The landing site (:mod:`sitl_sim.site`: ``[terrain]``'s relief, ``[pad]``'s motion and
+    vehicle); None when neither draws anything (flat ground, a still pad at height 0)."""
 
     def vehicle(self, base: VehicleConfig) -> VehicleConfig:
         """The episode's vehicle: ``base`` (the vehicle file) itself without ``[vehicle]``,

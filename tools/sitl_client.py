@@ -12,6 +12,7 @@ import socket
 import time
 from collections import Counter, deque
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -36,7 +37,7 @@ class ClientTimeout(TimeoutError):
     """A wait of the scripted client ran out (names what it waited for)."""
 
 
-class SitlClient:
+class SitlClient(AbstractContextManager):
     """Offboard-API side of the link.
 
     Args:
@@ -85,10 +86,7 @@ class SitlClient:
         if self.cam is not None:
             self.cam.close()
 
-    def __enter__(self) -> SitlClient:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, *exc: object) -> None:  # ``with SitlClient(...) as c``: c is self
         self.close()
 
     # ------------------------------------------------------------------ MAVLink
