@@ -11,6 +11,7 @@ import numpy as np
 
 from companion.contract import Command, GroundTruth, Observation
 from companion.contract.messages import quat_from_euler
+from companion.contract.records import PolicyEstimateRecord
 
 __all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "live_frame", "parse_live", "with_truth"]
 
@@ -84,20 +85,14 @@ def live_frame(
     """The companion's frame: what it saw (the image, the CNN's bearing), what it believes (the
     estimator's pad) and flew; with a SITL's ODOMETRY (``truth``) the scene is the true world
     and the estimate is drawn against it, else the pad-centred world of the estimate itself."""
-    perception = None
-    raw = getattr(policy_state, "last_perception", None)
-    if raw is not None:
-        logit = float(raw[2])
-        perception = (
-            float(raw[0]),
-            float(raw[1]),
-            1.0 / (1.0 + math.exp(-max(-50.0, min(50.0, logit)))),
-        )
-    est = getattr(policy_state, "estimator", None)
-    rel = sigma = None
-    if est is not None and bool(np.all(est.initialised)):
-        rel = np.asarray(est.x[:, 0], float)
-        sigma = np.sqrt(np.maximum(np.asarray(est.cov[:, 0, 0], float), 0.0))
+    # the CNN's bearing and pad probability, the estimator's pad: as /policy/estimate logs them
+    est = PolicyEstimateRecord.from_state(policy_state, obs.frame_id)
+    perception = rel = sigma = None
+    if est is not None and est.pad_probability is not None:
+        perception = (est.tan_right, est.tan_forward, est.pad_probability)
+    if est is not None and est.rel_pos_ned_m is not None:
+        rel = np.asarray(est.rel_pos_ned_m, float)
+        sigma = np.asarray(est.sigma_ned_m, float)
     quat = quat_from_euler(*(float(a) for a in obs.attitude_rad))
     frame = LiveFrame(
         time_s=float(obs.image_time_s),
