@@ -23,6 +23,11 @@ __all__ = [
 ]
 
 
+def _link(doc: str) -> Any:
+    """A ``--link-*`` flag: the scenario's ``[link]`` key of that name, overridden."""
+    return option(None, f"impaired link (real time): {doc} (default: the scenario's [link])", float)
+
+
 @dataclass(frozen=True)
 class SitlConfig:
     """Everything ``visland sitl`` takes; each field is a ``--flag`` (underscores -> dashes).
@@ -86,24 +91,13 @@ class SitlConfig:
     distance_rate_hz: float = option(10.0, "DISTANCE_SENSOR rate")
     groundtruth_rate_hz: float = option(50.0, "ODOMETRY rate with --groundtruth")
     max_wall_s: float | None = option(None, "stop after this many wall seconds (safety net)", float)
-    link_loss_prob: float | None = option(
-        None, "impaired link (real time): datagram loss probability (default: [link])", float
-    )
-    link_delay_ms: float | None = option(
-        None, "impaired link: fixed one-way delay, ms (default: the scenario's [link])", float
-    )
-    link_jitter_ms: float | None = option(
-        None, "impaired link: uniform extra delay [0, J] ms, order kept (default: [link])", float
-    )
-    link_duplicate_prob: float | None = option(
-        None, "impaired link: probability a datagram arrives twice (default: [link])", float
-    )
-    link_reorder_prob: float | None = option(
-        None, "impaired link: probability a datagram jumps the queue (default: [link])", float
-    )
-    link_cut_at_s: float | None = option(
-        None, "impaired link: dead for good from this flight time, s (default: [link])", float
-    )
+    # Overrides of the scenario's [link] key of the same name (an impaired link, real time only)
+    link_loss_prob: float | None = _link("datagram loss probability")
+    link_delay_ms: float | None = _link("fixed one-way delay, ms")
+    link_jitter_ms: float | None = _link("uniform extra delay [0, J] ms, order kept")
+    link_duplicate_prob: float | None = _link("probability a datagram arrives twice")
+    link_reorder_prob: float | None = _link("probability a datagram jumps the queue")
+    link_cut_at_s: float | None = _link("dead for good from this flight time, s")
     autopilot: str = option(
         "px4",
         "autopilot profile on the wire: px4 (PX4 modes, OFFBOARD) or ardupilot (ArduCopter 4.5: "
