@@ -17,6 +17,9 @@ from training.provenance import REPO
 from training.reports import EvalReport
 from training.suite import load_suite, plot_suite, run_suite
 
+QUIET_EXPERT = EvalConfig("expert", render_camera=False, progress=False)
+"""The expert, flown without the camera or a progress bar, as a suite's conditions say."""
+
 LOW_WIND = """
 speed_m_s = [2.0, 4.0]
 direction_deg = [0.0, 360.0]
@@ -64,7 +67,7 @@ planet = "earth"
     suite = load_suite(suite_path)
     assert [c.name for c in suite.conditions] == ["from_file", "inline_wind"]
     assert suite.conditions[1].scenario.wind is not None
-    report = run_suite(suite, "expert", episodes=2, seed=77, render_camera=False, progress=False)
+    report = run_suite(suite, QUIET_EXPERT, episodes=2, seed=77)
     assert report.suite == str(suite_path)
     assert (report.episodes, report.seed) == (2, 77)
     assert list(report.conditions) == ["from_file", "inline_wind"]
@@ -263,9 +266,9 @@ scenario = "{low_file}"
     )
     suite = load_suite(suite_path)
     assert [c.episodes for c in suite.conditions] == [2, None]
-    report = run_suite(suite, "expert", render_camera=False, progress=False)
+    report = run_suite(suite, QUIET_EXPERT)
     assert [r.episodes for r in report.conditions.values()] == [2, 1]
     # --episodes overrides every condition, its own count included
-    report = run_suite(suite, "expert", episodes=1, render_camera=False, progress=False)
+    report = run_suite(suite, QUIET_EXPERT, episodes=1)
     assert [r.episodes for r in report.conditions.values()] == [1, 1]
     assert load_suite(REPO / "configs/suites/standard.toml").conditions[0].episodes == 300

@@ -41,6 +41,7 @@ def _flight_config(cls: type, args: argparse.Namespace, backend: Backend, **give
 
 
 def _cmd_eval_suite(args: argparse.Namespace) -> int:
+    from training.evaluate import EvalConfig
     from training.exec.choose import backend_from_args
     from training.suite import (
         format_suite_table,
@@ -67,18 +68,9 @@ def _cmd_eval_suite(args: argparse.Namespace) -> int:
         return 2
     suite = load_suite(args.suite)
     with backend_from_args(args, args.workers) as backend:
-        report = run_suite(
-            suite,
-            args.policy,
-            episodes=args.episodes,
-            seed=args.seed,
-            render_camera=not args.no_camera,
-            progress=not args.json,
-            backend=backend,
-            keep_logs=None if args.keep_logs is None else str(args.keep_logs),
-            keep=args.keep,
-            settings=args.settings,
-        )
+        # each condition replaces the scenario, episodes and seed
+        flying = _flight_config(EvalConfig, args, backend, render_camera=not args.no_camera)
+        report = run_suite(suite, flying, episodes=args.episodes, seed=args.seed)
     png = None
     if args.plot is not None:
         png = plot_suite(report, args.plot)

@@ -29,9 +29,9 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, TextIO
+from typing import Any, ClassVar, TextIO
 
 from sitl_sim.config import load_toml
 from sitl_sim.errors import ConfigError
@@ -41,9 +41,6 @@ from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.reports import EvalReport, SuiteReport
 from training.seeds import EVAL_SEED
-
-if TYPE_CHECKING:
-    from training.exec.backend import Backend
 
 __all__ = [
     "Condition",
@@ -170,46 +167,33 @@ def load_suite(path: str | Path) -> SuiteConfig:
 
 def run_suite(
     suite: SuiteConfig,
-    policy: str = "expert",
+    flying: EvalConfig,
     *,
     episodes: int | None = None,
     seed: int | None = None,
-    workers: int = 1,
-    render_camera: bool = True,
-    progress: bool = True,
-    backend: Backend | None = None,
-    keep_logs: str | None = None,
-    keep: str = "failed",
-    settings: tuple[tuple[str, Any], ...] = (),
 ) -> SuiteReport:
-    """Fly every condition with :func:`evaluate` (one after another, each over ``workers``
-    processes, or on ``backend``). ``episodes``/``seed`` override the suite file's
-    (``episodes`` every condition's, its own count included). ``keep_logs``/``keep``: each
-    condition's kept flight logs, named by it (:class:`EvalConfig`); ``settings``: a
-    checkpoint's estimator and guard values replaced (``--estimator``)."""
+    """Fly every condition with :func:`evaluate`, one after another, each as ``flying`` says
+    (the policy, workers or backend, camera, kept logs, estimator settings) with the
+    condition's scenario, episodes and seed and its name on the kept logs. ``episodes``/``seed``
+    override the suite file's (``episodes`` every condition's, its own count included)."""
     n = suite.episodes if episodes is None else episodes
     s = suite.seed if seed is None else seed
     reports: dict[str, EvalReport] = {}
     for k, cond in enumerate(suite.conditions, 1):
-        if progress:
+        if flying.progress:
             print(f"condition {k}/{len(suite.conditions)}: {cond.name}", file=sys.stderr)
         reports[cond.name] = evaluate(
-            EvalConfig(
-                policy=policy,
+            replace(
+                flying,
                 episodes=cond.episodes if episodes is None and cond.episodes else n,
                 seed=s,
                 scenario=cond.scenario,
-                workers=workers,
-                render_camera=render_camera,
-                progress=progress,
-                backend=backend,
-                keep_logs=keep_logs,
-                keep=keep,
                 condition=cond.name,
-                settings=settings,
             )
         )
-    return SuiteReport(suite=suite.path, policy=policy, seed=s, episodes=n, conditions=reports)
+    return SuiteReport(
+        suite=suite.path, policy=flying.policy, seed=s, episodes=n, conditions=reports
+    )
 
 
 def _nan_for_none(value: float | None) -> float:

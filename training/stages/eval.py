@@ -62,9 +62,8 @@ def fly_suite(r: Run, policy: str, name: str, suite_file: Path | None = None) ->
                 return str(path)
         except ValueError:
             pass  # half-written: fly it again
-    report = run_suite(
-        suite, policy, seed=p.eval_seed, render_camera=True, progress=r.progress, backend=r.backend
-    )
+    flying = EvalConfig(policy, render_camera=True, progress=r.progress, backend=r.backend)
+    report = run_suite(suite, flying, seed=p.eval_seed)
     report = replace(report, policy_sha256=sha)
     format_suite_table(report, sys.stderr)
     tmp = path.with_suffix(".tmp")
