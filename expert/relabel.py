@@ -5,6 +5,9 @@ learner, the SITL through the companion — is read back from its MCAP log and, 
 frame, the expert computes what it would have commanded from that frame's ground truth. Labels go
 to a sibling file ``<log stem>.labels.mcap`` in ``out_dir``; the log itself is never modified.
 
+Each step is labelled from that step alone (DAgger's expert must be a function of the learner's
+state): the MPC holds the heading it finds, not the one the flight started with.
+
 The expert is privileged: it reads the ground truth of each step and not the image, so frames are
 not decoded (that keeps relabelling far above 500 steps/s per core). It labels with the vehicle
 the log flew: the log's vehicle file (which must be ours) scaled by the episode's airframe factors
@@ -162,7 +165,6 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
     out_dir.mkdir(parents=True, exist_ok=True)
     out = label_path(log_path, out_dir)
     tmp = out.with_suffix(".mcap.part")
-    state = expert.initial_state()
     meta = {
         "labels": {
             "source_log": log_path.name,
@@ -182,7 +184,11 @@ def relabel_log(log_path: str | Path, out_dir: str | Path) -> RelabelReport:
             except (KeyError, ValueError, TypeError, ContractError) as exc:
                 raise RelabelError(f"{log_path}: frame {fid}: bad record: {exc}") from None
             try:
-                command, state = expert.act(obs, gt, state)
+                # A fresh state every step: the MPC's only state is the heading it holds, the
+                # one it found on its first step. A learner that turned would be labelled back
+                # to a heading its inputs do not hold (they are heading-free), so the label
+                # would not be a function of what it sees; the heading found now is.
+                command, _ = expert.act(obs, gt, expert.initial_state())
             except MpcSolveError as exc:
                 raise RelabelError(f"{log_path}: frame {fid}: expert failed: {exc}") from None
             rec = CommandRecord.from_dict(recorded[fid]) if fid in recorded else None
