@@ -12,13 +12,12 @@ import numpy as np
 import pytest
 
 from companion.contract.messages import quat_from_euler
-from companion.contract.records import GroundTruthRecord, ObservationRecord
+from companion.contract.records import GroundTruthRecord
 from companion.contract.topics import (
     TOPIC_COMMAND,
     TOPIC_GROUNDTRUTH,
     TOPIC_IMAGE,
     TOPIC_LABEL,
-    TOPIC_OBSERVATION,
     TOPIC_RESULT,
 )
 from companion.flightlog import FlightLogWriter, read_log
@@ -89,12 +88,10 @@ def test_a_learner_that_turned_is_labelled_to_stop_not_to_turn_back(run_dir, tmp
     assert abs(labels[60]["rate_frd_rad_s"][2]) < 0.05
     # the MPC holding the flight's first heading would turn it back, hard
     truth = {m["frame_id"]: m for m in read_log(turned).topic(TOPIC_GROUNDTRUTH)}
-    obs = {m["frame_id"]: m for m in read_log(turned).topic(TOPIC_OBSERVATION)}
     expert = MpcExpert(load_vehicle(), load_sim())
     first = float(euler_from_quat(np.asarray(truth[0]["quat_wxyz"]))[2])
     gt = GroundTruthRecord.from_dict(truth[60]).groundtruth(truth[60]["time_s"])
-    ob = ObservationRecord.from_dict(obs[60]).observation(np.zeros((128, 128), np.uint8))
-    back, _ = expert.act(ob, gt, MpcState(yaw_hold_rad=first))
+    back, _ = expert.act(None, gt, MpcState(yaw_hold_rad=first))  # privileged: no observation
     assert back.rate_frd_rad_s[2] < -0.3
 
 
