@@ -52,8 +52,10 @@ def test_sitl_log_is_a_training_record_that_relabel_labels(low_scenario, tmp_pat
     flown_by_companion = np.array([sent[int(ep.frame_id[i])] for i in common])
     assert np.max(np.abs(ep.flown - flown_by_companion)) < 1e-6
     # relabelling the expert's own flight gives back its commands (inputs differ only by
-    # float32 ground truth on ODOMETRY)
-    assert np.max(np.abs(ep.label - ep.flown)) < 5e-3
+    # float32 ground truth on ODOMETRY), but for the yaw rate: a label holds the heading found
+    # at its step, the flight held its first (expert.relabel)
+    diff = np.abs(ep.label - ep.flown)
+    assert diff[:, :3].max() < 5e-3 and diff[:, 3].max() < 0.1
 
 
 def test_fly_many_flies_any_subset_of_a_seed_across_instances(low_scenario, tmp_path):
