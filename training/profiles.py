@@ -271,3 +271,10 @@ PROFILES["robust_first_estimator"] = replace(
     eval_suite_baseline=None,
     **Profile.added_defaults(),
 )
+
+# DAgger that improves with every round (issue 34): the robust profile with four privileged
+# rounds, to show the validation curve (`visland pipeline --profile robust_dagger4 --stages
+# collect,bc,dagger --out runs/robust_dagger4`; the dagger record holds each round's score).
+PROFILES["robust_dagger4"] = replace(
+    PROFILES["robust"], name="robust_dagger4", dagger_rounds=4, eval_suite_baseline=None
+)
