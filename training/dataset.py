@@ -158,12 +158,9 @@ def _nan_if_none(values: list[Any]) -> np.ndarray:
     return np.array([math.nan if v is None or v is ABSENT else v for v in values], dtype=float)
 
 
-def _by_frame(messages: list[dict[str, Any]], record: type[R]) -> dict[int, tuple[R, float]]:
-    """Each message read as its contract ``record``, with the message's sim-time stamp."""
-    return {
-        (r := record.from_dict(m)).frame_id: (r, float(m[TIME_S]))  # type: ignore[attr-defined]
-        for m in messages
-    }
+def _by_frame(messages: list[dict[str, Any]], record: type[R]) -> dict[int, R]:
+    """Each message read as its contract ``record``, by frame id."""
+    return {(r := record.from_dict(m)).frame_id: r for m in messages}  # type: ignore[attr-defined]
 
 
 def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Episode:
@@ -178,22 +175,29 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
     source = str(meta_ep.get("source", "unknown"))
     try:
         obs = _by_frame(log.topic(TOPIC_OBSERVATION), ObservationRecord)
-        truth = _by_frame(log.topic(TOPIC_GROUNDTRUTH), GroundTruthRecord)
+        # with each step's flight time: the SITL's records carry it beside their SITL-clock stamp
+        truth = {
+            (r := GroundTruthRecord.from_dict(m)).frame_id: (
+                r,
+                float(m[TIME_S]) if r.flight_time_s is ABSENT else float(r.flight_time_s),
+            )
+            for m in log.topic(TOPIC_GROUNDTRUTH)
+        }
         flown = _by_frame(log.topic(TOPIC_COMMAND), CommandRecord)
     except (KeyError, TypeError, RecordError) as exc:
         raise DatasetError(f"{log_path}: malformed record: {exc}") from None
-    labels: dict[int, tuple[LabelRecord | CommandRecord, float]]
+    labels: dict[int, LabelRecord] | dict[int, CommandRecord]
     if label_path is not None:
         try:
             labels_log = read_log(label_path, topics=[TOPIC_LABEL])
-            labels = dict(_by_frame(labels_log.topic(TOPIC_LABEL), LabelRecord))
+            labels = _by_frame(labels_log.topic(TOPIC_LABEL), LabelRecord)
         except FlightLogError as exc:
             raise DatasetError(str(exc)) from None
         except (KeyError, TypeError, RecordError) as exc:
             raise DatasetError(f"{label_path}: malformed record: {exc}") from None
         where_labels = str(label_path)
     elif source == "expert":
-        labels, where_labels = dict(flown), f"{log_path} (/command, flown by the expert)"
+        labels, where_labels = flown, f"{log_path} (/command, flown by the expert)"
     else:
         raise DatasetError(
             f"{log_path}: flown by {source!r}, not the expert, and no label file given "
@@ -209,10 +213,10 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             break
         contiguous.append(f)
     frames = contiguous
-    o = [obs[f][0] for f in frames]
-    t = [truth[f] for f in frames]
-    lab = [labels[f][0] for f in frames]
-    fl = [flown[f][0] for f in frames]
+    o = [obs[f] for f in frames]
+    t = [truth[f][0] for f in frames]
+    lab = [labels[f] for f in frames]
+    fl = [flown[f] for f in frames]
     images = None
     if with_images:
         image_msgs = [RawImageRecord.from_dict(m) for m in log.topic(TOPIC_IMAGE)]
@@ -230,18 +234,14 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             name=log_path.name,
             source=source,
             frame_id=np.array(frames, dtype=np.int64),
-            # flight time: the SITL's records carry it beside their SITL-clock stamp
-            time_s=np.array(
-                [stamp if r.flight_time_s is ABSENT else r.flight_time_s for r, stamp in t],
-                dtype=float,
-            ),
+            time_s=np.array([truth[f][1] for f in frames], dtype=float),
             attitude_rad=_vec(o, "attitude_rad", 3),
             rate_frd_rad_s=_vec(o, "rate_frd_rad_s", 3),
             accel_frd_m_s2=_vec(o, "accel_frd_m_s2", 3),
             range_m=_nan_if_none([r.range_m for r in o]),
-            pos_ned_m=_vec([r for r, _ in t], "pos_ned_m", 3),
-            vel_ned_m_s=_vec([r for r, _ in t], "vel_ned_m_s", 3),
-            quat_wxyz=_vec([r for r, _ in t], "quat_wxyz", 4),
+            pos_ned_m=_vec(t, "pos_ned_m", 3),
+            vel_ned_m_s=_vec(t, "vel_ned_m_s", 3),
+            quat_wxyz=_vec(t, "quat_wxyz", 4),
             label=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in lab], dtype=float),
             flown=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in fl], dtype=float),
             image_time_s=np.array([r.image_time_s for r in o], dtype=float),
