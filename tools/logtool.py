@@ -98,18 +98,6 @@ def _record(record: type[R], get: Callable[[R], Any]) -> Getter:
     return lambda m: get(record.from_dict(m))
 
 
-def _truth(get: Callable[[GroundTruthRecord], Any]) -> Getter:
-    return _record(GroundTruthRecord, get)
-
-
-def _obs(get: Callable[[ObservationRecord], Any]) -> Getter:
-    return _record(ObservationRecord, get)
-
-
-def _cobs(get: Callable[[CompanionObservationRecord], Any]) -> Getter:
-    return _record(CompanionObservationRecord, get)
-
-
 def _command(r: Any) -> tuple[float, ...]:
     """thrust_norm, p, q, r of any command record."""
     return (r.thrust_norm, *r.rate_frd_rad_s)
@@ -117,7 +105,7 @@ def _command(r: Any) -> tuple[float, ...]:
 
 SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
     "position": (  # NED metres
-        (TOPIC_GROUNDTRUTH, _truth(lambda r: r.pos_ned_m), "ground truth"),
+        (TOPIC_GROUNDTRUTH, _record(GroundTruthRecord, lambda r: r.pos_ned_m), "ground truth"),
         (
             TOPIC_MAVLINK_IN + "ODOMETRY",
             lambda m: (m["x"], m["y"], m["z"]),
@@ -125,17 +113,37 @@ SOURCES: dict[str, tuple[tuple[str, Getter, str], ...]] = {
         ),
     ),
     "altitude": (  # metres above ground (ground truth) or radar range
-        (TOPIC_GROUNDTRUTH, _truth(lambda r: -r.pos_ned_m[2]), "altitude (ground truth)"),
+        (
+            TOPIC_GROUNDTRUTH,
+            _record(GroundTruthRecord, lambda r: -r.pos_ned_m[2]),
+            "altitude (ground truth)",
+        ),
         (TOPIC_MAVLINK_IN + "ODOMETRY", lambda m: -m["z"], "altitude (ODOMETRY)"),
-        (TOPIC_OBSERVATION, _obs(lambda r: r.range_m), "radar range (observation)"),
-        (TOPIC_COMPANION_OBSERVATION, _cobs(lambda r: r.range_m), "radar range (observation)"),
+        (
+            TOPIC_OBSERVATION,
+            _record(ObservationRecord, lambda r: r.range_m),
+            "radar range (observation)",
+        ),
+        (
+            TOPIC_COMPANION_OBSERVATION,
+            _record(CompanionObservationRecord, lambda r: r.range_m),
+            "radar range (observation)",
+        ),
         (TOPIC_MAVLINK_OUT + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
         (TOPIC_MAVLINK_IN + "DISTANCE_SENSOR", _radar_cm, "radar range (DISTANCE_SENSOR)"),
     ),
     "attitude": (  # roll, pitch, yaw (rad)
-        (TOPIC_GROUNDTRUTH, _truth(lambda r: _euler(r.quat_wxyz)), "ground truth"),
-        (TOPIC_OBSERVATION, _obs(lambda r: r.attitude_rad), "observation"),
-        (TOPIC_COMPANION_OBSERVATION, _cobs(lambda r: r.attitude_rad), "observation"),
+        (
+            TOPIC_GROUNDTRUTH,
+            _record(GroundTruthRecord, lambda r: _euler(r.quat_wxyz)),
+            "ground truth",
+        ),
+        (TOPIC_OBSERVATION, _record(ObservationRecord, lambda r: r.attitude_rad), "observation"),
+        (
+            TOPIC_COMPANION_OBSERVATION,
+            _record(CompanionObservationRecord, lambda r: r.attitude_rad),
+            "observation",
+        ),
         (TOPIC_MAVLINK_OUT + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
         (TOPIC_MAVLINK_IN + "ATTITUDE", lambda m: (m["roll"], m["pitch"], m["yaw"]), "ATTITUDE"),
     ),
