@@ -6,18 +6,28 @@ controller, sensors, camera, the MPC expert) takes these objects, never a loose 
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from companion.files import read_toml
 from sitl_sim.errors import ConfigError
+from sitl_sim.table import (
+    Section,
+    check_tables,
+    choice,
+    integer,
+    number,
+    read_values,
+    section_dict,
+    vector,
+)
 
 __all__ = [
     "CONFIG_DIR",
+    "CONFIG_SECTIONS",
     "PLANETS",
     "AttitudeConfig",
     "CameraConfig",
@@ -26,6 +36,8 @@ __all__ = [
     "RadarConfig",
     "RateControllerConfig",
     "SimConfig",
+    "SimSection",
+    "ThrustTable",
     "VehicleConfig",
     "load_sim",
     "load_toml",
@@ -62,92 +74,6 @@ def planet(name: str) -> Planet:
         ) from None
 
 
-# --------------------------------------------------------------------------- field readers
-
-
-class _Fields:
-    """Reads typed, range-checked fields out of one TOML table, naming file and key on error."""
-
-    def __init__(self, data: dict[str, Any], where: str) -> None:
-        self._data = data
-        self._where = where
-        self.used: set[str] = set()
-
-    def table(self, key: str) -> _Fields:
-        value = self._data.get(key)
-        if not isinstance(value, dict):
-            raise ConfigError(f"{self._where}: missing table [{key}]")
-        self.used.add(key)
-        return _Fields(value, f"{self._where} [{key}]")
-
-    def value(self, key: str) -> Any:
-        """The raw value of ``key`` (None when absent), for a field with checks of its own."""
-        if key in self._data:
-            self.used.add(key)
-        return self._data.get(key)
-
-    def _raw(self, key: str, default: Any) -> Any:
-        if key not in self._data:
-            if default is None:
-                raise ConfigError(f"{self._where}: missing key {key!r}")
-            return default
-        self.used.add(key)
-        return self._data[key]
-
-    def number(
-        self, key: str, lo: float, hi: float, default: float | None = None, *, lo_open=False
-    ) -> float:
-        value = self._raw(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{self._where}: {key} must be a number, got {value!r}")
-        value = float(value)
-        below = value <= lo if lo_open else value < lo
-        if not math.isfinite(value) or below or value > hi:
-            bracket = "(" if lo_open else "["
-            raise ConfigError(
-                f"{self._where}: {key} = {value} is out of range; expected {bracket}{lo}, {hi}]"
-            )
-        return value
-
-    def integer(self, key: str, lo: int, hi: int, default: int | None = None) -> int:
-        value = self._raw(key, default)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{self._where}: {key} must be an integer, got {value!r}")
-        if not lo <= value <= hi:
-            raise ConfigError(
-                f"{self._where}: {key} = {value}; expected an integer in [{lo}, {hi}]"
-            )
-        return value
-
-    def vector(
-        self, key: str, n: int, lo: float, hi: float, default: list[float] | None = None
-    ) -> tuple[float, ...]:
-        value = self._raw(key, default)
-        if not isinstance(value, list) or len(value) != n:
-            raise ConfigError(f"{self._where}: {key} must be a list of {n} numbers, got {value!r}")
-        out = []
-        for i, item in enumerate(value):
-            if isinstance(item, bool) or not isinstance(item, int | float):
-                raise ConfigError(f"{self._where}: {key}[{i}] must be a number, got {item!r}")
-            if not math.isfinite(item) or not lo <= item <= hi:
-                raise ConfigError(
-                    f"{self._where}: {key}[{i}] = {item} is out of range; expected [{lo}, {hi}]"
-                )
-            out.append(float(item))
-        return tuple(out)
-
-    def string(self, key: str, choices: tuple[str, ...], default: str | None = None) -> str:
-        value = self._raw(key, default)
-        if not isinstance(value, str) or value not in choices:
-            raise ConfigError(f"{self._where}: {key} = {value!r}; expected one of {list(choices)}")
-        return value
-
-    def check_unknown(self) -> None:
-        unknown = sorted(set(self._data) - self.used)
-        if unknown:
-            raise ConfigError(f"{self._where}: unknown key(s) {unknown} (typo?)")
-
-
 def load_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file; a missing or malformed file is a ConfigError naming it."""
     return read_toml(path, ConfigError)
@@ -157,37 +83,77 @@ def load_toml(path: str | Path) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
-class RateControllerConfig:
-    """Body-rate PID gains (angular acceleration per rate error), per FRD axis."""
+class RateControllerConfig(Section):
+    """``[rate_controller]``: body-rate PID gains (angular acceleration per rate error), per
+    FRD axis, as PX4's MC_ROLLRATE_* / MC_PITCHRATE_* / MC_YAWRATE_*."""
 
-    kp: tuple[float, float, float]
-    ki: tuple[float, float, float]
-    kd: tuple[float, float, float]
-    integrator_limit_rad_s2: tuple[float, float, float]
-    max_rate_rad_s: tuple[float, float, float]
+    SECTION: ClassVar[str] = "rate_controller"
+
+    kp: tuple[float, float, float] = vector(
+        (25.0, 25.0, 8.0), size=3, unit="1/s", lo=0.0, hi=1e3, doc="proportional gain"
+    )
+    ki: tuple[float, float, float] = vector(
+        (5.0, 5.0, 2.0), size=3, unit="1/s^2", lo=0.0, hi=1e3, doc="integral gain"
+    )
+    kd: tuple[float, float, float] = vector(
+        (0.0, 0.0, 0.0), size=3, unit="1", lo=0.0, hi=1e2, doc="derivative gain"
+    )
+    integrator_limit_rad_s2: tuple[float, float, float] = vector(
+        (5.0, 5.0, 2.0), size=3, unit="rad/s^2", lo=0.0, hi=1e3, doc="anti-windup clamp"
+    )
+    max_rate_rad_s: tuple[float, float, float] = vector(
+        (3.5, 3.5, 1.5), size=3, unit="rad/s", lo=0.01, hi=20.0, doc="setpoints are clamped"
+    )
 
 
 @dataclass(frozen=True)
-class VehicleConfig:
-    """The quadrotor (paper Table 1) and its autopilot's rate-loop tuning.
+class ThrustTable(Section):
+    """``[vehicle.max_total_thrust_n]``: T_max of all four rotors per planet the vehicle may
+    fly (a rotor's thrust depends on the air density, so each is stated, never derived)."""
+
+    SECTION: ClassVar[str] = "vehicle.max_total_thrust_n"
+
+    earth: float | None = number(
+        None, unit="N", lo=0.0, lo_open=True, hi=1e4, doc="T_max on Earth (absent: not flown)"
+    )
+    mars: float | None = number(
+        None, unit="N", lo=0.0, lo_open=True, hi=1e4, doc="T_max on Mars (absent: not flown)"
+    )
+
+
+@dataclass(frozen=True)
+class VehicleConfig(Section):
+    """The quadrotor (paper Table 1) and its autopilot's rate-loop tuning: ``[vehicle]``
+    (every key required: a vehicle's own physics has no nominal value), its
+    ``[vehicle.max_total_thrust_n]`` and ``[rate_controller]``.
 
     Rotors are in X configuration, numbered as PX4's quad X: 1 front-right (CCW), 2 rear-left
     (CCW), 3 front-left (CW), 4 rear-right (CW).
     """
 
-    mass_kg: float
-    arm_length_m: float
-    inertia_diag_kg_m2: tuple[float, float, float]
+    SECTION: ClassVar[str] = "vehicle"
+
+    mass_kg: float = number(unit="kg", lo=0.0, lo_open=True, hi=100.0, doc="take-off mass")
+    arm_length_m: float = number(
+        unit="m", lo=0.0, lo_open=True, hi=5.0, doc="motor to centre, X configuration"
+    )
+    inertia_diag_kg_m2: tuple[float, float, float] = vector(
+        size=3, unit="kg m^2", lo=1e-6, hi=100.0, doc="Ixx, Iyy, Izz (FRD body axes)"
+    )
     max_total_thrust_n_by_planet: tuple[tuple[str, float], ...]
     """T_max of all four rotors together per planet name, ``(("earth", 25.0), ...)`` (a tuple
-    so the config stays hashable). Stated per planet in the file, never derived: a rotor's
-    thrust depends on the air density. Read it through :meth:`max_total_thrust_n`."""
-    motor_time_constant_s: float
-    yaw_torque_per_thrust_m: float
-    drag_coefficient_area_m2: tuple[float, float, float]
+    so the config stays hashable), from ``[vehicle.max_total_thrust_n]``. Read it through
+    :meth:`max_total_thrust_n`."""
+    motor_time_constant_s: float = number(
+        unit="s", lo=0.0, hi=1.0, doc="first-order rotor thrust lag"
+    )
+    yaw_torque_per_thrust_m: float = number(
+        unit="m", lo=0.0, hi=1.0, doc="rotor drag torque / rotor thrust (k_m / k_f)"
+    )
+    drag_coefficient_area_m2: tuple[float, float, float] = vector(
+        size=3, unit="m^2", lo=0.0, hi=10.0, doc="C_D A along body F, R, D (quadratic drag)"
+    )
     rate_controller: RateControllerConfig
-    source: str = field(default="<memory>", compare=False)
-    """The file it came from (for error messages; not part of the vehicle)."""
 
     def max_total_thrust_n(self, world: Planet) -> float:
         """T_max of all four rotors on ``world``, N.
@@ -217,63 +183,51 @@ class VehicleConfig:
         return self.mass_kg * world.gravity_m_s2 / self.max_total_thrust_n(world)
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        del d["source"]  # where it was read from is not the vehicle (logs compare vehicles)
+        """Every field (where it was read from is not the vehicle: logs compare vehicles)."""
+        d = _without_source(self)
         d["max_total_thrust_n_by_planet"] = dict(self.max_total_thrust_n_by_planet)
         return d
+
+
+def _without_source(obj: Any) -> dict[str, Any]:
+    """``asdict(obj)`` less every section's ``source`` (where it was read is not the value)."""
+
+    def drop(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: drop(v) for k, v in value.items() if k != "source"}
+        return value
+
+    return drop(asdict(obj))
+
+
+_THRUST = "max_total_thrust_n"
 
 
 def load_vehicle(path: str | Path | None = None) -> VehicleConfig:
     """Load and validate ``configs/vehicle.toml`` (or ``path``)."""
     path = Path(path) if path is not None else CONFIG_DIR / "vehicle.toml"
-    root = _Fields(load_toml(path), str(path))
-    v = root.table("vehicle")
-    rc = root.table("rate_controller")
-    rate = RateControllerConfig(
-        kp=rc.vector("kp", 3, 0.0, 1e3),  # type: ignore[arg-type]
-        ki=rc.vector("ki", 3, 0.0, 1e3),  # type: ignore[arg-type]
-        kd=rc.vector("kd", 3, 0.0, 1e2),  # type: ignore[arg-type]
-        integrator_limit_rad_s2=rc.vector("integrator_limit_rad_s2", 3, 0.0, 1e3),  # type: ignore[arg-type]
-        max_rate_rad_s=rc.vector("max_rate_rad_s", 3, 0.01, 20.0),  # type: ignore[arg-type]
-    )
-    cfg = VehicleConfig(
-        mass_kg=v.number("mass_kg", 0.0, 100.0, lo_open=True),
-        arm_length_m=v.number("arm_length_m", 0.0, 5.0, lo_open=True),
-        inertia_diag_kg_m2=v.vector("inertia_diag_kg_m2", 3, 1e-6, 100.0),  # type: ignore[arg-type]
-        max_total_thrust_n_by_planet=_thrust_by_planet(v, str(path)),
-        motor_time_constant_s=v.number("motor_time_constant_s", 0.0, 1.0),
-        yaw_torque_per_thrust_m=v.number("yaw_torque_per_thrust_m", 0.0, 1.0),
-        drag_coefficient_area_m2=v.vector("drag_coefficient_area_m2", 3, 0.0, 10.0),  # type: ignore[arg-type]
-        rate_controller=rate,
-        source=str(path),
-    )
-    for section in (root, v, rc):
-        section.check_unknown()
-    return cfg
-
-
-def _thrust_by_planet(v: _Fields, where: str) -> tuple[tuple[str, float], ...]:
-    """``[vehicle.max_total_thrust_n]``: one T_max per planet the vehicle may fly."""
-    table = v.value("max_total_thrust_n")
-    key = "[vehicle.max_total_thrust_n]"
-    if table is None:
+    where = str(path)
+    data = load_toml(path)
+    check_tables(data, where, ("vehicle", "rate_controller"), required=("vehicle",))
+    table = data["vehicle"]
+    thrust = table.get(_THRUST)
+    if thrust is None:
         raise ConfigError(
-            f"{where}: missing table {key} (T_max in N per planet, e.g. earth = 25.0)"
+            f"{where}: missing table [vehicle.{_THRUST}] (T_max in N per planet, e.g. earth = 25.0)"
         )
-    if not isinstance(table, dict) or not table:
+    if not isinstance(thrust, dict) or not thrust:
         raise ConfigError(
-            f"{where}: [vehicle] max_total_thrust_n = {table!r}; expected a table {key} with "
-            f"T_max (N) per planet, e.g. earth = 25.0 (known planets {sorted(PLANETS)}): a "
-            "rotor's thrust depends on the air density, so each planet's figure is stated"
+            f"{where}: [vehicle] {_THRUST} = {thrust!r}; expected a table "
+            f"[vehicle.{_THRUST}] with T_max (N) per planet, e.g. earth = 25.0 (known planets "
+            f"{sorted(PLANETS)}): a rotor's thrust depends on the air density, so each "
+            "planet's figure is stated"
         )
-    unknown = sorted(set(table) - set(PLANETS))
-    if unknown:
-        raise ConfigError(
-            f"{where}: {key} unknown planet(s) {unknown}; expected some of {sorted(PLANETS)}"
-        )
-    thrust = _Fields(table, f"{where} {key}")
-    return tuple(
-        (name, thrust.number(name, 0.0, 1e4, lo_open=True)) for name in PLANETS if name in table
+    stated = section_dict(ThrustTable.from_table(thrust, where), drop_none=True)
+    return VehicleConfig(
+        **read_values(VehicleConfig, {k: v for k, v in table.items() if k != _THRUST}, where),
+        max_total_thrust_n_by_planet=tuple(stated.items()),
+        rate_controller=RateControllerConfig.from_table(data.get("rate_controller", {}), where),
+        source=where,
     )
 
 
@@ -281,35 +235,79 @@ def _thrust_by_planet(v: _Fields, where: str) -> tuple[tuple[str, float], ...]:
 
 
 @dataclass(frozen=True)
-class ImuConfig:
-    accel_noise_std_m_s2: float
-    gyro_noise_std_rad_s: float
-    accel_bias_walk_m_s2_sqrt_s: float
-    gyro_bias_walk_rad_s_sqrt_s: float
+class SimSection(Section):
+    """``[sim]``: rates, timeout and planet (the scenario file may set another planet)."""
+
+    SECTION: ClassVar[str] = "sim"
+
+    physics_rate_hz: int = integer(
+        250, unit="Hz", lo=250, hi=100_000, doc="RK4 rate (resolves the 20 ms motor lag)"
+    )
+    control_rate_hz: int = integer(
+        10, unit="Hz", lo=1, hi=1000, doc="camera and control rate (paper Table 1)"
+    )
+    episode_timeout_s: float = number(
+        90.0, unit="s", lo=0.0, lo_open=True, hi=3600.0, doc="an episode ends unlanded"
+    )
+    planet: str = choice("earth", PLANETS, doc="gravity and air of the world")
 
 
 @dataclass(frozen=True)
-class AttitudeConfig:
-    angle_noise_std_rad: float
-    rate_noise_std_rad_s: float
+class ImuConfig(Section):
+    """``[imu]``: accelerometer and gyroscope noise and bias random walk."""
+
+    SECTION: ClassVar[str] = "imu"
+
+    accel_noise_std_m_s2: float = number(0.05, unit="m/s^2", lo=0.0, hi=10.0, doc="1-sigma")
+    gyro_noise_std_rad_s: float = number(0.003, unit="rad/s", lo=0.0, hi=1.0, doc="1-sigma")
+    accel_bias_walk_m_s2_sqrt_s: float = number(
+        0.001, unit="m/s^2/sqrt(s)", lo=0.0, hi=1.0, doc="bias random walk"
+    )
+    gyro_bias_walk_rad_s_sqrt_s: float = number(
+        0.0001, unit="rad/s/sqrt(s)", lo=0.0, hi=1.0, doc="bias random walk"
+    )
 
 
 @dataclass(frozen=True)
-class RadarConfig:
-    max_range_m: float
-    noise_std_m: float
-    noise_fraction: float
+class AttitudeConfig(Section):
+    """``[attitude]``: noise of the autopilot's attitude estimate (not a raw sensor)."""
+
+    SECTION: ClassVar[str] = "attitude"
+
+    angle_noise_std_rad: float = number(0.002, unit="rad", lo=0.0, hi=0.5, doc="1-sigma")
+    rate_noise_std_rad_s: float = number(0.003, unit="rad/s", lo=0.0, hi=1.0, doc="1-sigma")
 
 
 @dataclass(frozen=True)
-class CameraConfig:
-    width_px: int
-    height_px: int
-    fov_deg: float
-    noise_std_px: float
-    renderer: str = "pybullet"
-    """``"pybullet"`` (TinyRenderer, the reference) or ``"fast"`` (plane homographies, the same
-    image: :mod:`sitl_sim.render.render_fast`)."""
+class RadarConfig(Section):
+    """``[radar]``: the radar altimeter (paper Table 1: 0-150 m)."""
+
+    SECTION: ClassVar[str] = "radar"
+
+    max_range_m: float = number(
+        150.0, unit="m", lo=0.0, lo_open=True, hi=10_000.0, doc="no reading beyond"
+    )
+    noise_std_m: float = number(0.02, unit="m", lo=0.0, hi=10.0, doc="1-sigma, fixed part")
+    noise_fraction: float = number(0.002, unit="1", lo=0.0, hi=0.5, doc="1-sigma per m of range")
+
+
+@dataclass(frozen=True)
+class CameraConfig(Section):
+    """``[camera]``: the downward camera (paper Table 1: 128 x 128 px, 45 deg)."""
+
+    SECTION: ClassVar[str] = "camera"
+
+    width_px: int = integer(128, unit="px", lo=8, hi=4096, doc="image width")
+    height_px: int = integer(128, unit="px", lo=8, hi=4096, doc="image height")
+    fov_deg: float = number(45.0, unit="deg", lo=1.0, hi=170.0, doc="full field of view")
+    noise_std_px: float = number(
+        2.0, unit="grey levels", lo=0.0, hi=64.0, doc="additive pixel noise, 1-sigma"
+    )
+    renderer: str = choice(
+        "pybullet",
+        ("pybullet", "fast"),
+        doc="pybullet (TinyRenderer, the reference) or fast (plane homographies, the same image)",
+    )
 
 
 @dataclass(frozen=True)
@@ -368,51 +366,39 @@ class SimConfig:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return _without_source(self)
+
+
+_SIM_TABLES = (SimSection, ImuConfig, AttitudeConfig, RadarConfig, CameraConfig)
+
+
+CONFIG_SECTIONS: dict[str, tuple[type, ...]] = {
+    "vehicle.toml": (VehicleConfig, ThrustTable, RateControllerConfig),
+    "sim.toml": _SIM_TABLES,
+}
+"""The sections of each file of ``configs/`` read here (for ``docs/config_keys.md``)."""
 
 
 def load_sim(path: str | Path | None = None) -> SimConfig:
-    """Load and validate ``configs/sim.toml`` (or ``path``)."""
+    """Load and validate ``configs/sim.toml`` (or ``path``); a table or key left out takes
+    its nominal value (``docs/config_keys.md``)."""
     path = Path(path) if path is not None else CONFIG_DIR / "sim.toml"
-    root = _Fields(load_toml(path), str(path))
-    s, i, a, r, c = (root.table(k) for k in ("sim", "imu", "attitude", "radar", "camera"))
-    try:
-        cfg = _build_sim(s, i, a, r, c)
-    except ConfigError as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise ConfigError(f"{path}: {exc}") from None  # cross-field checks name the file too
-    for section in (root, s, i, a, r, c):
-        section.check_unknown()
-    return cfg
-
-
-def _build_sim(s: _Fields, i: _Fields, a: _Fields, r: _Fields, c: _Fields) -> SimConfig:
-    return SimConfig(
-        physics_rate_hz=s.integer("physics_rate_hz", 1, 100_000),
-        control_rate_hz=s.integer("control_rate_hz", 1, 1000),
-        episode_timeout_s=s.number("episode_timeout_s", 0.0, 3600.0, lo_open=True),
-        planet=planet(s.string("planet", tuple(PLANETS))),
-        imu=ImuConfig(
-            accel_noise_std_m_s2=i.number("accel_noise_std_m_s2", 0.0, 10.0),
-            gyro_noise_std_rad_s=i.number("gyro_noise_std_rad_s", 0.0, 1.0),
-            accel_bias_walk_m_s2_sqrt_s=i.number("accel_bias_walk_m_s2_sqrt_s", 0.0, 1.0),
-            gyro_bias_walk_rad_s_sqrt_s=i.number("gyro_bias_walk_rad_s_sqrt_s", 0.0, 1.0),
-        ),
-        attitude=AttitudeConfig(
-            angle_noise_std_rad=a.number("angle_noise_std_rad", 0.0, 0.5),
-            rate_noise_std_rad_s=a.number("rate_noise_std_rad_s", 0.0, 1.0),
-        ),
-        radar=RadarConfig(
-            max_range_m=r.number("max_range_m", 0.0, 10_000.0, lo_open=True),
-            noise_std_m=r.number("noise_std_m", 0.0, 10.0),
-            noise_fraction=r.number("noise_fraction", 0.0, 0.5),
-        ),
-        camera=CameraConfig(
-            width_px=c.integer("width_px", 8, 4096),
-            height_px=c.integer("height_px", 8, 4096),
-            fov_deg=c.number("fov_deg", 1.0, 170.0),
-            noise_std_px=c.number("noise_std_px", 0.0, 64.0),
-            renderer=c.string("renderer", ("pybullet", "fast"), "pybullet"),
-        ),
+    where = str(path)
+    data = load_toml(path)
+    check_tables(data, where, (cls.SECTION for cls in _SIM_TABLES))
+    sim, imu, attitude, radar, camera = (
+        cls.from_table(data.get(cls.SECTION, {}), where) for cls in _SIM_TABLES
     )
+    try:
+        return SimConfig(
+            physics_rate_hz=sim.physics_rate_hz,
+            control_rate_hz=sim.control_rate_hz,
+            episode_timeout_s=sim.episode_timeout_s,
+            planet=planet(sim.planet),
+            imu=imu,
+            attitude=attitude,
+            radar=radar,
+            camera=camera,
+        )
+    except ConfigError as exc:  # cross-field checks name the file too
+        raise ConfigError(f"{where}: {exc}") from None

@@ -20,9 +20,7 @@ parallel workers and resumed runs agree.
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -40,7 +38,7 @@ from sitl_sim.physics.wind import WindConfig
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.visual import VisualConfig
 from sitl_sim.site.terrain import TerrainConfig
-from sitl_sim.table import Section, check_section, choice, keys_markdown, read_values, span
+from sitl_sim.table import Section, check_section, check_tables, choice, read_values, span
 
 __all__ = [
     "SECTIONS",
@@ -50,7 +48,7 @@ __all__ = [
     "WorldSection",
     "load_scenario",
     "scenario_from_dict",
-    "scenario_keys_markdown",
+    "scenario_tables",
 ]
 
 _SAMPLERS = ("sobol+uniform", "uniform")
@@ -172,28 +170,16 @@ SECTIONS = ("initial_state", "world", *_OPTIONAL)
 otherwise fly the nominal world without a word)."""
 
 
-def scenario_keys_markdown() -> str:
-    """``docs/scenario_keys.md``: every scenario section's keys, units, defaults and ranges,
-    generated from their declarations (``python -m sitl_sim.scenario --markdown``)."""
-    intro = (
-        "# Scenario keys\n\n"
-        "Generated from the section declarations by `python -m sitl_sim.scenario --markdown > "
-        "docs/scenario_keys.md`; do not edit (a test compares it with the declarations).\n\n"
-        "A key left out takes its default; `required` keys have none. A section left out is "
-        "the nominal world (no wind, the vehicle file as is, the nominal ground and camera, the "
-        "paper's pad still on flat ground, no sensor faults, a perfect link). A `file list` is "
-        "one file name or a list of them, relative to the scenario file (else to the "
-        "repository root). Unknown keys, wrong types and values out of range are `ConfigError`s "
-        "naming the file, `[section] key`, what was expected and what was found. A `span` is "
-        "`[lo, hi]`, drawn per episode (uniform); a single number `x` means `[x, x]`.\n\n"
-    )
+def scenario_tables() -> tuple[tuple[str, type], ...]:
+    """Each scenario section's name and declaring class, in file order (for
+    ``docs/config_keys.md``)."""
     classes = {"initial_state": Scenario, "world": WorldSection, **_OPTIONAL}
-    return keys_markdown(((name, classes[name]) for name in SECTIONS), intro)
+    return tuple((name, classes[name]) for name in SECTIONS)
 
 
 def load_scenario(path: str | Path | None = None) -> Scenario:
     """Read a scenario TOML (default ``configs/scenario.toml``) with the keys of
-    ``docs/scenario_keys.md``."""
+    ``docs/config_keys.md``."""
     path = Path(path) if path is not None else CONFIG_DIR / "scenario.toml"
     return scenario_from_dict(load_toml(path), str(path))
 
@@ -202,16 +188,7 @@ def scenario_from_dict(data: Any, where: str) -> Scenario:
     """Check and type a scenario table (the parsed contents of a scenario file, or a table
     inline in another file); ``where`` starts every ConfigError message (the file, or e.g.
     ``suite.toml: [conditions.windy]``) and becomes the scenario's ``source``."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a table of scenario sections, got {data!r}")
-    unknown_sections = sorted(set(data) - set(SECTIONS))
-    if unknown_sections:
-        raise ConfigError(
-            f"{where}: unknown section(s) {['[' + s + ']' for s in unknown_sections]}; "
-            f"expected {['[' + s + ']' for s in SECTIONS]} (typo?)"
-        )
-    if not isinstance(data.get("initial_state"), dict):
-        raise ConfigError(f"{where}: missing table [initial_state]")
+    check_tables(data, where, SECTIONS, required=("initial_state",))
     initial = read_values(Scenario, data["initial_state"], where)
     world = WorldSection.from_table(data.get("world", {}), where)
     optional = {
@@ -287,18 +264,3 @@ class InitialStateSampler:
             euler_rad=(roll, pitch, yaw),
             rate_frd_rad_s=rates,  # type: ignore[arg-type]
         )
-
-
-def _main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m sitl_sim.scenario",
-        description="Print the table of every scenario section's keys (docs/scenario_keys.md).",
-    )
-    parser.add_argument("--markdown", action="store_true", required=True, help="as markdown")
-    parser.parse_args(argv)
-    sys.stdout.write(scenario_keys_markdown())
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())

@@ -1,6 +1,7 @@
-"""One typed reader for the TOML tables of a scenario (and a suite): a section is a frozen
+"""One typed reader for the TOML tables of every configuration file (scenario, suite, vehicle,
+simulation, expert): a section is a frozen
 dataclass whose fields declare, once, each key's type, unit, default, range and meaning (as
-PX4's ``module.yaml``); the reader, the checks and ``docs/scenario_keys.md`` all come from them.
+PX4's ``module.yaml``); the reader, the checks and ``docs/config_keys.md`` all come from them.
 
 Declare a section::
 
@@ -20,10 +21,12 @@ same way (:class:`Section`'s ``__post_init__``). Rules, the same for every secti
 
 Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode; a single number ``x`` in
 the file means ``[x, x]``), :func:`integer_span` (likewise),
-:func:`number`, :func:`probability`, :func:`integer`, :func:`choice` (a string among choices)
+:func:`number`, :func:`vector` (``size`` numbers), :func:`probability`, :func:`integer`,
+:func:`choice` (a string among choices)
 and :func:`choice_list` (a non-empty list of them), :func:`file_list` (file names).
-:func:`keys_markdown` makes the table of keys; ``python -m sitl_sim.scenario --markdown``
-prints the scenario's (``docs/scenario_keys.md``).
+:func:`check_tables` checks a file's sections; :func:`read_spread` reads a record whose keys
+are spread over several tables (each key's ``table``). :func:`keys_markdown` makes the table of
+keys; ``python -m tools.config_keys`` prints every file's (``docs/config_keys.md``).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ __all__ = [
     "bounded",
     "check_number",
     "check_section",
+    "check_tables",
     "choice",
     "choice_list",
     "file_list",
@@ -54,10 +58,12 @@ __all__ = [
     "number",
     "probability",
     "read_section",
+    "read_spread",
     "read_values",
     "section_dict",
     "section_keys",
     "span",
+    "vector",
 ]
 
 REQUIRED: Any = dataclasses.MISSING
@@ -73,6 +79,7 @@ _NUMBER, _INTEGER, _SPAN, _INT_SPAN, _CHOICE, _CHOICES = (
     "choice list",
 )
 _FILES = "file list"
+_VECTOR = "vector"
 
 
 def _g(x: float) -> str:
@@ -103,6 +110,9 @@ class Key:
         strict: a span needs ``lo < hi`` (not ``<=``).
         finite_hi: a span's upper end must be finite (False: ``inf`` allowed, "for good").
         choices: the allowed strings of a choice.
+        size: how many numbers a vector holds.
+        table: the table the key is read from, where one record's keys are spread over
+            several tables of a file (``configs/expert.toml``); empty: the record's section.
     """
 
     kind: str
@@ -116,6 +126,8 @@ class Key:
     strict: bool = False
     finite_hi: bool = True
     choices: tuple[str, ...] = ()
+    size: int = 0
+    table: str = ""
 
     # ------------------------------------------------------------------ reading
 
@@ -125,6 +137,9 @@ class Key:
             return float(value) if _is_number(value) else None
         if self.kind == _INTEGER:
             return value if _is_int(value) else None
+        if self.kind == _VECTOR:
+            good = isinstance(value, list) and len(value) == self.size
+            return tuple(float(v) for v in value) if good and all(map(_is_number, value)) else None
         if self.kind in (_SPAN, _INT_SPAN):
             ok = _is_int if self.kind == _INT_SPAN else _is_number
             if ok(value):  # a scalar x is the span [x, x] (a fixed value, every episode)
@@ -149,12 +164,17 @@ class Key:
             return f"[{a}, {b}] (two numbers), or one number x for [x, x]"
         if self.kind == _INT_SPAN:
             return f"[{a}, {b}] (two integers), or one integer x for [x, x]"
+        if self.kind == _VECTOR:
+            return f"a list of {self.size} numbers"
         return self.expected()
 
     # ------------------------------------------------------------------ checking
 
     def _above_lo(self, x: float) -> bool:
         return self.lo is None or (x > self.lo if self.lo_open else x >= self.lo)
+
+    def _in_bounds(self, x: float) -> bool:
+        return math.isfinite(x) and self._above_lo(x) and (self.hi is None or x <= self.hi)
 
     def in_range(self, value: Any) -> bool:
         if self.kind == _CHOICE:
@@ -163,12 +183,10 @@ class Key:
             return bool(value) and all(v in self.choices for v in value)
         if self.kind == _FILES:
             return bool(value)
+        if self.kind == _VECTOR:
+            return len(value) == self.size and all(self._in_bounds(v) for v in value)
         if self.kind in (_NUMBER, _INTEGER):
-            return (
-                math.isfinite(value)
-                and self._above_lo(value)
-                and (self.hi is None or value <= self.hi)
-            )
+            return self._in_bounds(value)
         a, b = value
         ordered = a < b if self.strict else a <= b
         return (
@@ -189,6 +207,11 @@ class Key:
         if self.kind == _FILES:
             return "a file name, or a non-empty list of them"
         lo_op = "<" if self.lo_open else "<="
+        if self.kind == _VECTOR:
+            return (
+                f"{self.size} numbers, each "
+                + Key(_NUMBER, "", "", self.lo, self.hi, self.lo_open).bounds()
+            )
         if self.kind in (_NUMBER, _INTEGER):
             if self.lo is not None and self.hi is not None and not self.lo_open:
                 return f"in [{_g(self.lo)}, {_g(self.hi)}]"
@@ -210,6 +233,8 @@ class Key:
         unit = f" ({self.unit})" if self.unit not in ("", "1") else ""
         if self.kind in (_CHOICE, _CHOICES, _FILES):
             return self.bounds()
+        if self.kind == _VECTOR:
+            return f"{self.bounds()}{unit}"
         if self.kind in (_NUMBER, _INTEGER):
             bounds = self.bounds()
             return f"{self.noun}{'' if bounds == 'finite' else ' ' + bounds}{unit}"
@@ -257,10 +282,25 @@ def number(
     doc: str,
     lo: float | None = None,
     hi: float | None = None,
+    lo_open: bool = False,
     noun: str = "a number",
+    table: str = "",
 ) -> Any:
     """A number key (an integer in the file is taken as a float)."""
-    return _field(Key(_NUMBER, unit, doc, lo, hi, noun=noun), default)
+    return _field(Key(_NUMBER, unit, doc, lo, hi, lo_open, noun=noun, table=table), default)
+
+
+def vector(
+    default: tuple[float, ...] = REQUIRED,
+    *,
+    size: int,
+    unit: str,
+    doc: str,
+    lo: float | None = None,
+    hi: float | None = None,
+) -> Any:
+    """A key of ``size`` numbers, each within ``[lo, hi]`` (a tuple of floats once read)."""
+    return _field(Key(_VECTOR, unit, doc, lo, hi, noun="numbers", size=size), default)
 
 
 def probability(doc: str) -> Any:
@@ -268,13 +308,21 @@ def probability(doc: str) -> Any:
     return number(0.0, unit="1", doc=doc, lo=0.0, hi=1.0, noun="a probability")
 
 
-def integer(default: int = REQUIRED, *, unit: str, doc: str, lo: int, hi: int | None = None) -> Any:
+def integer(
+    default: int = REQUIRED,
+    *,
+    unit: str,
+    doc: str,
+    lo: int,
+    hi: int | None = None,
+    table: str = "",
+) -> Any:
     """An integer key."""
-    return _field(Key(_INTEGER, unit, doc, lo, hi, noun="an integer"), default)
+    return _field(Key(_INTEGER, unit, doc, lo, hi, noun="an integer", table=table), default)
 
 
 def choice(default: str, choices: Iterable[str], *, doc: str) -> Any:
-    """A string key among ``choices``."""
+    """A string key among ``choices`` (:data:`REQUIRED`: no default)."""
     return _field(Key(_CHOICE, "", doc, choices=tuple(choices)), default)
 
 
@@ -324,8 +372,15 @@ def section_keys(cls: type) -> tuple[str, ...]:
     return tuple(_keys(cls))
 
 
-def read_values(cls: type, table: Any, where: str, section: str | None = None) -> dict[str, Any]:
-    """The typed values of the keys ``table`` gives (defaults are the dataclass's own).
+def read_values(
+    cls: type,
+    table: Any,
+    where: str,
+    section: str | None = None,
+    names: Iterable[str] | None = None,
+) -> dict[str, Any]:
+    """The typed values of the keys ``table`` gives (defaults are the dataclass's own);
+    ``names``: only these keys of ``cls`` belong to this table (None: all of them).
 
     Raises:
         ConfigError: ``table`` is not a table, or has an unknown key, or lacks a
@@ -336,6 +391,8 @@ def read_values(cls: type, table: Any, where: str, section: str | None = None) -
     if not isinstance(table, dict):
         raise ConfigError(f"{where}: [{section}] must be a table, got {table!r}")
     keys = _keys(cls)
+    if names is not None:
+        keys = {name: keys[name] for name in names}
     unknown = sorted(set(table) - set(keys))
     if unknown:
         raise ConfigError(
@@ -358,6 +415,44 @@ def read_values(cls: type, table: Any, where: str, section: str | None = None) -
     return values
 
 
+def check_tables(data: Any, where: str, known: Iterable[str], required: Iterable[str] = ()) -> None:
+    """``data`` (a parsed TOML file) holds only the ``known`` tables and each ``required`` one.
+
+    Raises:
+        ConfigError: ``"<where>: unknown section(s) ['[wnd]']; expected [...]"`` or
+            ``"<where>: missing table [name]"``.
+    """
+    known = list(known)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table of sections {known}, got {data!r}")
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown section(s) {['[' + s + ']' for s in unknown]}; "
+            f"expected {['[' + s + ']' for s in known]} (typo?)"
+        )
+    for name in required:
+        if not isinstance(data.get(name), dict):
+            raise ConfigError(f"{where}: missing table [{name}]")
+
+
+def read_spread(cls: type, data: Any, where: str) -> Any:
+    """``cls`` read from a file whose tables each hold some of its keys (each key's
+    ``table``, as ``configs/expert.toml``'s ``[mpc]``, ``[descent]``, ...). A table left out
+    takes its keys' defaults; one with a :data:`REQUIRED` key must be given."""
+    tables: dict[str, list[str]] = {}
+    for name, (_f, key) in _keys(cls).items():
+        tables.setdefault(key.table, []).append(name)
+    required = [
+        t for t, names in tables.items() if any(_keys(cls)[n][0].default is REQUIRED for n in names)
+    ]
+    check_tables(data, where, tables, required)
+    values: dict[str, Any] = {}
+    for table, names in tables.items():
+        values.update(read_values(cls, data.get(table, {}), where, table, names))
+    return cls(**values, source=where)
+
+
 def read_section(cls: type, table: Any, where: str) -> Any:
     """``cls`` (a section class: ``SECTION`` and a ``source`` field) read from ``table``."""
     return cls(**read_values(cls, table, where), source=where)
@@ -374,9 +469,11 @@ def check_section(obj: Any, section: str | None = None) -> None:
         value = getattr(obj, name)
         if value is None or key.in_range(value):
             continue
-        pair = isinstance(value, tuple) and key.kind in (_SPAN, _INT_SPAN)
-        got = f"[{value[0]}, {value[1]}]" if pair else repr(value)
-        raise ConfigError(f"{obj.source}: [{section}] {name} = {got}; expected {key.expected()}")
+        listed = isinstance(value, tuple) and key.kind in (_SPAN, _INT_SPAN, _VECTOR)
+        got = f"[{', '.join(map(str, value))}]" if listed else repr(value)
+        raise ConfigError(
+            f"{obj.source}: [{key.table or section}] {name} = {got}; expected {key.expected()}"
+        )
 
 
 def check_number(
@@ -458,7 +555,7 @@ def _default_text(f: dataclasses.Field) -> str:
 
 def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
     """A markdown table of every ``(section, class)``'s keys: type, unit, default, range and
-    meaning (the generated ``docs/scenario_keys.md``)."""
+    meaning (the generated ``docs/config_keys.md``)."""
     lines = [
         "| section | key | type | unit | default | range | meaning |",
         "|---|---|---|---|---|---|---|",
@@ -466,7 +563,7 @@ def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
     for section, cls in sections:
         for name, (f, key) in _keys(cls).items():
             cells = (
-                f"`[{section}]`",
+                f"`[{key.table or section}]`",
                 f"`{name}`",
                 key.kind,
                 key.unit or "—",

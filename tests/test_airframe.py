@@ -191,17 +191,18 @@ def test_flying_a_planet_without_its_t_max_names_the_file_and_planet(tmp_path):
         (
             "mars = 25.0",
             "venus = 25.0",
-            r"\[vehicle\.max_total_thrust_n\] unknown planet\(s\) \['venus'\]",
+            r"\[vehicle\.max_total_thrust_n\] unknown key\(s\) \['venus'\]; expected "
+            r"\['earth', 'mars'\]",
         ),
         (
             "mars = 25.0",
             "mars = 0.0",
-            r"vehicle\.toml \[vehicle\.max_total_thrust_n\]: mars = 0\.0 is out of range",
+            r"vehicle\.toml: \[vehicle\.max_total_thrust_n\] mars = 0\.0; expected a number > 0",
         ),
         (
             "[vehicle.max_total_thrust_n]\n",
             "[thrust_by_planet]\n",
-            r"missing table \[vehicle\.max_total_thrust_n\]",
+            r"unknown section\(s\) \['\[thrust_by_planet\]'\]",
         ),
     ],
 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,21 +42,73 @@ def test_default_configs_match_table_1():
         (
             "mass_kg = 1.0 ",
             "mass_kg = -1.0 ",
-            r"vehicle.toml \[vehicle\]: mass_kg = -1.0 is out of range",
+            r"vehicle.toml: \[vehicle\] mass_kg = -1.0; expected a number > 0 and <= 100 \(kg\)",
         ),
-        ("mass_kg = 1.0 ", 'mass_kg = "heavy" ', r"mass_kg must be a number"),
+        (
+            "mass_kg = 1.0 ",
+            'mass_kg = "heavy" ',
+            r"\[vehicle\] mass_kg = 'heavy'; expected a number",
+        ),
         (
             "inertia_diag_kg_m2 = [0.009, 0.009, 0.016]",
             "inertia_diag_kg_m2 = [0.009, 0.009]",
-            r"inertia_diag_kg_m2 must be a list of 3 numbers",
+            r"\[vehicle\] inertia_diag_kg_m2 = \[0.009, 0.009\]; expected a list of 3 numbers",
         ),
-        ("mass_kg = 1.0 ", "mass_kgg = 1.0 ", r"missing key 'mass_kg'"),
-        ("[rate_controller]", "[rate_control]", r"missing table \[rate_controller\]"),
+        (
+            "inertia_diag_kg_m2 = [0.009, 0.009, 0.016]",
+            "inertia_diag_kg_m2 = [0.009, 0.0, 0.016]",
+            r"inertia_diag_kg_m2 = \[0.009, 0.0, 0.016\]; expected 3 numbers, each in "
+            r"\[1e-06, 100\] \(kg m\^2\)",
+        ),
+        (
+            "max_rate_rad_s = [3.5, 3.5, 1.5]",
+            "max_rate_rad_s = [3.5, nan, 1.5]",
+            r"\[rate_controller\] max_rate_rad_s = \[3.5, nan, 1.5\]; expected 3 numbers",
+        ),
+        ("mass_kg = 1.0 ", "mass_kgg = 1.0 ", r"unknown key\(s\) \['mass_kgg'\]"),
+        ("[rate_controller]", "[rate_control]", r"unknown section\(s\) \['\[rate_control\]'\]"),
+        ("[vehicle]", "[vehicles]", r"unknown section\(s\) \['\[vehicles\]'\]"),
+        ("earth = 25.0 ", "venus = 25.0 ", r"\[vehicle.max_total_thrust_n\] unknown key"),
+        ("earth = 25.0 ", "earth = 0.0 ", r"\[vehicle.max_total_thrust_n\] earth = 0.0; expected"),
     ],
 )
 def test_bad_vehicle_values_name_file_and_field(tmp_path, old, new, match):
-    with pytest.raises(ConfigError, match=match):
+    with pytest.raises(ConfigError, match=match) as info:
         load_vehicle(_edit(tmp_path, "vehicle.toml", old, new))
+    assert str(tmp_path / "vehicle.toml") in str(info.value)
+
+
+def test_a_vehicle_needs_its_own_mass_and_thrust(tmp_path):
+    """A vehicle's physics has no nominal value: a missing mass or T_max is refused, never
+    silently a 1 kg quad; the rate controller's gains default to the shipped tuning."""
+    path = _edit(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "# no mass ")
+    with pytest.raises(ConfigError, match=r"\[vehicle\] missing key 'mass_kg'; expected a number"):
+        load_vehicle(path)
+    text = (CONFIG_DIR / "vehicle.toml").read_text()
+    path.write_text(text[: text.index("\n[vehicle.max_total_thrust_n]")])
+    with pytest.raises(
+        ConfigError, match=r"missing table \[vehicle.max_total_thrust_n\] \(T_max in N per planet"
+    ):
+        load_vehicle(path)
+    path.write_text(text[: text.index("\n[rate_controller]")])
+    assert load_vehicle(path) == load_vehicle()
+
+
+def test_keys_left_out_take_their_nominal_values(tmp_path):
+    """A sim file that says only what differs (one sensor's noise): every other key is the
+    shipped configs/sim.toml's, which states exactly the declared defaults."""
+    path = tmp_path / "sim.toml"
+    path.write_text('[imu]\ngyro_noise_std_rad_s = 0.01\n[camera]\nrenderer = "fast"\n')
+    got = load_sim(path)
+    assert got.imu.gyro_noise_std_rad_s == 0.01
+    assert replace(got, imu=replace(got.imu, gyro_noise_std_rad_s=0.003)) == load_sim()
+    path.write_text("")
+    assert load_sim(path) == replace(
+        load_sim(), camera=replace(load_sim().camera, renderer="pybullet")
+    )
+    path.write_text("[imu]\ngyro_noise = 0.01\n")
+    with pytest.raises(ConfigError, match=r"sim.toml: \[imu\] unknown key\(s\) \['gyro_noise'\]"):
+        load_sim(path)
 
 
 def test_unknown_key_is_reported(tmp_path):

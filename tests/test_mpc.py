@@ -15,6 +15,7 @@ from companion.contract import Command, GroundTruth, MissingGroundTruthError, Ob
 from expert.mpc import (
     ModelInput,
     ModelState,
+    MpcConfig,
     MpcExpert,
     MpcSolveError,
     MpcState,
@@ -216,13 +217,24 @@ def _write_config(tmp_path: Path, old: str, new: str) -> Path:
 @pytest.mark.parametrize(
     ("old", "new", "match"),
     [
-        (r"^tilt = .*$", "tilt = -1.0", r"\[weights\] tilt = -1.0 is out of range"),
-        (r"^horizon_steps = .*$", "horizon_steps = 2", r"\[mpc\] horizon_steps = 2"),
-        (r"^horizon_steps = .*$", "horizon_steps = 2.5", r"horizon_steps must be an integer"),
-        (r"^max_tilt_deg = .*$", 'max_tilt_deg = "30"', r"max_tilt_deg must be a number"),
-        (r"^vel_d = .*$", "", r"\[weights\] missing key 'vel_d'"),
-        (r"^vel_d = .*$", "vel_d = 4.0\nvel_dd = 1.0", r"unknown key\(s\) \['vel_dd'\]"),
-        (r"^\[solver\]$", "[solverz]", r"missing table \[solver\]"),
+        (
+            r"^tilt = .*$",
+            "tilt = -1.0",
+            r"\[weights\] tilt = -1.0; expected a number in \[0, 1000000\] \(1/rad\^2\)",
+        ),
+        (r"^horizon_steps = .*$", "horizon_steps = 2", r"\[mpc\] horizon_steps = 2; expected"),
+        (
+            r"^horizon_steps = .*$",
+            "horizon_steps = 2.5",
+            r"horizon_steps = 2.5; expected an integer",
+        ),
+        (r"^max_tilt_deg = .*$", 'max_tilt_deg = "30"', r"max_tilt_deg = '30'; expected a number"),
+        (
+            r"^vel_d = .*$",
+            "vel_d = 4.0\nvel_dd = 1.0",
+            r"\[weights\] unknown key\(s\) \['vel_dd'\]",
+        ),
+        (r"^\[solver\]$", "[solverz]", r"unknown section\(s\) \['\[solverz\]'\]"),
         (
             r"^max_descent_m_s = .*$",
             "max_descent_m_s = 0.1",
@@ -240,6 +252,16 @@ def test_bad_config_values_name_file_and_field(tmp_path, old, new, match):
     with pytest.raises(ConfigError, match=match) as info:
         load_mpc_config(path)
     assert str(path) in str(info.value)
+
+
+def test_keys_left_out_take_the_shipped_tuning(tmp_path):
+    """configs/expert.toml states exactly the declared defaults: a file that gives one key
+    (or none) flies the shipped tuning otherwise."""
+    path = tmp_path / "expert.toml"
+    path.write_text("[weights]\nvel_d = 3.0\n")
+    assert load_mpc_config(path) == replace(load_mpc_config(), vel_d=3.0)
+    path.write_text("")
+    assert load_mpc_config(path) == load_mpc_config() == MpcConfig()
 
 
 def test_missing_config_file_is_a_config_error(tmp_path):

@@ -1,7 +1,7 @@
 """The ``[visual]`` scenario section: ground, sun, pad and camera effects drawn per episode.
 
 Keys (all optional, a key left out keeps its nominal value; ranges ``[lo, hi]`` are drawn
-uniformly per episode; the generated table: ``docs/scenario_keys.md``):
+uniformly per episode; the generated table: ``docs/config_keys.md``):
 
 ``terrain``               list of ground families to pick from
 (:data:`sitl_sim.render.terrain.FAMILIES`,

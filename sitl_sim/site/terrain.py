@@ -2,7 +2,7 @@
 
 Keys (all optional; a key left out keeps its nominal value, flat and bare; spans ``[lo, hi]`` are
 drawn uniformly per episode from the section's own generator ``(seed, episode,
-TERRAIN_STREAM)``; the generated table: ``docs/scenario_keys.md``):
+TERRAIN_STREAM)``; the generated table: ``docs/config_keys.md``):
 
 ``slope_deg``         the ground at the pad tilted this much, uphill toward a random azimuth; a
                       plane through the origin, everywhere (the pad lies on it)
