@@ -535,3 +535,34 @@ def test_vision_starts_from_every_privileged_controller_that_landed(tmp_path):
         assert len(privileged_controllers(run, cfg)) == 3
     finally:
         run.close()
+
+
+def test_a_moving_pad_episode_is_relative_to_the_pad(tmp_path):
+    """On a rover the controller learns from (and the CNN's labels come from) the vehicle's
+    state relative to the pad, as the vision estimator estimates it; not the world position,
+    which on a moving pad would teach it to land where the pad was at the origin."""
+    from companion.contract.records import GroundTruthRecord
+    from companion.flightlog import read_log
+    from training.exec.rollout import RolloutSpec, log_name, run_episodes
+
+    spec = RolloutSpec(
+        policy="expert",
+        seed=5,
+        scenario="configs/sites/rover_slow.toml",
+        render_camera=False,
+        log_dir=str(tmp_path),
+    )
+    (outcome,) = run_episodes(spec, [0], workers=1)
+    assert outcome.result.success
+    path = tmp_path / log_name(5, 0)
+    ep = load_episode(path)
+    truth = [GroundTruthRecord.from_dict(m) for m in read_log(path).topic("/groundtruth/state")]
+    by_frame = {r.frame_id: r for r in truth}
+    rows = [by_frame[int(f)] for f in ep.frame_id]
+    world = np.array([r.pos_ned_m for r in rows])
+    pad = np.array([r.pad_pos_ned_m for r in rows])
+    vel = np.array([r.vel_ned_m_s for r in rows]) - np.array([r.pad_vel_ned_m_s for r in rows])
+    assert np.array_equal(ep.pos_ned_m, world - pad) and np.array_equal(ep.vel_ned_m_s, vel)
+    assert np.linalg.norm(pad[-1, :2] - pad[0, :2]) > 5.0  # the rover drove off
+    assert np.linalg.norm(ep.pos_ned_m[-1, :2]) < 1.0  # landed on it...
+    assert np.linalg.norm(world[-1, :2]) > 5.0  # ...far from where it started

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.contract import Observation
+from companion.contract import GroundTruth, Observation
 from companion.policy_net import PolicyCore
 from companion.runtime import installed
 
@@ -132,9 +132,7 @@ def _observations_for(policy: PolicyCore, steps: int, seed: int):
     obs = [_observation(rng, i) for i in range(steps)]
     gt = None
     if policy.privileged:
-        from types import SimpleNamespace
-
-        gt = SimpleNamespace(pos_ned_m=np.array([1.0, -1.0, -50.0]), vel_ned_m_s=np.zeros(3))
+        gt = GroundTruth(0.0, np.array([1.0, -1.0, -50.0]), np.zeros(3), np.eye(4)[0], np.zeros(3))
     return obs, gt
 
 

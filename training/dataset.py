@@ -64,7 +64,10 @@ class Episode:
     accel_frd_m_s2: np.ndarray
     range_m: np.ndarray
     pos_ned_m: np.ndarray
+    """(T, 3) relative to the pad's surface centre (``GroundTruth.pad_relative``): the
+    recorded position where the pad is the nominal one, at rest at the origin."""
     vel_ned_m_s: np.ndarray
+    """(T, 3) relative to the pad's (likewise)."""
     quat_wxyz: np.ndarray
     label: np.ndarray
     flown: np.ndarray
@@ -239,8 +242,8 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
             rate_frd_rad_s=_vec(o, "rate_frd_rad_s", 3),
             accel_frd_m_s2=_vec(o, "accel_frd_m_s2", 3),
             range_m=_nan_if_none([r.range_m for r in o]),
-            pos_ned_m=_vec(t, "pos_ned_m", 3),
-            vel_ned_m_s=_vec(t, "vel_ned_m_s", 3),
+            pos_ned_m=_relative(t, "pos_ned_m", "pad_pos_ned_m"),
+            vel_ned_m_s=_relative(t, "vel_ned_m_s", "pad_vel_ned_m_s"),
             quat_wxyz=_vec(t, "quat_wxyz", 4),
             label=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in lab], dtype=float),
             flown=np.array([[r.thrust_norm, *r.rate_frd_rad_s] for r in fl], dtype=float),
@@ -254,6 +257,17 @@ def _from_logs(log_path: Path, label_path: Path | None, with_images: bool) -> Ep
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{log_path} / {where_labels}: malformed record: {exc!r}") from None
     return _validate(ep, f"{log_path}")
+
+
+def _relative(truth: list[GroundTruthRecord], name: str, pad_name: str) -> np.ndarray:
+    """(T, 3) the vehicle's ``name`` relative to the pad's (``pad_name``) where the record
+    states the pad (a site that moves or is not flat), else as recorded (the pad at rest at
+    the origin): what the vision estimator estimates, and what the controller learns from."""
+    own = _vec(truth, name, 3)
+    pad = [getattr(r, pad_name) for r in truth]
+    if all(p is ABSENT for p in pad):
+        return own
+    return own - np.array([np.zeros(3) if p is ABSENT else p for p in pad], dtype=float)
 
 
 def _stamp(path: Path | None) -> list[Any]:

@@ -278,3 +278,16 @@ PROFILES["robust_first_estimator"] = replace(
 PROFILES["robust_dagger4"] = replace(
     PROFILES["robust"], name="robust_dagger4", dagger_rounds=4, eval_suite_baseline=None
 )
+
+# One policy for every site (issue 34): the robust profile through the sites as well
+# (configs/train/robust_sites.toml: a rover, a ship's deck, ground that is not flat on Earth and
+# Mars, besides the robust worlds), four privileged DAgger rounds, the shipped model as the
+# suite's baseline. The controller's inputs are relative to the pad (what the estimator
+# estimates): `visland pipeline --profile robust_sites --out runs/robust_sites`.
+PROFILES["robust_sites"] = replace(
+    PROFILES["robust"],
+    name="robust_sites",
+    worlds="configs/train/robust_sites.toml",
+    dagger_rounds=4,
+    eval_suite_baseline="models/visland_vision.pt",
+)

@@ -200,9 +200,11 @@ class PolicyCore(ABC):
                     "privileged policy: needs ground truth (position/velocity); it cannot fly "
                     "on hardware — use a vision policy"
                 )
+            # relative to the pad (a rover's, a deck's): what the vision estimator estimates
+            pos, vel = groundtruth.pad_relative
             feats = control_features(
-                np.asarray(groundtruth.pos_ned_m, float),
-                np.asarray(groundtruth.vel_ned_m_s, float),
+                np.asarray(pos, float),
+                np.asarray(vel, float),
                 observation.attitude_rad,
                 observation.rate_frd_rad_s,
                 observation.accel_frd_m_s2,
