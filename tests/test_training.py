@@ -5,13 +5,13 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from helpers import episode_observation
 
+from companion.contract import GroundTruth
 from companion.policy_net import (
     CheckpointError,
     ControlLSTM,
@@ -293,8 +293,8 @@ def test_policy_outputs_respect_command_ranges_and_refuse_bad_input():
     priv = untrained_policy(seed=1, privileged=True)
     with pytest.raises(ValueError, match="needs ground truth"):
         priv.act(obs, None, priv.initial_state())
-    gt = SimpleNamespace(
-        pos_ned_m=np.array([1.0, 2.0, -30.0]), vel_ned_m_s=np.array([np.nan, 0, 0])
+    gt = GroundTruth(
+        0.0, np.array([1.0, 2.0, -30.0]), np.array([np.nan, 0, 0]), np.eye(4)[0], np.zeros(3)
     )
     with pytest.raises(ValueError, match="not finite"):
         priv.act(obs, gt, priv.initial_state())
