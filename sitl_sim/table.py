@@ -1,7 +1,7 @@
 """One typed reader for the TOML tables of every configuration file (scenario, suite, vehicle,
-simulation, expert): a section is a frozen
-dataclass whose fields declare, once, each key's type, unit, default, range and meaning (as
-PX4's ``module.yaml``); the reader, the checks and ``docs/config_keys.md`` all come from them.
+simulation, expert): a section is a frozen dataclass whose fields declare, once, each key's
+type, unit, default, range and meaning (as PX4's ``module.yaml``); the reader, the checks and
+``docs/config_keys.md`` all come from them.
 
 Declare a section::
 
@@ -441,11 +441,11 @@ def read_spread(cls: type, data: Any, where: str) -> Any:
     ``table``, as ``configs/expert.toml``'s ``[mpc]``, ``[descent]``, ...). A table left out
     takes its keys' defaults; one with a :data:`REQUIRED` key must be given."""
     tables: dict[str, list[str]] = {}
-    for name, (_f, key) in _keys(cls).items():
+    required: set[str] = set()
+    for name, (f, key) in _keys(cls).items():
         tables.setdefault(key.table, []).append(name)
-    required = [
-        t for t, names in tables.items() if any(_keys(cls)[n][0].default is REQUIRED for n in names)
-    ]
+        if f.default is REQUIRED:
+            required.add(key.table)
     check_tables(data, where, tables, required)
     values: dict[str, Any] = {}
     for table, names in tables.items():
