@@ -61,9 +61,8 @@ PARTS = (
 
 def config_keys_markdown() -> str:
     """The page, one table per file kind."""
-    return "\n".join(
-        keys_markdown(tables, f"## {title}\n\n{text}\n\n") for title, text, tables in PARTS
-    ).join((INTRO + "\n", ""))
+    parts = (keys_markdown(tables, f"## {title}\n\n{text}\n\n") for title, text, tables in PARTS)
+    return INTRO + "\n" + "\n".join(parts)
 
 
 def main() -> int:
