@@ -17,10 +17,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from companion import options
 from companion.camera import CameraError, check_intrinsics, open_camera
@@ -31,6 +30,7 @@ from companion.options import option, redacted_dict
 from companion.packaged import template
 from companion.safety import SafetyConfig
 from companion.states import TouchdownAction
+from companion.table import ConfigError, Section, check_tables, read_values
 
 __all__ = [
     "CompanionConfig",
@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 
-class CompanionError(ValueError):
+class CompanionError(ConfigError):
     """A configuration or start-up error (names the file/field and the expected value)."""
 
 
@@ -55,35 +55,49 @@ _SAFETY = {f.name: f.default for f in dataclasses.fields(SafetyConfig)}
 
 
 @dataclass(frozen=True)
-class CompanionConfig:
-    """Everything ``visland companion`` takes; each field is a ``--flag`` and a TOML key."""
+class CompanionConfig(Section):
+    """Everything ``visland companion`` takes; each field is a ``--flag`` and a key of the
+    ``[companion]`` table, read and range-checked by the one table reader
+    (:mod:`companion.table`; ``source``: where it was read, for errors)."""
+
+    SECTION: ClassVar[str] = "companion"
+    ERROR: ClassVar[type[ConfigError]] = CompanionError
 
     connect: str = option(
         "serial:/dev/ttyAMA0:921600",
         "MAVLink connection: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyX or "
         "serial:/dev/ttyX:BAUD",
     )
-    baud: int = option(921_600, "serial baud rate")
+    baud: int = option(921_600, "serial baud rate", unit="bit/s", lo=1)
     autopilot: str = option("px4", "autopilot profile", choices=tuple(PROFILES))
     camera: str = option(
         "opencv:0", "camera: opencv:DEVICE|FILE|PIPELINE, udp:HOST:PORT (SITL), mcap:LOG"
     )
-    camera_fx_px: float | None = option(None, "real camera: focal length fx in pixels", float)
+    camera_fx_px: float | None = option(
+        None, "real camera: focal length fx", float, unit="px", lo=0.0, lo_open=True
+    )
     camera_hfov_deg: float | None = option(
         62.2,
         "real camera: horizontal FOV (no intrinsics; the default is the Raspberry Pi Camera "
         "Module 2's; a --camera-fx-px flag replaces it)",
         float,
+        unit="deg",
     )
     camera_cx_px: float | None = option(
-        None, "real camera: principal point cx (default: centre)", float
+        None, "real camera: principal point cx (default: centre)", float, unit="px"
     )
     camera_cy_px: float | None = option(
-        None, "real camera: principal point cy (default: centre)", float
+        None, "real camera: principal point cy (default: centre)", float, unit="px"
     )
-    camera_rotate_deg: int = option(0, "real camera: rotation (CCW) so image top = body forward")
+    camera_rotate_deg: int = option(
+        0, "real camera: rotation (CCW) so image top = body forward", unit="deg"
+    )
     camera_rate_hz: float = option(
-        10.0, "real camera: frames handed to the policy per second (its 10 Hz control rate)"
+        10.0,
+        "real camera: frames handed to the policy per second (its 10 Hz control rate)",
+        unit="Hz",
+        lo=0.0,
+        lo_open=True,
     )
     camera_roi: bool = option(
         False,
@@ -91,9 +105,21 @@ class CompanionConfig:
         "estimator predicts, resampled to 128 px (companion.roi; offboard mode), instead of the "
         "centred 45 deg crop",
     )
-    camera_roi_pad_m: float = option(1.0, "camera_roi: the pad's width (m) the window is sized for")
+    camera_roi_pad_m: float = option(
+        1.0,
+        "camera_roi: the pad's width the window is sized for",
+        unit="m",
+        lo=0.0,
+        hi=100.0,
+        lo_open=True,
+    )
     camera_roi_span_px: float = option(
-        24.0, "camera_roi: the pad's width in the policy's 128 px image while tracking"
+        24.0,
+        "camera_roi: the pad's width in the policy's 128 px image while tracking",
+        unit="px",
+        lo=0.0,
+        hi=128.0,
+        lo_open=True,
     )
     mode: str = option(
         "offboard",
@@ -103,7 +129,11 @@ class CompanionConfig:
         choices=("offboard", "landing-target"),
     )
     target_timeout_s: float = option(
-        1.0, "landing-target mode: stop sending this long after the pad was last seen"
+        1.0,
+        "landing-target mode: stop sending this long after the pad was last seen",
+        unit="s",
+        lo=0.0,
+        lo_open=True,
     )
     policy: str = option(
         "",
@@ -117,7 +147,7 @@ class CompanionConfig:
         "and the export is there, else torch)",
         choices=("auto", "torch", "onnx"),
     )
-    torch_threads: int = option(1, "intra-op threads for the policy (torch or ONNX Runtime)")
+    torch_threads: int = option(1, "intra-op threads for the policy (torch or ONNX Runtime)", lo=1)
     shadow: bool = option(True, "compute and log every command; send no setpoint, no mode change")
     bench: bool = option(
         False,
@@ -127,25 +157,35 @@ class CompanionConfig:
     arm: bool = option(
         _FLIGHT["arm"], "arm when disarmed (SITL demo only; on hardware the pilot arms)"
     )
-    flights: int = option(1, "flights to fly before exiting (0: until stopped)")
+    flights: int = option(1, "flights to fly before exiting (0: until stopped)", lo=0)
     signing_key: str | None = option(
         None, "MAVLink 2 signing key: 64 hex digits or a passphrase", str
     )
-    sysid: int = option(0, "our MAVLink system id (0: the autopilot's)")
+    sysid: int = option(0, "our MAVLink system id (0: the autopilot's)", lo=0, hi=255)
     max_age_ms: float = option(
-        _SAFETY["max_age_s"] * 1000.0, "failsafe when camera or telemetry is older than this"
+        _SAFETY["max_age_s"] * 1000.0,
+        "failsafe when camera or telemetry is older than this",
+        unit="ms",
+        lo=0.0,
+        lo_open=True,
     )
-    near_ground_m: float = option(_SAFETY["near_ground_m"], "below this, no valid range = failsafe")
+    near_ground_m: float = option(
+        _SAFETY["near_ground_m"], "below this, no valid range = failsafe", unit="m"
+    )
     thrust_min: float = option(_SAFETY["thrust_min"], "thrust clamp, low")
     thrust_max: float = option(0.9, "thrust clamp, high")
-    max_rate_rp_rad_s: float = option(2.0, "roll/pitch rate clamp")
-    max_rate_yaw_rad_s: float = option(1.0, "yaw rate clamp")
+    max_rate_rp_rad_s: float = option(2.0, "roll/pitch rate clamp", unit="rad/s")
+    max_rate_yaw_rad_s: float = option(1.0, "yaw rate clamp", unit="rad/s")
     prestream_s: float = option(
-        _FLIGHT["prestream_s"], "neutral setpoints streamed before requesting OFFBOARD"
+        _FLIGHT["prestream_s"],
+        "neutral setpoints streamed before requesting OFFBOARD",
+        unit="s",
     )
-    engage_min_range_m: float = option(5.0, "engage only above this radar range")
+    engage_min_range_m: float = option(5.0, "engage only above this radar range", unit="m")
     touchdown_range_m: float = option(
-        _FLIGHT["touchdown_range_m"], "radar range at or below which the vehicle is down"
+        _FLIGHT["touchdown_range_m"],
+        "radar range at or below which the vehicle is down",
+        unit="m",
     )
     on_touchdown: str = option(
         _FLIGHT["on_touchdown"].value,
@@ -157,11 +197,15 @@ class CompanionConfig:
     hover_thrust: float = option(
         _FLIGHT["hover_thrust"], "neutral thrust if the autopilot does not report it"
     )
-    link_timeout_s: float = option(3.0, "no autopilot HEARTBEAT this long = link lost")
+    link_timeout_s: float = option(
+        3.0, "no autopilot HEARTBEAT this long = link lost", unit="s", lo=0.0, lo_open=True
+    )
     log_dir: str | None = option(
         "/var/lib/visland/flights", "folder for one MCAP log per flight ('': a temporary one)", str
     )
-    max_wall_s: float | None = option(None, "exit after this many seconds (safety net)", float)
+    max_wall_s: float | None = option(
+        None, "exit after this many seconds (safety net)", float, unit="s", lo=0.0, lo_open=True
+    )
     live: str = option(
         "",
         "serve a live view in Foxglove on [HOST:]PORT (e.g. 8765 on 127.0.0.1, 0.0.0.0:8765 for "
@@ -169,6 +213,7 @@ class CompanionConfig:
     )
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # each key's type and range (companion.table)
         if self.live:
             from companion.live import parse_live
 
@@ -176,10 +221,6 @@ class CompanionConfig:
                 parse_live(self.live)
             except ValueError as exc:
                 raise CompanionError(str(exc)) from None
-        if self.flights < 0:
-            raise CompanionError(f"flights = {self.flights}; expected >= 0")
-        if not (math.isfinite(self.max_age_ms) and self.max_age_ms > 0):
-            raise CompanionError(f"max_age_ms = {self.max_age_ms}; expected > 0")
         if self.camera_rotate_deg % 90:
             raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
         if self.camera.startswith("opencv:"):
@@ -192,10 +233,6 @@ class CompanionConfig:
                 f"camera_roi = true: expected an opencv: camera in offboard mode, got camera = "
                 f"{self.camera!r}, mode = {self.mode!r} (SITL frames are 128 px already)"
             )
-        for key in ("camera_roi_pad_m", "camera_roi_span_px"):
-            value = getattr(self, key)
-            if not (math.isfinite(value) and 0 < value <= (128 if key.endswith("px") else 100)):
-                raise CompanionError(f"{key} = {value}; expected a number > 0 (px <= 128)")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the signing key redacted."""
@@ -259,11 +296,9 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     """
     path = Path(path)
     data = read_toml(path, CompanionError)
-    table = data.get("companion")
-    if not isinstance(table, dict):
-        raise CompanionError(f"{path}: expected a [companion] table")
-    checked = options.check_table(table, CompanionConfig, f"{path}: [companion]", CompanionError)
-    return _relative_to(path.absolute(), checked)
+    check_tables(data, str(path), ("companion",), ("companion",), CompanionError)
+    values = read_values(CompanionConfig, data["companion"], str(path))
+    return _relative_to(path.absolute(), values)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -307,7 +342,8 @@ def config_from_args(args: argparse.Namespace) -> CompanionConfig:
     values.update(flags)
     if values.get("log_dir") == "":
         values["log_dir"] = None
-    return CompanionConfig(**values)
+    where = f"{path}, with flags {sorted(flags)}" if flags else str(path)
+    return CompanionConfig(**values, source=where)
 
 
 def open_configured_camera(cfg: CompanionConfig):

@@ -2,11 +2,12 @@
 for the companion, its TOML keys), each field's help becoming ``--help`` (as cleanrl's ``Args``
 and PX4's ``module.yaml``).
 
-A field is declared with :func:`option` (default, help, optional argparse type and choices);
-:func:`add_arguments` makes one ``--flag`` per field (underscores become dashes, booleans get
-``--flag/--no-flag``); :func:`values_from_args` reads them back; :func:`check_table` checks a TOML
-table against the same fields (unknown key, wrong type, value not among the choices), naming the
-file and key.
+A field is declared with :func:`option` (default, help, optional argparse type, choices and
+range); it is also a key of the one table reader (:mod:`companion.table`), so a TOML table of
+the same fields is read and checked by it (``read_values``; the companion's ``[companion]``), and
+a record built from flags is range-checked the same way. :func:`add_arguments` makes one
+``--flag`` per field (underscores become dashes, booleans get ``--flag/--no-flag``);
+:func:`values_from_args` reads them back.
 """
 
 from __future__ import annotations
@@ -15,13 +16,20 @@ import argparse
 import dataclasses
 from typing import Any
 
-__all__ = ["add_arguments", "check_table", "option", "redacted_dict", "values_from_args"]
+from companion.table import Key, key_field
+
+__all__ = ["add_arguments", "option", "redacted_dict", "values_from_args"]
+
+
+def _options(cls_or_obj: Any) -> list[dataclasses.Field]:
+    """The fields declared by :func:`option` (not a section's ``source``)."""
+    return [f for f in dataclasses.fields(cls_or_obj) if "help" in f.metadata]
 
 
 def redacted_dict(config: Any, secrets: tuple[str, ...] = ("signing_key",)) -> dict[str, Any]:
-    """``dataclasses.asdict(config)`` with each set secret field replaced by ``"<set>"`` (what
+    """The options of ``config`` as a dict with each set secret field replaced by ``"<set>"`` (what
     flight logs and reports record of a config: never the key itself)."""
-    d = dataclasses.asdict(config)
+    d = {f.name: getattr(config, f.name) for f in _options(config)}
     for name in secrets:
         if d.get(name) is not None:
             d[name] = "<set>"
@@ -35,19 +43,28 @@ def option(
     choices: tuple[Any, ...] | None = None,
     *,
     repeatable: bool = False,
+    unit: str = "",
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
 ) -> Any:
-    """A dataclass field that is also a command-line flag (``arg_type`` where the default's
-    type does not say it, e.g. ``None`` defaults). ``repeatable``: a string flag that may be
-    given several times, its values joined by commas into the field (``--param A=1 --param
-    B=2`` is ``"A=1,B=2"``, as ``--param A=1,B=2``)."""
-    return dataclasses.field(
-        default=default,
-        metadata={
-            "help": help,
-            "arg_type": arg_type,
-            "choices": choices,
-            "repeatable": repeatable,
-        },
+    """A dataclass field that is also a command-line flag and a table key (``arg_type`` where
+    the default's type does not say it, e.g. ``None`` defaults; ``unit``, ``lo``, ``hi``,
+    ``lo_open``: a number's unit and range, checked as a table key's). ``repeatable``: a string
+    flag that may be given several times, its values joined by commas into the field (``--param
+    A=1 --param B=2`` is ``"A=1,B=2"``, as ``--param A=1,B=2``)."""
+    kind = arg_type or type(default)
+    if kind is bool:
+        key = Key("boolean", "", help)
+    elif kind in (int, float):
+        noun = "an integer" if kind is int else "a number"
+        key = Key("integer" if kind is int else "number", unit, help, lo, hi, lo_open, noun=noun)
+    elif choices:
+        key = Key("choice", "", help, choices=tuple(choices))
+    else:
+        key = Key("text", "", help)
+    return key_field(
+        key, default, help=help, arg_type=arg_type, choices=choices, repeatable=repeatable
     )
 
 
@@ -80,7 +97,7 @@ def add_arguments(
     (``visland sitl``'s seed is the evaluation seed), said in their help.
     """
     defaults = defaults or {}
-    for f in dataclasses.fields(cls):
+    for f in _options(cls):
         flag = "--" + f.name.replace("_", "-")
         shown = defaults.get(f.name, f.default)
         help_text = _help(f, shown)
@@ -104,36 +121,8 @@ def add_arguments(
 def values_from_args(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The parsed value of each field of ``cls`` that was given (``None``: not given, when the
     flags were added with ``unset_is_none``)."""
-    values = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(cls)}
-    for f in dataclasses.fields(cls):
+    values = {f.name: getattr(args, f.name, None) for f in _options(cls)}
+    for f in _options(cls):
         if f.metadata.get("repeatable") and values[f.name] is not None:
             values[f.name] = ",".join(values[f.name])  # a list of the flag's values
     return {k: v for k, v in values.items() if v is not None}
-
-
-def check_table(
-    table: dict[str, Any], cls: type, where: str, error: type[Exception]
-) -> dict[str, Any]:
-    """``table`` (a TOML table) checked against the fields of ``cls``: every key a field, every
-    value of the field's type (an integer is taken where a float is expected) and among its
-    choices. Returns the table with those integers made floats.
-
-    Raises:
-        error: naming ``where`` (e.g. ``"companion.toml: [companion]"``), the key, the expected
-            and the given value.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    out = dict(table)
-    for key, value in table.items():
-        f = fields.get(key)
-        if f is None:
-            raise error(f"{where} {key}: unknown key; known: {sorted(fields)}")
-        expected = _arg_type(f)
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            out[key] = float(value)
-        elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise error(f"{where} {key} = {value!r}; expected {expected.__name__}")
-        choices = f.metadata.get("choices")
-        if choices and value not in choices:
-            raise error(f"{where} {key} = {value!r}; expected one of {choices}")
-    return out

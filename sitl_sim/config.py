@@ -13,8 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from companion.files import read_toml
-from sitl_sim.errors import ConfigError
-from sitl_sim.table import (
+from companion.table import (
     Section,
     check_tables,
     choice,
@@ -24,6 +23,7 @@ from sitl_sim.table import (
     section_dict,
     vector,
 )
+from sitl_sim.errors import ConfigError
 
 __all__ = [
     "CONFIG_DIR",

@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.stats import qmc
 
+from companion.table import Section, check_section, check_tables, choice, read_values, span
 from sitl_sim.config import CONFIG_DIR, PLANETS, Planet, load_toml, planet
 from sitl_sim.errors import ConfigError
 from sitl_sim.mavlink.link_impairment import LinkConfig
@@ -38,7 +39,6 @@ from sitl_sim.physics.wind import WindConfig
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.visual import VisualConfig
 from sitl_sim.site.terrain import TerrainConfig
-from sitl_sim.table import Section, check_section, check_tables, choice, read_values, span
 
 __all__ = [
     "SECTIONS",
@@ -163,7 +163,7 @@ _OPTIONAL: dict[str, type[Section]] = {
     "sensors": SensorFaultsConfig,
     "link": LinkConfig,
 }
-"""The optional sections, each a :class:`sitl_sim.table.Section` (absent: None)."""
+"""The optional sections, each a :class:`companion.table.Section` (absent: None)."""
 
 SECTIONS = ("initial_state", "world", *_OPTIONAL)
 """The tables a scenario file may hold; any other is refused (a misspelt section would

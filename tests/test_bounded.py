@@ -1,4 +1,4 @@
-"""sitl_sim.table.Bounded: a record's bounded() fields are checked on construction, in the
+"""companion.table.Bounded: a record's bounded() fields are checked on construction, in the
 order they are declared, each named as its record says."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from dataclasses import dataclass, replace
 
 import pytest
 
+from companion.table import Bounded, bounded
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Bounded, bounded
 
 
 @dataclass(frozen=True)

@@ -262,7 +262,21 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
     assert CompanionConfig(**load_toml(good)).max_age_ms == 250.0
     bad = tmp_path / "bad.toml"
     bad.write_text("[companion]\nmax_age = 3\n")
-    with pytest.raises(CompanionError, match=r"bad\.toml.*max_age: unknown key"):
+    with pytest.raises(
+        CompanionError,
+        match=r"bad\.toml: \[companion\] unknown key\(s\) \['max_age'\].*did you mean 'max_age_ms'",
+    ):
+        load_toml(bad)
+    bad.write_text("[companion]\nmax_age_ms = -5\n")  # range-checked like every table's keys
+    with pytest.raises(
+        CompanionError, match=r"\[companion\] max_age_ms = -5.0; expected a number > 0 \(ms\)"
+    ):
+        CompanionConfig(**load_toml(bad))
+    bad.write_text('[companion]\nshadow = "yes"\n')
+    with pytest.raises(CompanionError, match=r"shadow = 'yes'; expected true or false"):
+        load_toml(bad)
+    bad.write_text("[other]\n")
+    with pytest.raises(CompanionError, match=r"unknown section\(s\) \['\[other\]'\]"):
         load_toml(bad)
     bad.write_text('[companion]\nautopilot = "inav"\n')
     with pytest.raises(CompanionError, match="expected one of"):
@@ -279,8 +293,10 @@ def test_profiles_connection_strings_and_config_errors(tmp_path):
     tight = CompanionConfig(max_age_ms=120.0, max_rate_yaw_rad_s=0.5, on_touchdown="hand_back")
     assert tight.safety_config().max_age_s == 0.12
     assert tight.safety_config().max_rate_rad_s == (2.0, 2.0, 0.5)
-    with pytest.raises(ValueError, match="on_touchdown = 'land'; expected disarm or hand_back"):
-        CompanionConfig(on_touchdown="land").offboard_config()
+    with pytest.raises(  # refused where it is built, as a file's key is
+        CompanionError, match=r"on_touchdown = 'land'; expected one of \['disarm', 'hand_back'\]"
+    ):
+        CompanionConfig(on_touchdown="land")
 
 
 # --------------------------------------------------------------------------- flight cards

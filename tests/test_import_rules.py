@@ -39,13 +39,21 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
             "companion.flightlog",
             "companion.files",
             "companion.options",
+            "companion.table",
             "companion.lazy",
             "companion.live",
         ),
         {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2"},
     ),
     "expert": (
-        ("expert", "sitl_sim", "companion.contract", "companion.flightlog", "companion.files"),
+        (
+            "expert",
+            "sitl_sim",
+            "companion.contract",
+            "companion.flightlog",
+            "companion.files",
+            "companion.table",
+        ),
         {"numpy", "scipy", "osqp", "clarabel", "cvxpy"},
     ),
     "training": (

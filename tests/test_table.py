@@ -1,4 +1,5 @@
-"""The one typed reader of scenario tables (sitl_sim/table.py) and the docs table it generates."""
+"""The one typed reader of every config file's tables (companion/table.py) and the docs table it
+generates."""
 
 from __future__ import annotations
 
@@ -9,9 +10,7 @@ from typing import ClassVar
 
 import pytest
 
-from sitl_sim.errors import ConfigError
-from sitl_sim.scenario import SECTIONS
-from sitl_sim.table import (
+from companion.table import (
     Section,
     choice,
     integer,
@@ -22,6 +21,8 @@ from sitl_sim.table import (
     section_keys,
     span,
 )
+from sitl_sim.errors import ConfigError
+from sitl_sim.scenario import SECTIONS
 from tools.config_keys import config_keys_markdown
 from training.provenance import REPO
 

@@ -1,15 +1,21 @@
 """``python -m tools.config_keys``: print ``docs/config_keys.md``, every key of every
-configuration file (scenario, suite, vehicle, simulation, expert) with its type, unit, default,
-range and meaning, generated from the declarations (:mod:`sitl_sim.table`) that read them."""
+configuration file (scenario, suite, vehicle, simulation, expert, companion) with its type, unit,
+default, range and meaning, generated from the declarations (:mod:`companion.table`) that read
+them."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import sys
+from collections.abc import Iterable
+from typing import Any
 
+from companion.config import CompanionConfig
+from companion.table import REQUIRED, declared_keys, number_text
 from expert.mpc.config import MpcConfig
 from sitl_sim.config import CONFIG_SECTIONS
 from sitl_sim.scenario import scenario_tables
-from sitl_sim.table import keys_markdown
 from training.suite import SuiteSection
 
 INTRO = """# Configuration keys
@@ -56,7 +62,55 @@ PARTS = (
         "Defaults are the shipped tuning; a file giving one weight flies it otherwise.",
         (("", MpcConfig),),
     ),
+    (
+        "The companion's file (`configs/companion.toml`, `companion/assets/companion.toml`)",
+        "Every key is also a `visland companion --flag` (underscores become dashes); a flag wins "
+        "over the file, the file over the default (the hardware template's). A relative `policy` "
+        "(`*.pt`) or `log_dir` is relative to the file's folder. The flight and safety limits are "
+        "checked again, against each other, by the safety monitor (`companion.safety`).",
+        (("companion", CompanionConfig),),
+    ),
 )
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "[" + ", ".join(map(_toml, value)) + "]"
+    return (
+        number_text(value)
+        if isinstance(value, int | float) and not isinstance(value, bool)
+        else json.dumps(value)
+    )
+
+
+def _default_text(f: dataclasses.Field) -> str:
+    if f.default is REQUIRED:
+        return "required"
+    if f.default is None:
+        return "absent (off)"
+    return f"`{_toml(f.default)}`"
+
+
+def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
+    """A markdown table of every ``(section, class)``'s keys: type, unit, default, range and
+    meaning (the generated ``docs/config_keys.md``)."""
+    lines = [
+        "| section | key | type | unit | default | range | meaning |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for section, cls in sections:
+        for name, (f, key) in declared_keys(cls).items():
+            cells = (
+                f"`[{key.table or section}]`",
+                f"`{name}`",
+                key.kind,
+                key.unit or "—",
+                _default_text(f),
+                key.bounds().replace("|", "\\|"),
+                key.doc.replace("|", "\\|"),
+            )
+            lines.append("| " + " | ".join(cells) + " |")
+    return intro + "\n".join(lines) + "\n"
 
 
 def config_keys_markdown() -> str:

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.files import sha256_file
+from companion.table import section_dict
 from sitl_sim.config import CameraConfig, load_sim
 from sitl_sim.render.pads import (
     REFERENCE,
@@ -46,7 +47,6 @@ from sitl_sim.render.pads import (
     start_altitudes_m,
 )
 from sitl_sim.scenario import SECTIONS, Scenario
-from sitl_sim.table import section_dict
 from training.profiles import PipelineError, Profile
 from training.provenance import REPO
 from training.record import Record

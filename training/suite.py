@@ -33,10 +33,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar, TextIO
 
+from companion.table import Section, integer
 from sitl_sim.config import load_toml
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import Scenario, load_scenario, scenario_from_dict
-from sitl_sim.table import Section, integer
 from training.evaluate import EvalConfig, evaluate
 from training.provenance import REPO
 from training.reports import EvalReport, SuiteReport
@@ -83,7 +83,7 @@ class SuiteConfig:
 
 @dataclass(frozen=True)
 class SuiteSection(Section):
-    """A suite file's optional ``[suite]`` table (read by :mod:`sitl_sim.table`)."""
+    """A suite file's optional ``[suite]`` table (read by :mod:`companion.table`)."""
 
     SECTION: ClassVar[str] = "suite"
 

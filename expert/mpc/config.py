@@ -1,6 +1,6 @@
 """The MPC expert's tuning: :class:`MpcConfig` and ``configs/expert.toml``.
 
-Each key is declared once (:mod:`sitl_sim.table`, as PX4's module.yaml): its TOML table,
+Each key is declared once (:mod:`companion.table`, as PX4's module.yaml): its TOML table,
 default, inclusive range, unit and meaning; a config is checked on construction, so one built
 in code is validated the same way as one read from disk by :func:`load_mpc_config`.
 """
@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from companion.table import Section, integer, number, read_spread
 from sitl_sim.config import CONFIG_DIR, load_toml
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Section, integer, number, read_spread
 
 __all__ = ["MpcConfig", "load_mpc_config"]
 

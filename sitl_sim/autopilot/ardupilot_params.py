@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from companion.contract.autopilots import CopterMode
-from sitl_sim.table import Bounded, bounded
+from companion.table import Bounded, bounded
 
 __all__ = [
     "GUID_OPTIONS_THRUST_AS_THRUST",

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.table import Bounded, bounded
 from sitl_sim.physics.dynamics import quat_from_euler, quat_to_rotation
-from sitl_sim.table import Bounded, bounded
 
 __all__ = ["NavConfig", "NavEstimator", "rotation_from_euler"]
 

@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.table import Bounded, bounded
 from sitl_sim.autopilot.nav_estimator import NavEstimator, rotation_from_euler
-from sitl_sim.table import Bounded, bounded
 
 __all__ = [
     "LTE_TIMEOUT_S",

@@ -50,8 +50,8 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
+from companion.table import Section, number, probability, section_keys, span
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Section, number, probability, section_keys, span
 
 __all__ = [
     "LINK_KEYS",

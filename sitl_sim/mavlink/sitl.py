@@ -71,7 +71,7 @@ from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
 from sitl_sim.autopilot.px4 import FlightMode, LandController
 from sitl_sim.config import SimConfig, VehicleConfig, load_sim, load_vehicle
-from sitl_sim.errors import SimError
+from sitl_sim.errors import ConfigError, SimError
 from sitl_sim.mavlink.clock import FrameWait, Pacer, SimClock
 from sitl_sim.mavlink.config import (
     SitlConfig,
@@ -557,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         return run_sitl(sitl_config_from_args(args))
-    except SimError as exc:  # config, port in use, ...: one clear line, no traceback
+    except (SimError, ConfigError) as exc:  # config, port in use, ...: one line, no traceback
         print(f"visland sitl: error: {exc}", file=sys.stderr)
         return 2
 

@@ -38,9 +38,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from companion.table import Bounded, Section, bounded, section_dict, section_keys, span
 from sitl_sim.config import Planet, VehicleConfig
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Bounded, Section, bounded, section_dict, section_keys, span
 
 __all__ = [
     "AIRFRAME_KEYS",

@@ -46,8 +46,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from companion.table import Section, probability, section_keys, span
 from sitl_sim.errors import ConfigError
-from sitl_sim.table import Section, probability, section_keys, span
 
 __all__ = [
     "MAX_CAMERA_LATENCY_MS",

@@ -51,8 +51,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from companion.table import Section, choice, span
 from sitl_sim.errors import SimStateError
-from sitl_sim.table import Section, choice, span
 
 __all__ = [
     "GUST_DURATION_S",
@@ -92,7 +92,7 @@ _H_MAX_FT = 1000.0  # MIL-F-8785C low-altitude model: h < 1000 ft
 @dataclass(frozen=True)
 class WindConfig(Section):
     """The ``[wind]`` section: ranges ``(lo, hi)`` sampled per episode, turbulence and gusts
-    (each key's unit, default and range: its declaration, :mod:`sitl_sim.table`).
+    (each key's unit, default and range: its declaration, :mod:`companion.table`).
 
     Attributes:
         speed_m_s: mean horizontal wind speed range, m/s (``0 <= lo <= hi <= 50``).

@@ -29,10 +29,10 @@ from typing import ClassVar
 
 import numpy as np
 
+from companion.table import Section, amount, choice, file_list, span
 from sitl_sim.errors import ConfigError
 from sitl_sim.render.pads import PadDesign, builtin_pad_paths, find_file, load_pad
 from sitl_sim.site.pad_motion import Ground, PadMotion, draw_pad_motion
-from sitl_sim.table import Section, amount, choice, file_list, span
 
 __all__ = ["MOTIONS", "PAD_MOTION_STREAM", "PAD_STREAM", "PadConfig"]
 

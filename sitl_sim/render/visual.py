@@ -46,13 +46,13 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 
+from companion.table import Section, choice_list, file_list, integer_span, number, span
 from sitl_sim.config import CameraConfig
 from sitl_sim.errors import ConfigError
 from sitl_sim.render.ground import GroundMap, PadGeometry, PadLook, nominal_ground
 from sitl_sim.render.ground_image import check_ground_image, ground_image_map
 from sitl_sim.render.pads import PadDesign, find_file
 from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
-from sitl_sim.table import Section, choice_list, file_list, integer_span, number, span
 
 __all__ = [
     "VISUAL_STREAM",

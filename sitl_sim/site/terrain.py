@@ -30,8 +30,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from companion.table import Section, amount, span
 from sitl_sim.site.rocks import Rocks
-from sitl_sim.table import Section, amount, span
 
 __all__ = ["GRID_M", "SITE_HALF_M", "TERRAIN_STREAM", "Terrain", "TerrainConfig"]
 

@@ -1,6 +1,6 @@
 """One typed reader for the TOML tables of every configuration file (scenario, suite, vehicle,
-simulation, expert): a section is a frozen dataclass whose fields declare, once, each key's
-type, unit, default, range and meaning (as PX4's ``module.yaml``); the reader, the checks and
+simulation, expert, companion): a section is a frozen dataclass whose fields declare, once, each
+key's type, unit, default, range and meaning (as PX4's ``module.yaml``); the reader, the checks and
 ``docs/config_keys.md`` all come from them.
 
 Declare a section::
@@ -17,31 +17,36 @@ same way (:class:`Section`'s ``__post_init__``). Rules, the same for every secti
 * a key left out takes the field's default (its documented nominal value); a field declared
   without one (:data:`REQUIRED`) must be given;
 * an unknown key, a value of the wrong type and a value out of range are each a
-  :class:`~sitl_sim.errors.ConfigError` ``"<where>: [section] key = <got>; expected <what>"``.
+  :class:`ConfigError` (or the section's own ``ERROR``, a subclass: the companion's
+  ``CompanionError``) ``"<where>: [section] key = <got>; expected <what>"``.
 
 Field kinds: :func:`span` (``[lo, hi]`` of numbers, drawn per episode; a single number ``x`` in
 the file means ``[x, x]``), :func:`integer_span` (likewise),
 :func:`number`, :func:`vector` (``size`` numbers), :func:`probability`, :func:`integer`,
 :func:`choice` (a string among choices)
-and :func:`choice_list` (a non-empty list of them), :func:`file_list` (file names).
+and :func:`choice_list` (a non-empty list of them), :func:`file_list` (file names); a
+command-line option (:func:`companion.options.option`) is also a ``text`` or ``boolean`` key.
+
+It lives in ``companion/`` (beside ``files.py`` and ``options.py``) because the companion
+installs on a board without the simulator, and the simulator, the expert and training import
+it from here.
 :func:`check_tables` checks a file's sections; :func:`read_spread` reads a record whose keys
-are spread over several tables (each key's ``table``). :func:`keys_markdown` makes the table of
-keys; ``python -m tools.config_keys`` prints every file's (``docs/config_keys.md``).
+are spread over several tables (each key's ``table``); ``python -m tools.config_keys`` prints
+every file's keys from :func:`declared_keys` (``docs/config_keys.md``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
+import difflib
 import math
 from collections.abc import Iterable
 from typing import Any, ClassVar
 
-from sitl_sim.errors import ConfigError
-
 __all__ = [
     "REQUIRED",
     "Bounded",
+    "ConfigError",
     "Key",
     "Section",
     "amount",
@@ -51,11 +56,13 @@ __all__ = [
     "check_tables",
     "choice",
     "choice_list",
+    "declared_keys",
     "file_list",
     "integer",
     "integer_span",
-    "keys_markdown",
+    "key_field",
     "number",
+    "number_text",
     "probability",
     "read_section",
     "read_spread",
@@ -65,6 +72,14 @@ __all__ = [
     "span",
     "vector",
 ]
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is missing, malformed or out of range.
+
+    The message names the file (when there is one), the field and what was expected.
+    """
+
 
 REQUIRED: Any = dataclasses.MISSING
 """The default of a key that has no nominal value and must be given."""
@@ -80,9 +95,10 @@ _NUMBER, _INTEGER, _SPAN, _INT_SPAN, _CHOICE, _CHOICES = (
 )
 _FILES = "file list"
 _VECTOR = "vector"
+_TEXT, _BOOL = "text", "boolean"
 
 
-def _g(x: float) -> str:
+def number_text(x: float) -> str:
     """A bound as written in errors and docs: ``10``, ``0.05``, ``2147483647``."""
     return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
 
@@ -100,8 +116,8 @@ class Key:
     """How one key of a section is typed and checked (a field's metadata).
 
     Attributes:
-        kind: ``number``, ``integer``, ``span``, ``integer span``, ``choice`` or
-            ``choice list``.
+        kind: ``number``, ``integer``, ``span``, ``integer span``, ``vector``, ``choice``,
+            ``choice list``, ``file list``, ``text`` or ``boolean``.
         unit: the unit (``"1"``: dimensionless).
         doc: what the key means (one line, for the docs table).
         lo, hi: inclusive bounds (None: unbounded); ``lo_open`` makes ``lo`` exclusive.
@@ -150,6 +166,10 @@ class Key:
             return cast(value[0]), cast(value[1])
         if self.kind == _CHOICE:
             return value if isinstance(value, str) and value in self.choices else None
+        if self.kind == _TEXT:
+            return value if isinstance(value, str) else None
+        if self.kind == _BOOL:
+            return value if isinstance(value, bool) else None
         if self.kind == _FILES:  # one name is a list of one
             names = [value] if isinstance(value, str) else value
             ok = isinstance(names, list) and names and all(isinstance(v, str) for v in names)
@@ -177,6 +197,8 @@ class Key:
         return math.isfinite(x) and self._above_lo(x) and (self.hi is None or x <= self.hi)
 
     def in_range(self, value: Any) -> bool:
+        if self.kind in (_TEXT, _BOOL):
+            return isinstance(value, str if self.kind == _TEXT else bool)
         if self.kind == _CHOICE:
             return value in self.choices
         if self.kind == _CHOICES:
@@ -206,6 +228,8 @@ class Key:
             return f"a non-empty list of {list(self.choices)}"
         if self.kind == _FILES:
             return "a file name, or a non-empty list of them"
+        if self.kind in (_TEXT, _BOOL):
+            return "a string" if self.kind == _TEXT else "true or false"
         lo_op = "<" if self.lo_open else "<="
         if self.kind == _VECTOR:
             return (
@@ -214,24 +238,26 @@ class Key:
             )
         if self.kind in (_NUMBER, _INTEGER):
             if self.lo is not None and self.hi is not None and not self.lo_open:
-                return f"in [{_g(self.lo)}, {_g(self.hi)}]"
+                return f"in [{number_text(self.lo)}, {number_text(self.hi)}]"
             parts = (
-                [f"{'>' if self.lo_open else '>='} {_g(self.lo)}"] if self.lo is not None else []
+                [f"{'>' if self.lo_open else '>='} {number_text(self.lo)}"]
+                if self.lo is not None
+                else []
             )
-            parts += [f"<= {_g(self.hi)}"] if self.hi is not None else []
+            parts += [f"<= {number_text(self.hi)}"] if self.hi is not None else []
             return " and ".join(parts) or "finite"
         a, b = self.ends
         chain = f"{a} {'<' if self.strict else '<='} {b}"
         if self.lo is not None:
-            chain = f"{_g(self.lo)} {lo_op} {chain}"
+            chain = f"{number_text(self.lo)} {lo_op} {chain}"
         if self.hi is not None:
-            chain = f"{chain} <= {_g(self.hi)}"
+            chain = f"{chain} <= {number_text(self.hi)}"
         return chain
 
     def expected(self) -> str:
         """The "expected" of a value out of range."""
         unit = f" ({self.unit})" if self.unit not in ("", "1") else ""
-        if self.kind in (_CHOICE, _CHOICES, _FILES):
+        if self.kind in (_CHOICE, _CHOICES, _FILES, _TEXT, _BOOL):
             return self.bounds()
         if self.kind == _VECTOR:
             return f"{self.bounds()}{unit}"
@@ -243,8 +269,13 @@ class Key:
         return f"{noun}[{a}, {b}] with {self.bounds()}{unit}"
 
 
-def _field(key: Key, default: Any) -> Any:
-    return dataclasses.field(default=default, metadata={_META: key})
+def key_field(key: Key, default: Any, **metadata: Any) -> Any:
+    """A dataclass field declared by ``key`` (``metadata``: more of the field's metadata, as
+    a command-line option's help)."""
+    return dataclasses.field(default=default, metadata={_META: key, **metadata})
+
+
+_field = key_field
 
 
 def span(
@@ -342,12 +373,14 @@ def file_list(*, doc: str) -> Any:
 
 @dataclasses.dataclass(frozen=True)
 class Section:
-    """Base of a section dataclass: ``SECTION`` names its table, ``source`` where it was read
-    (for errors; keyword-only, not compared). Built in code or read by :meth:`from_table`, it
+    """Base of a section dataclass: ``SECTION`` names its table, ``ERROR`` the error it raises
+    (a :class:`ConfigError`), ``source`` where it was read (for errors; keyword-only, not
+    compared). Built in code or read by :meth:`from_table`, it
     is checked against its declarations; a subclass with cross-key checks calls
     ``super().__post_init__()`` first."""
 
     SECTION: ClassVar[str] = ""
+    ERROR: ClassVar[type[ConfigError]] = ConfigError
     source: str = dataclasses.field(default="<memory>", compare=False, kw_only=True)
 
     def __post_init__(self) -> None:
@@ -363,13 +396,14 @@ class Section:
         return read_section(cls, table, where)
 
 
-def _keys(cls: type) -> dict[str, tuple[dataclasses.Field, Key]]:
+def declared_keys(cls: type) -> dict[str, tuple[dataclasses.Field, Key]]:
+    """``{name: (field, Key)}`` of every declared key of ``cls``, in declaration order."""
     return {f.name: (f, f.metadata[_META]) for f in dataclasses.fields(cls) if _META in f.metadata}
 
 
 def section_keys(cls: type) -> tuple[str, ...]:
     """The keys of section class ``cls``, in declaration order."""
-    return tuple(_keys(cls))
+    return tuple(declared_keys(cls))
 
 
 def read_values(
@@ -383,57 +417,66 @@ def read_values(
     ``names``: only these keys of ``cls`` belong to this table (None: all of them).
 
     Raises:
-        ConfigError: ``table`` is not a table, or has an unknown key, or lacks a
+        ConfigError: (``cls.ERROR``) ``table`` is not a table, or has an unknown key, or lacks a
             :data:`REQUIRED` one, or a value has the wrong type (naming ``where``, the section
             and the key). Ranges are checked by :func:`check_section` when ``cls`` is built.
     """
     section = section or cls.SECTION  # type: ignore[attr-defined]
+    error = getattr(cls, "ERROR", ConfigError)
     if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [{section}] must be a table, got {table!r}")
-    keys = _keys(cls)
+        raise error(f"{where}: [{section}] must be a table, got {table!r}")
+    keys = declared_keys(cls)
     if names is not None:
         keys = {name: keys[name] for name in names}
     unknown = sorted(set(table) - set(keys))
     if unknown:
-        raise ConfigError(
-            f"{where}: [{section}] unknown key(s) {unknown}; expected {list(keys)} (typo?)"
+        near = [m for u in unknown for m in difflib.get_close_matches(u, keys, 1)]
+        hint = f"did you mean {near[0]!r}?" if near else "typo?"
+        raise error(
+            f"{where}: [{section}] unknown key(s) {unknown}; expected {list(keys)} ({hint})"
         )
     values: dict[str, Any] = {}
     for name, (f, key) in keys.items():
         if name not in table:
             if f.default is REQUIRED:
-                raise ConfigError(
+                raise error(
                     f"{where}: [{section}] missing key {name!r}; expected {key.type_phrase()}"
                 )
             continue
         value = key.convert(table[name])
         if value is None:
-            raise ConfigError(
+            raise error(
                 f"{where}: [{section}] {name} = {table[name]!r}; expected {key.type_phrase()}"
             )
         values[name] = value
     return values
 
 
-def check_tables(data: Any, where: str, known: Iterable[str], required: Iterable[str] = ()) -> None:
+def check_tables(
+    data: Any,
+    where: str,
+    known: Iterable[str],
+    required: Iterable[str] = (),
+    error: type[ConfigError] = ConfigError,
+) -> None:
     """``data`` (a parsed TOML file) holds only the ``known`` tables and each ``required`` one.
 
     Raises:
-        ConfigError: ``"<where>: unknown section(s) ['[wnd]']; expected [...]"`` or
+        ConfigError: (``error``) ``"<where>: unknown section(s) ['[wnd]']; expected [...]"`` or
             ``"<where>: missing table [name]"``.
     """
     known = list(known)
     if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a table of sections {known}, got {data!r}")
+        raise error(f"{where}: expected a table of sections {known}, got {data!r}")
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise ConfigError(
+        raise error(
             f"{where}: unknown section(s) {['[' + s + ']' for s in unknown]}; "
             f"expected {['[' + s + ']' for s in known]} (typo?)"
         )
     for name in required:
         if not isinstance(data.get(name), dict):
-            raise ConfigError(f"{where}: missing table [{name}]")
+            raise error(f"{where}: missing table [{name}]")
 
 
 def read_spread(cls: type, data: Any, where: str) -> Any:
@@ -442,11 +485,11 @@ def read_spread(cls: type, data: Any, where: str) -> Any:
     takes its keys' defaults; one with a :data:`REQUIRED` key must be given."""
     tables: dict[str, list[str]] = {}
     required: set[str] = set()
-    for name, (f, key) in _keys(cls).items():
+    for name, (f, key) in declared_keys(cls).items():
         tables.setdefault(key.table, []).append(name)
         if f.default is REQUIRED:
             required.add(key.table)
-    check_tables(data, where, tables, required)
+    check_tables(data, where, tables, required, getattr(cls, "ERROR", ConfigError))
     values: dict[str, Any] = {}
     for table, names in tables.items():
         values.update(read_values(cls, data.get(table, {}), where, table, names))
@@ -462,16 +505,17 @@ def check_section(obj: Any, section: str | None = None) -> None:
     """Check every declared key of ``obj`` (a section dataclass) against its range.
 
     Raises:
-        ConfigError: ``"<obj.source>: [section] key = <got>; expected <range>"``.
+        ConfigError: (the section's ``ERROR``) ``"<obj.source>: [section] key = <got>;
+            expected <range>"``.
     """
     section = section or type(obj).SECTION
-    for name, (_f, key) in _keys(type(obj)).items():
+    for name, (_f, key) in declared_keys(type(obj)).items():
         value = getattr(obj, name)
         if value is None or key.in_range(value):
             continue
         listed = isinstance(value, tuple) and key.kind in (_SPAN, _INT_SPAN, _VECTOR)
         got = f"[{', '.join(map(str, value))}]" if listed else repr(value)
-        raise ConfigError(
+        raise getattr(type(obj), "ERROR", ConfigError)(
             f"{obj.source}: [{key.table or section}] {name} = {got}; expected {key.expected()}"
         )
 
@@ -528,48 +572,9 @@ def section_dict(obj: Any, *, drop_none: bool = False) -> dict[str, Any]:
     """The declared keys of ``obj`` as a TOML-like dict (tuples as lists); ``drop_none``
     leaves out the keys that are off."""
     out: dict[str, Any] = {}
-    for name in _keys(type(obj)):
+    for name in declared_keys(type(obj)):
         value = getattr(obj, name)
         if value is None and drop_none:
             continue
         out[name] = list(value) if isinstance(value, tuple) else value
     return out
-
-
-# --------------------------------------------------------------------------- the docs table
-
-
-def _toml(value: Any) -> str:
-    if isinstance(value, tuple):
-        return "[" + ", ".join(map(_toml, value)) + "]"
-    return _g(value) if _is_number(value) else json.dumps(value)
-
-
-def _default_text(f: dataclasses.Field) -> str:
-    if f.default is REQUIRED:
-        return "required"
-    if f.default is None:
-        return "absent (off)"
-    return f"`{_toml(f.default)}`"
-
-
-def keys_markdown(sections: Iterable[tuple[str, type]], intro: str = "") -> str:
-    """A markdown table of every ``(section, class)``'s keys: type, unit, default, range and
-    meaning (the generated ``docs/config_keys.md``)."""
-    lines = [
-        "| section | key | type | unit | default | range | meaning |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for section, cls in sections:
-        for name, (f, key) in _keys(cls).items():
-            cells = (
-                f"`[{key.table or section}]`",
-                f"`{name}`",
-                key.kind,
-                key.unit or "—",
-                _default_text(f),
-                key.bounds().replace("|", "\\|"),
-                key.doc.replace("|", "\\|"),
-            )
-            lines.append("| " + " | ".join(cells) + " |")
-    return intro + "\n".join(lines) + "\n"
