@@ -61,6 +61,10 @@ __all__ = [
 
 log = logging.getLogger("visland.companion")
 
+_IN_THE_AIR = (FlightResult.FAILSAFE, FlightResult.HANDED_BACK)
+"""A flight that ended so, the vehicle still armed, leaves it to the pilot: the next flight
+waits for a disarm (``FlightMachine.await_disarm``)."""
+
 
 # --------------------------------------------------------------------------- the process
 
@@ -318,6 +322,10 @@ class Companion:
                         if cfg.flights and index >= cfg.flights:
                             break
                         self.flight = self._new_flight(index)
+                        hb = self.store.heartbeat
+                        if flight.outcome.result in _IN_THE_AIR and hb is not None and hb.armed:
+                            self.flight.await_disarm = str(flight.outcome.result)
+                            self.flight.began = True  # armed: its log says why it waits
         finally:
             if self.flight is not None and not self.flight.began:
                 self._drop_unflown(self._stop_reason or "exit")
@@ -419,6 +427,7 @@ def run_from_args(
             policy = load_policy_file(cfg.policy, cfg.torch_threads, cfg.runtime)
         else:
             policy = resolve_policy(cfg.policy, cfg)
+        policy = cfg.with_estimator(policy)
         if args.replay is not None:
             report = replay(args.replay, policy, cfg.policy)
         elif getattr(args, "check", False):

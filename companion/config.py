@@ -140,6 +140,13 @@ class CompanionConfig(Section):
         "policy checkpoint (visland companion also takes expert | cascade); unset: the config's "
         "(the template's: the shipped model installed with the package)",
     )
+    estimator: str = option(
+        "",
+        "the checkpoint's estimator and landing-guard values replaced, KEY=VALUE (the keys of "
+        "visland eval --estimator: e.g. land_floor_m=15, pad_timeout_s=60, search_altitude_m="
+        "40); '' = the checkpoint's own",
+        repeatable=True,
+    )
     runtime: str = option(
         "auto",
         "learned policy backend: onnx (ONNX Runtime on the visland export-onnx graphs beside "
@@ -223,6 +230,7 @@ class CompanionConfig(Section):
                 raise CompanionError(str(exc)) from None
         if self.camera_rotate_deg % 90:
             raise CompanionError(f"camera_rotate_deg = {self.camera_rotate_deg}; a multiple of 90")
+        self.estimator_settings()  # a bad --estimator stops here, before a link opens
         if self.camera.startswith("opencv:"):
             try:
                 check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
@@ -233,6 +241,43 @@ class CompanionConfig(Section):
                 f"camera_roi = true: expected an opencv: camera in offboard mode, got camera = "
                 f"{self.camera!r}, mode = {self.mode!r} (SITL frames are 128 px already)"
             )
+
+    def estimator_settings(self) -> dict[str, Any]:
+        """``estimator`` as (key, value) pairs checked against a network's config.
+
+        Raises:
+            CompanionError: a bad key or value (names it).
+        """
+        from companion.policy_net.config import CheckpointError, NetConfig
+
+        try:
+            settings = NetConfig.parse_settings(self.estimator)
+            NetConfig().with_settings(settings)  # ranges and the checks between keys
+        except CheckpointError as exc:
+            raise CompanionError(f"{self.source}: [companion] estimator: {exc}") from None
+        return settings
+
+    def with_estimator(self, policy: Any) -> Any:
+        """``policy`` flying with :meth:`estimator_settings` (itself when there are none).
+
+        Raises:
+            CompanionError: settings for a policy without an estimator (expert, cascade), or
+                a value the checkpoint's own config refuses.
+        """
+        settings = self.estimator_settings()
+        if not settings:
+            return policy
+        if not callable(getattr(policy, "with_settings", None)):
+            raise CompanionError(
+                f"estimator = {self.estimator!r}: {self.policy!r} has no estimator (a "
+                "checkpoint has)"
+            )
+        from companion.policy_net.config import CheckpointError
+
+        try:
+            return policy.with_settings(settings)
+        except CheckpointError as exc:
+            raise CompanionError(f"estimator = {self.estimator!r}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, with the signing key redacted."""

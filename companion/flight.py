@@ -207,6 +207,11 @@ class FlightMachine(ABC):
         self._params_requested_s = -math.inf
         self._engage_attempts = 0
         self._mode_acked = False
+        self.await_disarm: str | None = None
+        """Set (to why) when the flight before this one ended with the vehicle in the air and
+        the pilot's (handed back, a failsafe that leaves it in hold): this flight starts only
+        after a disarm (or an autopilot restart: a new SITL episode), never by taking the
+        vehicle back from the pilot."""
 
     @property
     def _needs_odometry(self) -> bool:
@@ -223,6 +228,12 @@ class FlightMachine(ABC):
             return "no autopilot discovered yet"
         if not self.link.connected:
             return "autopilot link lost"
+        if self.await_disarm is not None:
+            hb = self.store.heartbeat
+            if hb is None or hb.armed:
+                why = self.await_disarm
+                return f"waiting for a disarm: the last flight ended in the air ({why})"
+            self.await_disarm = None
         return None
 
     def _inputs_gate(self, now: float, names: tuple[str, ...]) -> str | None:
@@ -289,6 +300,8 @@ class FlightMachine(ABC):
     def on_link_event(self, kind: str, text: str) -> None:
         event = EventKind.of_link(kind)
         self._event(event, text)
+        if event is EventKind.LINK_RESTARTED:
+            self.await_disarm = None  # a rebooted autopilot (a new SITL episode) starts afresh
         if event is EventKind.LINK_RESTARTED and self.state not in (
             FlightState.WAITING,
             FlightState.DONE,

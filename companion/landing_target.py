@@ -37,8 +37,18 @@ lockstep; an autopilot only logs it).
 camera, range ≥ ``engage_min_range_m``; ArduPilot: PLND_ENABLED = 1) → PRESTREAM (targets
 streaming; the pad tracked for ``prestream_s``) → ENGAGING (DO_SET_MODE precision land,
 3 tries) → FLYING (the HEARTBEAT shows it; targets keep streaming) → DONE: ``landed`` when
-disarmed, ``handed_back`` on another mode. The companion never commands a failsafe here: losing
-it (stale input, killed) only stops the stream, and the autopilot's target timeout falls back.
+disarmed, ``handed_back`` on another mode. Losing the companion (stale input, killed) only stops
+the stream, and the autopilot's target timeout falls back.
+
+**Never land blind** (the landing guard of offboard mode, :mod:`companion.policy_net.guard`,
+with the same settings: the checkpoint's, or ``--estimator``): the autopilot's precision land
+falls back to a normal landing where it is when it loses the target, so below
+``land_floor_m`` (the estimator's altitude) the companion lets it descend only with a
+**confirmed** pad (``confirm_fixes`` fixes). Without one it requests the profile's hold mode
+(PX4 AUTO.LOITER, ArduPilot ALT_HOLD: the descent stops); the moment the pad is confirmed it
+requests precision land again. After ``pad_timeout_s`` held in all, the flight ends with the
+failsafe ``pad_not_found``: the LANDING_TARGET stream stops and the vehicle stays in hold for
+the pilot (never LAND: that would land blind).
 """
 
 from __future__ import annotations
@@ -58,7 +68,8 @@ from companion.flight import FlightContext, FlightMachine, FlightRecorder
 from companion.link import mavlink
 from companion.live import live_frame
 from companion.policy_net.geometry import rotation_zyx
-from companion.states import FlightResult, FlightState
+from companion.policy_net.guard import LandingGuard
+from companion.states import Failsafe, FailsafeReason, FlightResult, FlightState
 from companion.telemetry import assemble_observation
 
 __all__ = [
@@ -73,6 +84,8 @@ __all__ = [
 log = logging.getLogger("visland.companion")
 
 _ENGAGE_ATTEMPTS = 3
+_HOLD_REREQUEST_S = 1.5
+"""The guard asks for hold again this often until the HEARTBEAT shows it."""
 
 
 class LandingTargetError(ValueError):
@@ -125,12 +138,16 @@ class TrackResult:
         visibility: the CNN's pad visibility (0..1).
         seen: visibility ≥ the policy's threshold on this frame.
         error: why the step failed (None: it did not).
+        confirmed: the estimator holds a confirmed pad (the landing guard's test).
+        altitude_m: the estimator's altitude above the ground (None: no radar fix yet).
     """
 
     target_rel_ned_m: np.ndarray | None
     visibility: float
     seen: bool
     error: str | None = None
+    confirmed: bool = False
+    altitude_m: float | None = None
 
 
 class _VisionPolicy(Protocol):
@@ -165,6 +182,7 @@ class PadTracker:
         self.policy: _VisionPolicy = policy
         self.target_timeout_s = target_timeout_s
         self.threshold = float(policy.config.visibility_threshold)
+        self.guard = LandingGuard(policy.config)
         self.reset()
 
     def reset(self) -> None:
@@ -194,9 +212,13 @@ class PadTracker:
             self.target_timeout_s
         )
         rel = -np.asarray(est.x[:, 0], dtype=float)
+        guard = {
+            "confirmed": self.guard.confirmed(est, state.fixes),
+            "altitude_m": -float(est.x[2, 0]) if est.initialised[2] else None,
+        }
         if not tracked or not np.all(np.isfinite(rel)):
-            return TrackResult(None, vis, seen)
-        return TrackResult(rel, vis, seen)
+            return TrackResult(None, vis, seen, **guard)
+        return TrackResult(rel, vis, seen, **guard)
 
 
 class LandingTargetRecorder(FlightRecorder, Protocol):
@@ -222,6 +244,13 @@ class LandingTargetController(FlightMachine):
         self.log: LandingTargetRecorder = log
         self.tracker = tracker
         self._tracked_since: float | None = None
+        self._hold_since: float | None = None
+        """When the landing guard requested hold (None: it does not hold)."""
+        self._held_s = 0.0
+        """Time held by the guard in earlier holds of this flight."""
+        self._resumed_s = -math.inf
+        """When the guard last asked for precision land again."""
+        self._hold_requested_s = -math.inf
         tracker.reset()
 
     # ------------------------------------------------------------------ helpers
@@ -292,7 +321,7 @@ class LandingTargetController(FlightMachine):
         elif self.state is FlightState.FLYING and not self.cfg.shadow:
             if not hb.armed:
                 self._finish(FlightResult.LANDED, "disarmed: the autopilot landed")
-            elif not profile.is_precland(mode):
+            elif not (profile.is_precland(mode) or self._guard_hold(mode)):
                 self._finish(FlightResult.HANDED_BACK, f"mode changed to {profile.mode_name(mode)}")
         elif self.state is FlightState.FLYING and not hb.armed:
             self._finish(FlightResult.SHADOW, "disarmed")
@@ -327,6 +356,10 @@ class LandingTargetController(FlightMachine):
                 fields = landing_target_fields(result.target_rel_ned_m, store.attitude.attitude_rad)
             if result.error is not None:
                 self.outcome.events.append(f"tracker_error: {result.error}")
+            if self.state is FlightState.FLYING:
+                self._guard(now, result)
+                if self.done:  # pad not found: nothing more is sent
+                    fields = None
         sent = None
         if fields is not None:
             body.update(
@@ -367,6 +400,59 @@ class LandingTargetController(FlightMachine):
                 )
             )
 
+    # ------------------------------------------------------------------ the landing guard
+
+    def _guard_hold(self, mode: int) -> bool:
+        """``mode`` is the hold the guard asked for (or has just asked to leave)."""
+        if not self.link.profile.is_hold(mode):
+            return False
+        return self._hold_since is not None or (
+            self._clock() - self._resumed_s < self.cfg.engage_timeout_s
+        )
+
+    def _guard(self, now: float, result: TrackResult) -> None:
+        """Below the floor, the precision land goes on only with a confirmed pad."""
+        net = self.tracker.policy.config
+        floor, profile = net.land_floor_m, self.link.profile
+        if floor is None or result.altitude_m is None:
+            return
+        holding = self._hold_since is not None
+        if not holding and (result.altitude_m >= floor or result.confirmed):
+            return
+        act = not self.cfg.shadow
+        if result.confirmed:  # the pad came into view while holding
+            self._held_s += now - float(self._hold_since or now)
+            self._hold_since, self._resumed_s = None, now
+            self._event(EventKind.GUARD, f"pad confirmed: {profile.precland.label} again")
+            if act:
+                self.link.request_mode(profile.precland, armed=True)
+            return
+        if not holding:
+            self._hold_since = self._hold_requested_s = now
+            fixes = self.tracker.state.fixes
+            self._event(
+                EventKind.GUARD,
+                f"{result.altitude_m:.1f} m, below the {floor:g} m floor without a confirmed pad "
+                f"({fixes} of {net.confirm_fixes} fixes): {profile.hold.label}"
+                + ("" if act else " (shadow: not requested)"),
+            )
+            if act:
+                self.link.request_mode(profile.hold, armed=True)
+            return
+        held = self._held_s + now - float(self._hold_since)
+        if held >= net.pad_timeout_s:
+            self.outcome.failsafe = Failsafe(
+                FailsafeReason.PAD_NOT_FOUND,
+                f"pad not found: no confirmed pad ({self.tracker.state.fixes} of "
+                f"{net.confirm_fixes} fixes) after {held:.1f} s held below the {floor:g} m "
+                f"floor; LANDING_TARGET stopped, left in {profile.hold.label} (no LAND)",
+            )
+            if act:
+                self._finish(FlightResult.FAILSAFE, str(self.outcome.failsafe))
+            else:
+                self._event(EventKind.FAILSAFE_SHADOW, f"would stop: {self.outcome.failsafe}")
+                self._finish(FlightResult.SHADOW, f"failsafe (shadow): {self.outcome.failsafe}")
+
     # ------------------------------------------------------------------ time
 
     def on_tick(self) -> None:
@@ -398,6 +484,13 @@ class LandingTargetController(FlightMachine):
                 self.link.request_mode(profile.precland, armed=True)
         elif state is FlightState.ENGAGING and now - self._entered_s > self.cfg.engage_timeout_s:
             self._refused("precision land not confirmed in the HEARTBEAT")
+        elif state is FlightState.FLYING and self._hold_since is not None and not self.cfg.shadow:
+            hb, profile = self.store.heartbeat, self.link.profile
+            # the hold refused or not yet shown: ask again (precision land would go on down)
+            if hb is not None and not profile.is_hold(hb.custom_mode):
+                if now - self._hold_requested_s > _HOLD_REREQUEST_S:
+                    self._hold_requested_s = now
+                    self.link.request_mode(profile.hold, armed=True)
 
     def hand_back(self, mode: str, reason: str) -> None:
         """Stop (SIGINT/SIGTERM, end of run): the LANDING_TARGET stream ends; a landing in

@@ -190,3 +190,30 @@ def test_the_companion_ends_a_flight_without_the_pad_with_pad_not_found(tmp_path
     # the SITL's offboard-loss action (COM_OBL_RC_ACT: Land, the one the SITL models) then
     # lands it where it is: the companion never asked for that, and deploy.md says what to set
     assert row["landing_error_m"] > 100
+
+
+def test_the_companion_takes_estimator_settings_and_names_a_bad_one(tmp_path):
+    """``visland companion --estimator KEY=VALUE`` (repeatable; a vector keeps its commas):
+    the guard's floor for a field, checked where the config is built; an expert has none."""
+    from companion.config import CompanionConfig, CompanionError
+    from companion.policy_net import load_policy
+
+    cfg = CompanionConfig(
+        estimator="land_floor_m=15,accel_bias_sigma_m_s2=0.1,0.1,0.2,pad_timeout_s=60"
+    )
+    assert cfg.estimator_settings() == {
+        "land_floor_m": 15.0,
+        "accel_bias_sigma_m_s2": (0.1, 0.1, 0.2),
+        "pad_timeout_s": 60.0,
+    }
+    policy = cfg.with_estimator(load_policy(MODEL))
+    assert policy.config.land_floor_m == 15.0 and policy.config.pad_timeout_s == 60.0
+    assert policy._guard.cfg.land_floor_m == 15.0  # the guard flies the new floor
+    with pytest.raises(CompanionError, match="estimator: estimator setting 'nope': not one"):
+        CompanionConfig(estimator="nope=1")
+    toml = tmp_path / "c.toml"
+    toml.write_text('[companion]\nestimator = "land_floor_m=-3"\n')
+    run = visland("companion", "--config", str(toml), "--policy", MODEL, "--max-wall-s", "1")
+    assert run.returncode == 2 and "land_floor_m: expected" in run.stderr, run.stderr
+    run = visland("companion", "--policy", "expert", "--estimator", "land_floor_m=5")
+    assert run.returncode == 2 and "'expert' has no estimator" in run.stderr, run.stderr

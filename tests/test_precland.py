@@ -5,6 +5,7 @@ companion killed mid-descent, and malformed LANDING_TARGETs."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import signal
@@ -436,6 +437,50 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
         texts = [e["text"] for e in flight.topic("/events")]
         assert "Precision landing: over the target, descending" in texts
         assert not flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")
+
+
+def test_landing_target_mode_never_lands_blind_it_holds_then_ends_pad_not_found(procs, tmp_path):
+    """The landing guard in landing-target mode: the pad is tracked, so precision land is
+    engaged, but it is never *confirmed* (``--estimator confirm_fixes=100000``): below the
+    12 m floor the companion asks for hold, the descent stops, and after ``pad_timeout_s`` the
+    flight ends ``pad_not_found`` with the vehicle still in the air; the next flight waits for
+    a disarm instead of taking the vehicle back. (The SITL freezes the vehicle in HOLD.)"""
+    ports = free_ports()
+    sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
+    comp = procs.start(
+        "companion",
+        companion_command(
+            ports.remote,
+            ports.camera,
+            comp_dir,
+            *("--mode", "landing-target", "--max-age-ms", "3000", "--flights", "2"),
+            *("--estimator", "confirm_fixes=100000", "--estimator", "pad_timeout_s=4"),
+            policy=DEFAULT_VISION_POLICY,
+            max_wall_s=120,
+        ),
+    )
+    sitl = procs.start("sitl", sitl_command(ports, sitl_dir, max_wall_s=120))
+    procs.wait_text("companion", "waiting for a disarm", 100.0)
+    comp.send_signal(signal.SIGINT)
+    assert comp.wait(20) == 0, procs.text("companion")
+    sitl.send_signal(signal.SIGINT)
+    sitl.wait(20)
+    flight, later = json.loads((tmp_path / "companion.out").read_text())["flights"]
+    assert flight["result"] == "failsafe", flight
+    assert flight["failsafe_reason"].startswith("pad_not_found: pad not found"), flight
+    assert "left in AUTO.LOITER (no LAND)" in flight["failsafe_reason"], flight
+    guard = [e for e in flight["events"] if e.startswith("guard:")]
+    assert "below the 12 m floor without a confirmed pad" in guard[0], guard
+    assert guard[0].endswith("AUTO.LOITER"), guard
+    assert any("waiting for a disarm" in e for e in later["events"]), later["events"]
+    log = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
+    modes = [e["text"] for e in log.topic("/events") if e["kind"] == "mode"]
+    assert modes == ["mode AUTO.PRECLAND", "mode AUTO.LOITER"], modes  # never taken back
+    altitude = [-g["pos_ned_m"][2] for g in log.topic("/groundtruth/state")]
+    assert min(altitude) > 8.0, "it held well above the ground"
+    result = log.topic("/episode/result")[-1]
+    assert not result["landed"] and not result["success"], result
+    assert not any(e["kind"] == "disarmed" for e in log.topic("/events"))
 
 
 def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(procs, tmp_path):

@@ -117,6 +117,9 @@ class EventKind(enum.StrEnum):
     PRECLAND_ACK = "precland_ack"
     PRECLAND_REFUSED = "precland_refused"
     FAILSAFE_SHADOW = "failsafe_shadow"
+    GUARD = "guard"
+    """Companion, landing-target mode: the landing guard held the descent (no confirmed pad
+    below the floor) or let it go on (the pad confirmed)."""
     HAND_BACK = "hand_back"
     LINK_DISCOVERED = "link_discovered"
     LINK_LOST = "link_lost"

@@ -7,6 +7,7 @@ in every checkpoint. No torch here: the estimator reads it too.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -267,6 +268,14 @@ class NetConfig:
         except ValueError as exc:
             raise CheckpointError(f"estimator setting {key}={raw}: {exc}") from None
         return key, value
+
+    @staticmethod
+    def parse_settings(text: str) -> dict[str, Any]:
+        """Several settings in one string, ``KEY=VALUE,KEY=VALUE`` (a repeated ``--estimator``
+        flag joined by commas; a vector's own commas stay with its key), each read by
+        :meth:`parse_setting`. Empty text: none."""
+        parts = re.split(r",(?=\s*[A-Za-z_]\w*\s*=)", text.strip()) if text.strip() else []
+        return dict(NetConfig.parse_setting(part) for part in parts)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

@@ -15,6 +15,7 @@ module imports no torch: the board flies this exact code.
 
 from __future__ import annotations
 
+import copy
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
@@ -155,6 +156,17 @@ class PolicyCore(ABC):
     roi: RoiConfig | None = None
     """A full-resolution camera's region of interest (:mod:`companion.roi`); None: the 128 px
     45° image as it comes (the default, every shipped flight)."""
+
+    def with_settings(self, settings: dict[str, Any]) -> PolicyCore:
+        """This policy (the same networks) flying with :data:`ESTIMATOR_FIELDS` values
+        replaced (``--estimator KEY=VALUE``: ``visland eval``, the companion); a bad key or
+        value is a :class:`~companion.policy_net.config.CheckpointError` naming it."""
+        if not settings:
+            return self
+        other = copy.copy(self)
+        other.config = self.config.with_settings(settings)
+        other._init_core()
+        return other
 
     def _init_core(self) -> None:
         self._estimator = PadEstimator(self.config)

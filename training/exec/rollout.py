@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, is_dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -73,10 +73,7 @@ def make_policy(name: str, env: LandingEnv, settings: Settings = ()):
     from companion.policy_net import load_policy
 
     torch.set_num_threads(1)  # one policy per worker process; workers run in parallel
-    policy = load_policy(name)
-    if not settings:
-        return policy
-    return replace(policy, config=policy.config.with_settings(dict(settings)))
+    return load_policy(name).with_settings(dict(settings))
 
 
 @runtime_checkable
