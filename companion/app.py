@@ -50,7 +50,7 @@ from companion.link import LinkError, mavlink
 from companion.offboard import FlightController
 from companion.runtime import PolicyRuntime
 from companion.safety import SafetyMonitor
-from companion.states import FlightResult, FlightState
+from companion.states import FailsafeReason, FlightResult, FlightState
 from companion.telemetry import TelemetryStore
 
 __all__ = [
@@ -61,9 +61,18 @@ __all__ = [
 
 log = logging.getLogger("visland.companion")
 
-_IN_THE_AIR = (FlightResult.FAILSAFE, FlightResult.HANDED_BACK)
-"""A flight that ended so, the vehicle still armed, leaves it to the pilot: the next flight
-waits for a disarm (``FlightMachine.await_disarm``)."""
+
+def _left_to_the_pilot(flight) -> bool:
+    """The flight ended ``pad_not_found``, the vehicle still in the air and the pilot's (left
+    in hold, or in the offboard-loss action's mode): the next flight waits for a disarm
+    (``FlightMachine.await_disarm``) instead of taking it back. (A plain ``handed_back`` does
+    not: the SITL's next episode begins as a switch to HOLD.)"""
+    failsafe = flight.outcome.failsafe
+    return (
+        flight.outcome.result is FlightResult.FAILSAFE
+        and failsafe is not None
+        and failsafe.reason is FailsafeReason.PAD_NOT_FOUND
+    )
 
 
 # --------------------------------------------------------------------------- the process
@@ -323,7 +332,7 @@ class Companion:
                             break
                         self.flight = self._new_flight(index)
                         hb = self.store.heartbeat
-                        if flight.outcome.result in _IN_THE_AIR and hb is not None and hb.armed:
+                        if _left_to_the_pilot(flight) and hb is not None and hb.armed:
                             self.flight.await_disarm = str(flight.outcome.result)
                             self.flight.began = True  # armed: its log says why it waits
         finally:

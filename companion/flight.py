@@ -208,10 +208,9 @@ class FlightMachine(ABC):
         self._engage_attempts = 0
         self._mode_acked = False
         self.await_disarm: str | None = None
-        """Set (to why) when the flight before this one ended with the vehicle in the air and
-        the pilot's (handed back, a failsafe that leaves it in hold): this flight starts only
-        after a disarm (or an autopilot restart: a new SITL episode), never by taking the
-        vehicle back from the pilot."""
+        """Set (to why) when the flight before this one ended ``pad_not_found`` with the
+        vehicle in the air and the pilot's: this flight starts only after a disarm (or an
+        autopilot restart), never by taking the vehicle back from the pilot."""
 
     @property
     def _needs_odometry(self) -> bool:

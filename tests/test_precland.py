@@ -439,12 +439,9 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
         assert not flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")
 
 
-def test_landing_target_mode_never_lands_blind_it_holds_then_ends_pad_not_found(procs, tmp_path):
-    """The landing guard in landing-target mode: the pad is tracked, so precision land is
-    engaged, but it is never *confirmed* (``--estimator confirm_fixes=100000``): below the
-    12 m floor the companion asks for hold, the descent stops, and after ``pad_timeout_s`` the
-    flight ends ``pad_not_found`` with the vehicle still in the air; the next flight waits for
-    a disarm instead of taking the vehicle back. (The SITL freezes the vehicle in HOLD.)"""
+def _landing_target_pair(procs, tmp_path, companion_extra=(), sitl_extra=()):
+    """A companion in landing-target mode (the shipped model) and a SITL on loopback, both
+    ending within 120 s of wall time; returns (companion, sitl, the SITL's log folder)."""
     ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(
@@ -453,13 +450,26 @@ def test_landing_target_mode_never_lands_blind_it_holds_then_ends_pad_not_found(
             ports.remote,
             ports.camera,
             comp_dir,
-            *("--mode", "landing-target", "--max-age-ms", "3000", "--flights", "2"),
-            *("--estimator", "confirm_fixes=100000", "--estimator", "pad_timeout_s=4"),
+            *("--mode", "landing-target", "--max-age-ms", "3000", *companion_extra),
             policy=DEFAULT_VISION_POLICY,
             max_wall_s=120,
         ),
     )
-    sitl = procs.start("sitl", sitl_command(ports, sitl_dir, max_wall_s=120))
+    sitl = procs.start("sitl", sitl_command(ports, sitl_dir, *sitl_extra, max_wall_s=120))
+    return comp, sitl, sitl_dir
+
+
+def test_landing_target_mode_never_lands_blind_it_holds_then_ends_pad_not_found(procs, tmp_path):
+    """The landing guard in landing-target mode: the pad is tracked, so precision land is
+    engaged, but it is never *confirmed* (``--estimator confirm_fixes=100000``): below the
+    12 m floor the companion asks for hold, the descent stops, and after ``pad_timeout_s`` the
+    flight ends ``pad_not_found`` with the vehicle still in the air; the next flight waits for
+    a disarm instead of taking the vehicle back. (The SITL freezes the vehicle in HOLD.)"""
+    comp, sitl, sitl_dir = _landing_target_pair(
+        procs,
+        tmp_path,
+        ("--flights", "2", "--estimator", "confirm_fixes=100000", "--estimator", "pad_timeout_s=4"),
+    )
     procs.wait_text("companion", "waiting for a disarm", 100.0)
     comp.send_signal(signal.SIGINT)
     assert comp.wait(20) == 0, procs.text("companion")
@@ -484,21 +494,8 @@ def test_landing_target_mode_never_lands_blind_it_holds_then_ends_pad_not_found(
 
 
 def test_card_companion_killed_mid_descent_precland_falls_back_and_lands(procs, tmp_path):
-    ports = free_ports()
-    sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
-    comp = procs.start(
-        "companion",
-        companion_command(
-            ports.remote,
-            ports.camera,
-            comp_dir,
-            *("--mode", "landing-target", "--max-age-ms", "3000"),
-            policy=DEFAULT_VISION_POLICY,
-            max_wall_s=120,
-        ),
-    )
-    sitl = procs.start(
-        "sitl", sitl_command(ports, sitl_dir, "--lockstep-timeout-s", "0.2", max_wall_s=120)
+    comp, sitl, sitl_dir = _landing_target_pair(
+        procs, tmp_path, sitl_extra=("--lockstep-timeout-s", "0.2")
     )
     # the SITL's own log line (no wall-clock guess): the descent starts 75-100 m up
     procs.wait_text(
