@@ -420,8 +420,9 @@ class LandingTargetController(FlightMachine):
         if not holding and (result.altitude_m >= floor or result.confirmed):
             return
         act = not self.cfg.shadow
-        if result.confirmed:  # the pad came into view while holding
-            self._held_s += now - float(self._hold_since or now)
+        since = self._hold_since
+        if result.confirmed and since is not None:  # the pad came into view while holding
+            self._held_s += now - since
             self._hold_since, self._resumed_s = None, now
             self._event(EventKind.GUARD, f"pad confirmed: {profile.precland.label} again")
             if act:
@@ -439,7 +440,7 @@ class LandingTargetController(FlightMachine):
             if act:
                 self.link.request_mode(profile.hold, armed=True)
             return
-        held = self._held_s + now - float(self._hold_since)
+        held = self._held_s + now - since
         if held >= net.pad_timeout_s:
             self.outcome.failsafe = Failsafe(
                 FailsafeReason.PAD_NOT_FOUND,
