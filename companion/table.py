@@ -275,9 +275,6 @@ def key_field(key: Key, default: Any, **metadata: Any) -> Any:
     return dataclasses.field(default=default, metadata={_META: key, **metadata})
 
 
-_field = key_field
-
-
 def span(
     default: tuple[float, float] | None = REQUIRED,
     *,
@@ -293,7 +290,7 @@ def span(
 ) -> Any:
     """A ``[lo, hi]`` key of numbers (None default: absent = off)."""
     key = Key(_SPAN, unit, doc, lo, hi, lo_open, noun, ends, strict, finite_hi)
-    return _field(key, default)
+    return key_field(key, default)
 
 
 def amount(*, unit: str, hi: float, doc: str) -> Any:
@@ -303,7 +300,7 @@ def amount(*, unit: str, hi: float, doc: str) -> Any:
 
 def integer_span(default: tuple[int, int], *, unit: str, doc: str, lo: int, hi: int) -> Any:
     """A ``[lo, hi]`` key of integers, inclusive."""
-    return _field(Key(_INT_SPAN, unit, doc, lo, hi, noun="integers"), default)
+    return key_field(Key(_INT_SPAN, unit, doc, lo, hi, noun="integers"), default)
 
 
 def number(
@@ -318,7 +315,7 @@ def number(
     table: str = "",
 ) -> Any:
     """A number key (an integer in the file is taken as a float)."""
-    return _field(Key(_NUMBER, unit, doc, lo, hi, lo_open, noun=noun, table=table), default)
+    return key_field(Key(_NUMBER, unit, doc, lo, hi, lo_open, noun=noun, table=table), default)
 
 
 def vector(
@@ -331,7 +328,7 @@ def vector(
     hi: float | None = None,
 ) -> Any:
     """A key of ``size`` numbers, each within ``[lo, hi]`` (a tuple of floats once read)."""
-    return _field(Key(_VECTOR, unit, doc, lo, hi, noun="numbers", size=size), default)
+    return key_field(Key(_VECTOR, unit, doc, lo, hi, noun="numbers", size=size), default)
 
 
 def probability(doc: str) -> Any:
@@ -349,23 +346,23 @@ def integer(
     table: str = "",
 ) -> Any:
     """An integer key."""
-    return _field(Key(_INTEGER, unit, doc, lo, hi, noun="an integer", table=table), default)
+    return key_field(Key(_INTEGER, unit, doc, lo, hi, noun="an integer", table=table), default)
 
 
 def choice(default: str, choices: Iterable[str], *, doc: str) -> Any:
     """A string key among ``choices`` (:data:`REQUIRED`: no default)."""
-    return _field(Key(_CHOICE, "", doc, choices=tuple(choices)), default)
+    return key_field(Key(_CHOICE, "", doc, choices=tuple(choices)), default)
 
 
 def choice_list(default: tuple[str, ...], choices: Iterable[str], *, doc: str) -> Any:
     """A non-empty list of strings among ``choices`` (a tuple once read)."""
-    return _field(Key(_CHOICES, "", doc, choices=tuple(choices)), default)
+    return key_field(Key(_CHOICES, "", doc, choices=tuple(choices)), default)
 
 
 def file_list(*, doc: str) -> Any:
     """A file name or a non-empty list of them (a tuple once read; absent: None, off). The
     section resolves and checks the files (relative to its scenario file)."""
-    return _field(Key(_FILES, "", doc), None)
+    return key_field(Key(_FILES, "", doc), None)
 
 
 # --------------------------------------------------------------------------- reading
