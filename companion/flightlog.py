@@ -430,6 +430,8 @@ class FlightLog:
         error: why reading stopped early, if it did.
         schemas: topic -> schema name, for every channel in the readable part (read or not,
             with or without messages).
+        binary: topic -> message count of the channels that are not JSON (the live view's
+            protobuf scene that :mod:`companion.live.scene_log` adds): counted, not decoded.
     """
 
     path: Path
@@ -438,6 +440,7 @@ class FlightLog:
     truncated: bool = False
     error: str | None = None
     schemas: dict[str, str] = field(default_factory=dict)
+    binary: dict[str, int] = field(default_factory=dict)
 
     def topic(self, name: str) -> list[dict[str, Any]]:
         return self.messages.get(name, [])
@@ -482,6 +485,7 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
             raise FlightLogError(f"{path}: not an MCAP file (bad magic {magic[:8]!r})")
         fh.seek(0)
         channels: dict[int, str] = {}
+        binary: set[int] = set()
         schema_names: dict[int, str] = {}
         try:
             for record in StreamReader(fh, skip_magic=False).records:
@@ -495,9 +499,14 @@ def read_log(path: str | Path, topics: Iterable[str] | None = None) -> FlightLog
                 elif isinstance(record, Channel):
                     channels[record.id] = record.topic
                     log.schemas[record.topic] = schema_names.get(record.schema_id, "")
+                    if record.message_encoding != "json":
+                        binary.add(record.id)
                 elif isinstance(record, Message):
                     topic = channels.get(record.channel_id)
                     if topic is None or (wanted is not None and topic not in wanted):
+                        continue
+                    if record.channel_id in binary:
+                        log.binary[topic] = log.binary.get(topic, 0) + 1
                         continue
                     try:
                         msg = json.loads(record.data)

@@ -22,6 +22,7 @@ COMPANION_THIRD_PARTY = {
     "mcap",
     "zstandard",
     "foxglove",
+    "google",  # protobuf, in the live extra beside foxglove-sdk: reads its messages back
     "torch",  # the torch runtime and `visland export-onnx` (see test below: not in the contract)
     "onnxruntime",
     "onnx",

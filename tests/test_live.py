@@ -152,6 +152,12 @@ def test_card_fly_live_serves_the_companions_view_of_a_vision_flight(tmp_path):
         if key == "estimate":
             assert out["r"].policy == DEFAULT_VISION_POLICY or out["r"].policy.endswith(".pt")
             assert any(n.texts for n in seen.messages["/camera/annotations"])
+    # the companion's log with the live view's picture written into it (visland log scene):
+    # its policy run again for the CNN and the estimate, its events as foxglove.Log on /log
+    from companion.live.scene_log import add_scene
+
+    scene = add_scene(companion_log)
+    assert scene.policy and scene.frames > 100 and scene.events > 3, scene
 
 
 def test_log_replay_of_a_missing_file_exits_2_naming_it(tmp_path):
@@ -170,7 +176,7 @@ def test_the_shipped_layout_shows_only_topics_the_live_view_serves():
 
     layout = json.loads(Path("docs/foxglove/visland.json").read_text())
     panels = layout["configById"]
-    served = TOPICS | {"/events"}
+    served = TOPICS | {"/log"}
     named = set()
     for config in panels.values():
         text = json.dumps(config)
@@ -178,7 +184,7 @@ def test_the_shipped_layout_shows_only_topics_the_live_view_serves():
         for path in config.get("paths", []):
             topic = path["value"].split(".")[0]
             assert topic in served, path
-    assert {"/camera/image", "/camera/annotations", "/scene", "/live/state", "/events"} <= named
+    assert {"/camera/image", "/camera/annotations", "/scene", "/live/state", "/log"} <= named
     text = json.dumps(layout["layout"])
     assert all(panel in text for panel in panels)  # every panel is placed
 

@@ -50,9 +50,47 @@ def _cmd_log_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_log_scene(args: argparse.Namespace) -> int:
+    from companion.live.scene_log import add_scene
+    from tools.cli_args import print_json
+
+    if args.out is not None and len(args.file) > 1:
+        raise SystemExit("visland log scene: --out takes one FILE; got several")
+    reports = [add_scene(f, args.out, args.policy) for f in args.file]
+    if args.json:
+        print_json([r.to_dict() for r in reports])
+    for r in reports if not args.json else ():
+        print(
+            f"wrote {r.file}: {r.messages} messages of the live view's scene for {r.frames} "
+            f"frames and {r.events} events"
+            + (f" (policy {r.policy} run again)" if r.policy else "")
+            + (" (a truncated log: its readable part)" if r.truncated else "")
+        )
+    return 0
+
+
+def _cmd_log_frame(args: argparse.Namespace) -> int:
+    from tools.cli_args import print_json
+    from tools.log_frame import plot_frame
+
+    r = plot_frame(args.file, args.out, args.time, args.policy)
+    if args.json:
+        print_json(r.to_dict())
+        return 0
+    print(
+        f"wrote {r.out}: frame {r.frame} of {r.frames} at t = {r.time_s:.1f} s ({r.why})"
+        + ("" if r.estimate_error_m is None else f"; estimate {r.estimate_error_m:.1f} m off")
+        + ("" if r.pad_probability is None else f"; pad p = {r.pad_probability:.2f}")
+    )
+    return 0
+
+
 def register_log(sub: argparse._SubParsersAction) -> None:
-    """Add ``log`` (``info``, ``plot``, ``replay``) to the ``visland`` subcommands."""
-    lg = sub.add_parser("log", help="look into an MCAP flight log: info, plot, replay")
+    """Add ``log`` (``info``, ``plot``, ``frame``, ``replay``, ``scene``) to the ``visland``
+    subcommands."""
+    lg = sub.add_parser(
+        "log", help="look into an MCAP flight log: info, plot, frame, replay, scene"
+    )
     lg_sub = lg.add_subparsers(dest="what", required=True)
     li = lg_sub.add_parser("info", help="topics, counts, schemas, duration, metadata, result")
     li.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
@@ -89,3 +127,32 @@ def register_log(sub: argparse._SubParsersAction) -> None:
         help="wait this long for a Foxglove client before playing (default 10; 0: at once)",
     )
     json_command(lr, _cmd_log_replay)
+    ls = lg_sub.add_parser(
+        "scene",
+        help="add the live view's channels to a flight log (camera annotations, 3D scene, "
+        "transforms, time series, events as foxglove.Log), so it opens in Foxglove with "
+        "docs/foxglove/visland.json as a live flight does",
+    )
+    ls.add_argument("file", type=Path, nargs="+", help="MCAP flight log(s), rewritten in place")
+    ls.add_argument("--out", type=Path, default=None, help="write here instead (one FILE)")
+    ls.add_argument(
+        "--policy",
+        default=None,
+        help="a vision checkpoint run again on the logged observations to draw its CNN bearing "
+        "and estimate (default: the log's own /policy/estimate, or a companion log's policy)",
+    )
+    json_command(ls, _cmd_log_scene)
+    lf = lg_sub.add_parser(
+        "frame",
+        help="PNG of one moment: the camera frame with the live view's annotations, and the "
+        "scene from above (default: where the estimate was furthest from the truth)",
+    )
+    lf.add_argument("file", type=Path, help="MCAP flight log (SITL, rollout or companion)")
+    lf.add_argument("--time", type=float, default=None, help="the frame nearest this time (s)")
+    lf.add_argument(
+        "--out", type=Path, default=None, help="PNG path (default: FILE's stem_frame.png)"
+    )
+    lf.add_argument(
+        "--policy", default=None, help="a vision checkpoint run again (as for log scene)"
+    )
+    json_command(lf, _cmd_log_frame)

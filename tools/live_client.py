@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import websockets
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+from companion.live.messages import protobuf_decoder
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 _MESSAGE_DATA = 0x01
@@ -32,12 +33,7 @@ class Seen:
 def _decoder(channel: dict[str, Any]):
     if channel["encoding"] == "json":
         return lambda data: json.loads(bytes(data))
-    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
-    pool = descriptor_pool.DescriptorPool()
-    for fd in fds.file:
-        pool.Add(fd)
-    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
-    return cls.FromString
+    return protobuf_decoder(channel["schemaName"], base64.b64decode(channel["schema"]))
 
 
 async def _watch(url: str, topics: set[str], per_topic: int, timeout_s: float, until) -> Seen:

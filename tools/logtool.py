@@ -220,7 +220,10 @@ def log_info(path: str | Path) -> dict[str, Any]:
     log = read_log(path)
     times = [m["time_s"] for msgs in log.messages.values() for m in msgs if "time_s" in m]
     topics = {
-        topic: {"count": len(log.topic(topic)), "schema": log.schemas.get(topic, "")}
+        topic: {
+            "count": len(log.topic(topic)) or log.binary.get(topic, 0),
+            "schema": log.schemas.get(topic, ""),
+        }
         for topic in sorted(set(log.schemas) | set(log.messages))
     }
     sources = plot_sources(log)

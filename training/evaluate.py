@@ -90,10 +90,26 @@ def _keep_logs(
         if src.exists() and (cfg.keep == "all" or not row.success):
             dst = out_dir / f"{cfg.condition}_s{cfg.seed}_ep{row.episode:04d}.mcap"
             src.replace(dst)
+            _with_scene(dst)
             path = str(dst)
         kept.append(replace(row, log=path))
     shutil.rmtree(staging, ignore_errors=True)
     return tuple(kept)
+
+
+def _with_scene(path: Path) -> None:
+    """A kept log with the live view's picture in it (:mod:`companion.live.scene_log`), so it
+    opens in Foxglove as a live flight does; as it was where foxglove-sdk is not installed or
+    it has no camera frames (``--no-camera``)."""
+    from companion.flightlog import FlightLogError
+    from companion.live.scene_log import add_scene
+
+    try:
+        add_scene(path)
+    except ImportError:
+        return
+    except FlightLogError as exc:
+        print(f"visland eval: {path} kept without its scene: {exc}", file=sys.stderr)
 
 
 def _fly(
@@ -245,6 +261,5 @@ def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) ->
     if kept:
         out.write(f"  flight logs kept ({len(kept)}):\n")
         for r in kept:
-            what = "success" if r.success else ("timeout" if not r.landed else "failed")
             err = "n/a" if r.landing_error_m is None else f"{r.landing_error_m:.2f} m"
-            out.write(f"    episode {r.episode:4d}  {what:<8} error {err:>9}  {r.log}\n")
+            out.write(f"    episode {r.episode:4d}  {r.verdict():<13} error {err:>9}  {r.log}\n")

@@ -110,6 +110,15 @@ class EpisodeRow(Record):
         """The episode's result (a null metric is NaN again)."""
         return EpisodeResult.read(self.to_dict())
 
+    def verdict(self) -> str:
+        """A word for a table: ``success``, the failsafe that ended it in the air (an abort,
+        e.g. ``pad_not_found``), ``timeout``, or ``failed`` (landed, not a success)."""
+        if self.success:
+            return "success"
+        if self.failsafe:
+            return self.failsafe
+        return "failed" if self.landed else "timeout"
+
 
 @dataclass(frozen=True)
 class BackendInfo(Record):

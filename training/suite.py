@@ -255,8 +255,9 @@ def format_suite_table(report: SuiteReport, out: TextIO) -> None:
     if kept:
         out.write(f"  flight logs kept ({len(kept)}):\n")
         for name, row in kept:
-            what = "success" if row.success else ("timeout" if not row.landed else "failed")
-            out.write(f"    {name:<{width}}  episode {row.episode:4d}  {what:<8} {row.log}\n")
+            out.write(
+                f"    {name:<{width}}  episode {row.episode:4d}  {row.verdict():<13} {row.log}\n"
+            )
 
 
 def suite_markdown(report: SuiteReport, command: str, plot: str | None = None) -> str:

@@ -23,7 +23,7 @@ topic                         schema                      what
 ``/live/state``               JSON                        time series: command, attitude,
                                                           radar range, estimate vs truth, link
                                                           counters, flight state
-``/events``                   ``foxglove.Log``            state changes, failsafes
+``/log``                      ``foxglove.Log``            state changes, failsafes (``/events``)
 ============================  ==========================  ====================================
 
 Frames: ``ned`` is the world the source knows — the SITL's and a log's true NED (pad start at

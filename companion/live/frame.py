@@ -54,6 +54,8 @@ class LiveFrame:
         command: (thrust_norm, p, q, r) flown.
         range_m: the radar's reading; wind_ned_m_s: the wind (simulation only).
         state: the flight's state or the autopilot's mode; link: link counters.
+        stamp_ns: the messages' stamp when it is not ``time_s`` (a log's frame: its image's
+            own stamp, on the file's clock, so the annotations match the logged image exactly).
     """
 
     time_s: float
@@ -72,6 +74,7 @@ class LiveFrame:
     wind_ned_m_s: np.ndarray | None = None
     state: str | None = None
     link: dict[str, int] = field(default_factory=dict)
+    stamp_ns: int | None = None
 
 
 def live_frame(

@@ -15,10 +15,14 @@ from companion.live.frame import LiveFrame, _float
 __all__ = [
     "TRAIL",
     "camera_calibration",
+    "decoded",
+    "frame_stamp",
     "image_annotations",
+    "protobuf_decoder",
     "raw_image",
     "scene_update",
     "stamp",
+    "stamp_ns",
     "state_values",
     "transforms",
 ]
@@ -31,11 +35,43 @@ _FOCAL_PX = 0.5 * IMAGE_SIZE_PX / math.tan(math.radians(CAMERA_FOV_DEG) / 2)
 _BODY_TO_OPTICAL_QUAT = (0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5))  # (x, y, z, w): yaw +90 deg
 
 
+def protobuf_decoder(schema_name: str, descriptor_set: bytes):
+    """``data -> message`` for the protobuf schema ``schema_name`` whose FileDescriptorSet is
+    ``descriptor_set`` (as a Foxglove channel advertises it, or an MCAP schema record holds it;
+    ``protobuf``, in the ``live`` extra)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    fds = descriptor_pb2.FileDescriptorSet.FromString(descriptor_set)
+    pool = descriptor_pool.DescriptorPool()
+    for fd in fds.file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name)).FromString
+
+
+def decoded(msg: Any) -> Any:
+    """A foxglove-sdk message (write-only) as the protobuf message it encodes to: what a client
+    reads from the wire or a file."""
+    schema = type(msg).get_schema()
+    return protobuf_decoder(schema.name, bytes(schema.data))(msg.encode())
+
+
 def stamp(time_s: float) -> Any:
     from foxglove.messages import Timestamp
 
     sec = math.floor(time_s)
     return Timestamp(int(sec), round((time_s - sec) * 1e9) % 1_000_000_000)
+
+
+def stamp_ns(ns: int) -> Any:
+    """An exact stamp of ``ns`` nanoseconds (a file's clock, where float seconds round)."""
+    from foxglove.messages import Timestamp
+
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def frame_stamp(f: LiveFrame) -> Any:
+    """The stamp of ``f``'s messages: its ``stamp_ns`` if it has one, else its time."""
+    return stamp(f.time_s) if f.stamp_ns is None else stamp_ns(f.stamp_ns)
 
 
 def _vec(v) -> Any:
@@ -68,7 +104,7 @@ def raw_image(f: LiveFrame) -> Any:
 
     img = np.ascontiguousarray(f.image, dtype=np.uint8)
     return RawImage(
-        timestamp=stamp(f.time_s),
+        timestamp=frame_stamp(f),
         frame_id="camera",
         width=int(img.shape[1]),
         height=int(img.shape[0]),
@@ -84,7 +120,7 @@ def camera_calibration(f: LiveFrame) -> Any:
     n, fx = IMAGE_SIZE_PX, _FOCAL_PX
     c = n / 2
     return CameraCalibration(
-        timestamp=stamp(f.time_s),
+        timestamp=frame_stamp(f),
         frame_id="camera",
         width=n,
         height=n,
@@ -113,7 +149,7 @@ def image_annotations(f: LiveFrame) -> Any:
         TextAnnotation,
     )
 
-    when = stamp(f.time_s)
+    when = frame_stamp(f)
     points, circles, texts = [], [], []
     if f.perception is not None:
         tan_r, tan_f, p = f.perception
@@ -178,7 +214,7 @@ def _project(offset_ned: np.ndarray, quat_wxyz: np.ndarray) -> tuple[float, floa
 def transforms(f: LiveFrame) -> Any:
     from foxglove.messages import FrameTransform, FrameTransforms
 
-    when = stamp(f.time_s)
+    when = frame_stamp(f)
     pos = f.vehicle_pos_ned_m if f.vehicle_pos_ned_m is not None else np.zeros(3)
     quat = f.quat_wxyz if f.quat_wxyz is not None else (1.0, 0.0, 0.0, 0.0)
     pad = f.pad_pos_ned_m if f.pad_pos_ned_m is not None else np.zeros(3)
@@ -216,7 +252,7 @@ def scene_update(f: LiveFrame, trail) -> Any:
         SpherePrimitive,
     )
 
-    when = stamp(f.time_s)
+    when = frame_stamp(f)
 
     def entity(frame_id: str, ident: str, **parts) -> Any:
         return SceneEntity(timestamp=when, frame_id=frame_id, id=ident, **parts)

@@ -54,7 +54,7 @@ class LiveView:
         self._annotations = channels.ImageAnnotationsChannel("/camera/annotations", context=ctx)
         self._scene = channels.SceneUpdateChannel("/scene", context=ctx)
         self._tf = channels.FrameTransformsChannel("/tf", context=ctx)
-        self._events = channels.LogChannel("/events", context=ctx)
+        self._events = channels.LogChannel("/log", context=ctx)
         self._state = foxglove.Channel("/live/state", message_encoding="json", context=ctx)
         self._trail: deque[tuple[float, float, float]] = deque(maxlen=TRAIL)
         self.frames = 0
@@ -87,7 +87,7 @@ class LiveView:
     # ------------------------------------------------------------------ publishing
 
     def event(self, time_s: float, text: str, error: bool = False) -> None:
-        """A state change or a failsafe, on ``/events``."""
+        """A state change or a failsafe, on ``/log`` (a log's ``/events`` as ``foxglove.Log``)."""
         if not self._events.has_sinks():
             return
         from foxglove.messages import Log, LogLevel
