@@ -13,16 +13,20 @@ from flights import fly_quietly
 from helpers import visland
 
 from tools.soak import LIMITS, SoakConfig, soak
+from training.exec.fly import FlyError
+
+SITL = "sitl_sim.mavlink.sitl"
+
+
+def _after(prelude: str, module: str, name: str) -> tuple[str, ...]:
+    """A process's command: ``module.main()`` as ``name``, once ``prelude`` (Python) has run."""
+    main = f"from {module} import main\nsys.argv = [{name!r}, *sys.argv[1:]]\nsys.exit(main())\n"
+    return (sys.executable, "-c", f"import sys\n{prelude}\n{main}")
 
 
 def _companion_after(prelude: str) -> tuple[str, ...]:
-    """FlyConfig.companion_command: the companion process, once ``prelude`` (Python) has run."""
-    main = (
-        "from training.companion_process import main\n"
-        "sys.argv = ['companion', *sys.argv[1:]]\n"
-        "sys.exit(main())\n"
-    )
-    return (sys.executable, "-c", f"import sys\n{prelude}\n{main}")
+    """FlyConfig.companion_command: the companion process, once ``prelude`` has run."""
+    return _after(prelude, "training.companion_process", "companion")
 
 
 def test_card_visland_soak_a_short_day_holds_memory_descriptors_and_latency(tmp_path):
@@ -74,6 +78,37 @@ def test_card_a_full_card_mid_flight_stops_the_log_not_the_flight(tmp_path):
     (sitl_log,) = (tmp_path / "run" / "sitl").glob("*.mcap")
     texts = [m["text"] for m in read_log(sitl_log).topic("/mavlink/in/STATUSTEXT")]
     assert any("flight log stopped" in t for t in texts), texts
+
+
+def test_card_the_sitls_log_filling_the_disk_mid_flight_stops_the_log_not_the_flight(tmp_path):
+    """The SITL's episode log hits a 400 kB file-size limit (a full disk) mid-flight: the
+    flight lands all the same, the SITL says so in a STATUSTEXT (the companion logs it) and on
+    its stderr, and the part written reads back as a truncated log."""
+    from companion.flightlog import read_log
+
+    limited = "import resource; resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000))"
+    run = tmp_path / "run"
+    with pytest.raises(FlyError, match=r"0 of 2 episodes finished \(2 SITL logs cut"):
+        # the results are in the cut logs: fly cannot report them, and says why
+        fly_quietly(run, policy="expert", episodes=2, sitl_command=_after(limited, SITL, "sitl"))
+    stderr = (run / "sitl.log").read_text()
+    assert stderr.count("flight log stopped: File too large") == 2
+    ended = [line for line in stderr.splitlines() if " ended: " in line]
+    assert len(ended) == 2 and all("'success': True" in line for line in ended)  # flew on
+    logs = sorted((run / "sitl").glob("*.mcap"))
+    assert len(logs) == 2
+    for path in logs:
+        log = read_log(path)
+        assert log.truncated and log.topic("/groundtruth/state"), path  # the part written
+        assert path.stat().st_size <= 400_000
+    flights = json.loads((run / "companion.json").read_text())["flights"]
+    assert [f["result"] for f in flights] == ["landed", "landed"], flights
+    texts = [
+        m["text"]
+        for path in sorted((run / "companion").glob("*.mcap"))
+        for m in read_log(path).topic("/mavlink/in/STATUSTEXT")
+    ]
+    assert any(t.startswith("SITL flight log stopped") for t in texts), texts
 
 
 def test_card_the_wall_clock_stepping_an_hour_mid_flight_changes_nothing_but_a_note(tmp_path):

@@ -170,6 +170,7 @@ class MavlinkSitl:
         # the loop's parts share the simulator, its clock, the flight state and the flight log
         parts = dict(sim=self.sim, clock=self.clock, state=self.state, flight_log=self.flight_log)
         self.publisher = Publisher(config=config, links=self.links, sim_cfg=sim_cfg, **parts)
+        self.log_queue.on_failure = self._log_stopped
         self.precland = PreclandLoop(
             config=config,
             publisher=self.publisher,
@@ -210,6 +211,12 @@ class MavlinkSitl:
         self._closed = False
         self._last_stats_log_wall = 0.0
         self._last_errors_logged = 0
+
+    def _log_stopped(self, text: str) -> None:
+        """The episode's log could not be written (a full disk): the flight goes on; the pilot
+        and stderr are told."""
+        log.warning("%s: the episode flies on without it", text)
+        self.publisher.statustext(4, f"SITL {text}")  # MAV_SEVERITY_WARNING
 
     # ------------------------------------------------------------------ public
 

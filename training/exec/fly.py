@@ -81,6 +81,9 @@ class FlyConfig:
     LANDING_TARGET from the policy's camera estimator; the SITL's AUTO.PRECLAND lands)."""
     companion_args: tuple[str, ...] = ()
     sitl_args: tuple[str, ...] = ()
+    sitl_command: tuple[str, ...] = ()
+    """The command that starts the SITL, before its flags (default: this Python, ``-m
+    sitl_sim.mavlink``); e.g. one that sets a resource limit first."""
     companion_command: tuple[str, ...] = ()
     """The command that starts the companion, before its flags (default: this Python,
     ``-m training.companion_process``); e.g. another install's ``python -I .../visland
@@ -247,9 +250,7 @@ def fly(cfg: FlyConfig) -> FlyReport:
     episode_s = load_sim().episode_timeout_s
     timeout_s = cfg.timeout_s or 60.0 + cfg.episodes * (episode_s * (1.2 if cfg.realtime else 0.6))
     sitl_cmd = [
-        sys.executable,
-        "-m",
-        "sitl_sim.mavlink",
+        *(cfg.sitl_command or (sys.executable, "-m", "sitl_sim.mavlink")),
         "--mavlink-port",
         str(mav),
         "--remote-port",
@@ -336,9 +337,13 @@ def fly(cfg: FlyConfig) -> FlyReport:
     wall = time.monotonic() - t0
     rows = _results(sitl_dir, cfg.seed, range(cfg.first_episode, cfg.first_episode + cfg.episodes))
     if len(rows) != cfg.episodes:
+        cut = sum(
+            1 for p in sitl_dir.glob("*.mcap") if read_log(p, topics=[TOPIC_RESULT]).truncated
+        )
         raise FlyError(
-            f"{len(rows)} of {cfg.episodes} episodes finished; SITL log:\n{_tail(sitl_log)}\n"
-            f"companion log:\n{_tail(comp_log)}"
+            f"{len(rows)} of {cfg.episodes} episodes finished"
+            + (f" ({cut} SITL logs cut before their result: a full disk?)" if cut else "")
+            + f"; SITL log:\n{_tail(sitl_log)}\ncompanion log:\n{_tail(comp_log)}"
         )
     try:
         companion_report = json.loads(comp_out.read_text() or "{}")
