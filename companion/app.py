@@ -110,6 +110,8 @@ class Companion:
             self.camera.follow(self.runtime)
         self._stop = threading.Event()
         self._stop_reason = ""
+        self._heard_autopilot = False
+        """The autopilot's first HEARTBEAT has been heard (:meth:`_first_heartbeat`)."""
         self.flight = None
         self.flight_log = None
         self.outcomes: list[dict[str, Any]] = []
@@ -138,6 +140,8 @@ class Companion:
 
     def _on_message(self, msg: Any, rx_s: float) -> None:
         self.store.update(msg, rx_s)
+        if not self._heard_autopilot and msg.get_type() == "HEARTBEAT":
+            self._first_heartbeat(msg)
         flight = self.flight
         if flight is not None:
             t = self.perf.now()
@@ -148,6 +152,23 @@ class Companion:
             flight_log.message(msg, rx_s)
             self.perf.add_inner("log", t)
             flight.on_message(msg, rx_s)
+
+    def _first_heartbeat(self, msg: Any) -> None:
+        """The autopilot's first HEARTBEAT this process hears: a vehicle already armed (a
+        companion restarted in the air, after a failsafe handed it to the pilot or the
+        autopilot) is not taken — the flight waits for a disarm — unless ``engage_in_air``."""
+        if msg.get_srcComponent() != self.link.target_component:
+            return
+        self._heard_autopilot = True
+        hb = self.store.heartbeat
+        if hb is None or not hb.armed or self.cfg.engage_in_air or self.cfg.shadow:
+            return
+        why = "the vehicle was armed when the companion started (restarted in the air?)"
+        log.warning("%s: not taking control; the pilot lands it (--engage-in-air takes it)", why)
+        self.link.send_statustext(4, "visland: armed at start, not taking control")
+        if self.flight is not None:
+            self.flight.await_disarm = why
+            self.flight.began = True  # armed: its log says why it waits
 
     def _pump(self, timeout_s: float) -> None:
         fd = self.link.fileno()
@@ -333,7 +354,9 @@ class Companion:
                         self.flight = self._new_flight(index)
                         hb = self.store.heartbeat
                         if _left_to_the_pilot(flight) and hb is not None and hb.armed:
-                            self.flight.await_disarm = str(flight.outcome.result)
+                            self.flight.await_disarm = (
+                                f"the last flight ended in the air ({flight.outcome.result})"
+                            )
                             self.flight.began = True  # armed: its log says why it waits
         finally:
             if self.flight is not None and not self.flight.began:

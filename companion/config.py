@@ -189,6 +189,12 @@ class CompanionConfig(Section):
         unit="s",
     )
     engage_min_range_m: float = option(5.0, "engage only above this radar range", unit="m")
+    engage_in_air: bool = option(
+        False,
+        "take control of a vehicle that is already armed when the companion first hears it (a "
+        "companion restarted in the air): only on the operator's word; by default it waits for "
+        "a disarm. The simulator's launches pass it (each episode starts in the air)",
+    )
     touchdown_range_m: float = option(
         _FLIGHT["touchdown_range_m"],
         "radar range at or below which the vehicle is down",

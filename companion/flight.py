@@ -208,9 +208,10 @@ class FlightMachine(ABC):
         self._engage_attempts = 0
         self._mode_acked = False
         self.await_disarm: str | None = None
-        """Set (to why) when the flight before this one ended ``pad_not_found`` with the
-        vehicle in the air and the pilot's: this flight starts only after a disarm (or an
-        autopilot restart), never by taking the vehicle back from the pilot."""
+        """Set (to why) when the vehicle is the pilot's and in the air — the flight before this
+        one ended ``pad_not_found``, or the vehicle was armed when the companion first heard it
+        (a companion restarted in the air): this flight starts only after a disarm (or an
+        autopilot restart), never by taking the vehicle from the pilot."""
 
     @property
     def _needs_odometry(self) -> bool:
@@ -230,8 +231,7 @@ class FlightMachine(ABC):
         if self.await_disarm is not None:
             hb = self.store.heartbeat
             if hb is None or hb.armed:
-                why = self.await_disarm
-                return f"waiting for a disarm: the last flight ended in the air ({why})"
+                return f"waiting for a disarm: {self.await_disarm}"
             self.await_disarm = None
         return None
 

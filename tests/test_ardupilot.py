@@ -399,7 +399,8 @@ def test_card_guid_options_0_companion_refuses_to_engage_and_says_why(tmp_path):
 def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, tmp_path):
     """SIGKILL in flight: ArduCopter stays in GUIDED_NOGPS, follows the last setpoint for
     GUID_TIMEOUT, then levels and holds zero climb rate (no crash) until the episode times out.
-    After one unanswered frame the SITL stops waiting for the dead client (lockstep runs free)."""
+    After one unanswered frame the SITL stops waiting for the dead client (lockstep runs free).
+    The companion restarted in the air does not take it back."""
     ports = free_ports()
     sitl_dir, comp_dir = tmp_path / "sitl", tmp_path / "companion"
     comp = procs.start(
@@ -422,10 +423,25 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, t
     time.sleep(0.3)
     comp.send_signal(signal.SIGKILL)
     comp.wait(10)
+    # restarted in the air (as systemd restarts it), without the operator's --engage-in-air:
+    # it connects and says so, and never takes the vehicle that stays in GUIDED_NOGPS, where
+    # a setpoint alone would give it back
+    procs.start(
+        "restarted",
+        companion_command(
+            ports.remote, ports.camera, tmp_path / "restarted", "--autopilot", "ardupilot",
+            *_RELAXED, "--no-engage-in-air",
+        ),
+    )  # fmt: skip
+    procs.wait_text("restarted", r"waiting for a disarm: the vehicle was armed when", 60.0)
     assert sitl.wait(60) == 0
     flight = read_log(sitl_dir / "sitl_seed0_ep0000.mcap")
+    texts = [m["text"] for m in flight.topic("/mavlink/in/STATUSTEXT")]
+    assert "visland: armed at start, not taking control" in texts, texts
     assert {m["mode"] for m in flight.topic("/autopilot/command")} == {"GUIDED_NOGPS"}
     last_sp_s = flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")[-1]["time_s"]
+    modes = [c for c in flight.topic("/mavlink/in/COMMAND_LONG") if c["command"] == 176]
+    assert all(c["time_s"] <= last_sp_s for c in modes)  # no mode request after the kill either
     (timeout,) = [e for e in flight.topic("/events") if e["kind"] == "guided_timeout"]
     assert 3.0 <= timeout["time_s"] - last_sp_s <= 3.0 + 0.11  # GUID_TIMEOUT, seen at 10 Hz
     assert not any(

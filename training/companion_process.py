@@ -35,6 +35,7 @@ def sim_companion_args() -> tuple[str, ...]:
     return (
         "--shadow" if flight.shadow else "--no-shadow",
         "--no-bench",
+        "--engage-in-air",  # each episode starts in the air: the operator's word, given here
         *("--engage-min-range-m", repr(flight.engage_min_range_m)),
         *("--thrust-min", repr(safety.thrust_min)),
         *("--thrust-max", repr(safety.thrust_max)),
