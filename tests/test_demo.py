@@ -90,6 +90,19 @@ def test_demo_flies_the_shipped_model_over_mavlink_and_reports_it(tmp_path):
     (row,) = report["per_episode"]
     assert row["success"] and row["landing_error_m"] < 0.5, row
     assert report["off_pad"] == 0 and report["aborts"] == 0
+    # both logs carry the live view's picture (fly --scene): they open in Foxglove with the
+    # layout as the flight looked live; the SITL's with the model's bearing run again
+    from companion.flightlog import read_log
+
+    for path in (row["log"], report["companion_logs"][0]):
+        log = read_log(path)
+        assert not log.truncated, path
+        assert (
+            log.binary["/scene"]
+            == log.binary["/camera/annotations"]
+            == len(log.topic("/camera/image"))
+        ), path
+    assert read_log(report["companion_logs"][0]).binary["/log"] > 3  # its events
 
     # The companion's log has no ground truth: a picture of it alone cannot show a path, and
     # plot_flights says so instead of drawing nothing.

@@ -157,6 +157,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
         autopilot=getattr(args, "autopilot", "px4"),
         sitl_params=tuple(getattr(args, "param", None) or ()),
         live=getattr(args, "live", ""),
+        scene=getattr(args, "scene", False),
     )
     # eval --transport mavlink --workers N = fly --instances N
     instances = getattr(args, "instances", None) or getattr(args, "workers", 1)
@@ -372,6 +373,12 @@ def _register_fly(sub: argparse._SubParsersAction) -> None:
         type=Path,
         default=None,
         help="run folder for both processes' logs (default: a new temporary folder)",
+    )
+    fl.add_argument(
+        "--scene",
+        action="store_true",
+        help="after the run, write the live view's picture into its logs (as visland log "
+        "scene), so each opens in Foxglove like a live flight (needs 'visland[live]')",
     )
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     add_backend_arguments(fl)

@@ -303,6 +303,7 @@ def run(cfg: DemoConfig, out: TextIO) -> dict[str, Any]:
             out=str(out_dir),
             progress=cfg.progress,
             live=cfg.live,
+            scene=True,  # the logs open in Foxglove with the layout as the flight looked live
         )
     ).to_dict()  # the demo's report is fly's JSON object, its own keys added (demo.json)
     rows = report["per_episode"]

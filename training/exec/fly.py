@@ -29,7 +29,7 @@ from typing import Any
 
 from companion.contract.records import ABSENT, EpisodeResultRecord
 from companion.contract.topics import TOPIC_RESULT
-from companion.flightlog import read_log
+from companion.flightlog import FlightLogError, read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult
@@ -81,6 +81,12 @@ class FlyConfig:
     LANDING_TARGET from the policy's camera estimator; the SITL's AUTO.PRECLAND lands)."""
     companion_args: tuple[str, ...] = ()
     sitl_args: tuple[str, ...] = ()
+    scene: bool = False
+    """After the run, write the live view's picture into every log of it (``visland log
+    scene``: annotations, 3D scene, transforms, time series, events), so each opens in
+    Foxglove with ``docs/foxglove/visland.json`` as a live flight does; the flights pay
+    nothing for it. A vision checkpoint is run again on the SITL's logs for the CNN's bearing
+    and the estimate (the companion's logs run their own)."""
     sitl_command: tuple[str, ...] = ()
     """The command that starts the SITL, before its flags (default: this Python, ``-m
     sitl_sim.mavlink``); e.g. one that sets a resource limit first."""
@@ -350,6 +356,8 @@ def fly(cfg: FlyConfig) -> FlyReport:
     except ValueError:
         companion_report = {}
     flights = companion_report.get("flights", [])
+    if cfg.scene:
+        _with_scenes(cfg, [Path(str(r.log)) for r in rows], sorted(comp_dir.glob("*.mcap")))
     return fly_report(
         cfg,
         rows,
@@ -361,6 +369,22 @@ def fly(cfg: FlyConfig) -> FlyReport:
         wall_s=wall,
         out=str(out),
     )
+
+
+def _with_scenes(cfg: FlyConfig, sitl_logs: list[Path], companion_logs: list[Path]) -> None:
+    """:attr:`FlyConfig.scene`: each log with the live view's picture in it (as it was where
+    foxglove-sdk is missing or a log cannot be drawn: said on stderr)."""
+    from companion.live.scene_log import add_scene
+
+    vision = cfg.policy if Path(cfg.policy).is_file() else None
+    for path, policy in [(p, vision) for p in sitl_logs] + [(p, None) for p in companion_logs]:
+        try:
+            add_scene(path, policy=policy)
+        except ImportError as exc:
+            print(f"fly: --scene needs foxglove-sdk ({exc}): logs as they are", file=sys.stderr)
+            return
+        except FlightLogError as exc:
+            print(f"fly: {path} left without its scene: {exc}", file=sys.stderr)
 
 
 def fly_report(
