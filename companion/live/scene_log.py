@@ -188,30 +188,29 @@ def _rewrite(src: Path, dst: Path, added: list[tuple[int, str, _Raw, bytes]]) ->
     schemas: dict[int, Schema] = {}
     chans: dict[int, _Raw] = {}
     messages: list[tuple[int, str, _Raw, bytes]] = []
-    with src.open("rb") as fh:
-        try:
-            for record in StreamReader(fh, skip_magic=False).records:
-                if isinstance(record, Metadata):
-                    metadata.append((record.name, dict(record.metadata)))
-                elif isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    if record.topic in SCENE_TOPICS:
-                        continue
-                    s = schemas.get(record.schema_id)
-                    chans[record.id] = _Raw(
-                        record.topic,
-                        None if s is None else (s.name, s.encoding, bytes(s.data)),
-                        record.message_encoding,
-                    )
-                elif isinstance(record, Message):
-                    chan = chans.get(record.channel_id)
-                    if chan is not None:
-                        messages.append((record.log_time, chan.topic, chan, bytes(record.data)))
-                elif isinstance(record, Footer):
-                    break
-        except (McapError, struct.error, zstandard.ZstdError, ValueError, EOFError):
-            pass  # a truncated log: its readable prefix is what read_log drew the scene from
+    # a truncated log stops where read_log stopped: its readable prefix is what the scene is of
+    cut = (McapError, struct.error, zstandard.ZstdError, ValueError, EOFError)
+    with src.open("rb") as fh, contextlib.suppress(*cut):
+        for record in StreamReader(fh, skip_magic=False).records:
+            if isinstance(record, Metadata):
+                metadata.append((record.name, dict(record.metadata)))
+            elif isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                if record.topic in SCENE_TOPICS:
+                    continue
+                s = schemas.get(record.schema_id)
+                chans[record.id] = _Raw(
+                    record.topic,
+                    None if s is None else (s.name, s.encoding, bytes(s.data)),
+                    record.message_encoding,
+                )
+            elif isinstance(record, Message):
+                chan = chans.get(record.channel_id)
+                if chan is not None:
+                    messages.append((record.log_time, chan.topic, chan, bytes(record.data)))
+            elif isinstance(record, Footer):
+                break
     merged = sorted(messages + added, key=lambda m: m[0])
     with dst.open("wb") as fh:
         writer = Writer(fh, compression=CompressionType.ZSTD)

@@ -66,12 +66,12 @@ class LogQueue:
         """Open the episode's log file now (its metadata written) and return the writer that
         queues its records: the ``open_writer`` of
         :class:`~sitl_sim.mavlink.flight_log.FlightLog`."""
-        writer = QueuedWriter(self, None, Path(path))
         try:
-            writer._writer = FlightLogWriter(path, metadata=metadata)
-        except (OSError, FlightLogError) as exc:
+            return QueuedWriter(self, FlightLogWriter(path, metadata=metadata), Path(path))
+        except (OSError, FlightLogError) as exc:  # cannot even start it: a failed log
+            writer = QueuedWriter(self, None, Path(path))
             writer.fail(exc)
-        return writer
+            return writer
 
     def put(self, write: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Queue ``write(*args)``; past ``max_pending`` run every waiting write now."""
