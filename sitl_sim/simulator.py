@@ -21,14 +21,14 @@ import numpy as np
 from companion.contract import Command, GroundTruth, Observation
 from sitl_sim.config import SimConfig, VehicleConfig
 from sitl_sim.errors import SimStateError
+from sitl_sim.physics import kernel
 from sitl_sim.physics.dynamics import (
     LAYOUT,
     ContactEvent,
     Physics,
     derivative,
-    integrate,
     make_state,
-    step,
+    touchdown,
 )
 from sitl_sim.physics.rate_controller import RateController
 from sitl_sim.physics.sensor_faults import SensorFaults
@@ -41,6 +41,8 @@ from sitl_sim.scenario import InitialState
 from sitl_sim.site.contact import SiteContact, quat_from_rotation
 from sitl_sim.site.site import Site
 from sitl_sim.world import EpisodeWorld
+
+_STILL_AIR = (0.0, 0.0, 0.0)
 
 __all__ = ["CameraFrame", "Simulator"]
 
@@ -238,25 +240,38 @@ class Simulator:
 
     def step_physics(self, command: Command | None) -> ContactEvent | None:
         """One physics step. ``command=None`` means disarmed: rotors commanded to zero."""
+        return self._advance(command, 1)
+
+    def _advance(self, command: Command | None, n: int) -> ContactEvent | None:
+        """``n`` physics steps holding ``command`` in one kernel call
+        (:func:`sitl_sim.physics.kernel.period`); ``n`` > 1 only where nothing outside the
+        kernel changes between steps (no wind, no site, no camera latency)."""
         x = self._state()
         dt = self.sim.physics_dt_s
         if command is None:
-            self.rate_controller.reset()
-            rotor_cmd = [0.0] * 4
+            armed, sp_p, sp_q, sp_r, collective = False, 0.0, 0.0, 0.0, 0.0
         else:
-            rotor_cmd = self.rate_controller.update(command, x[10:13], dt)
-        self._rotor_cmd = rotor_cmd
+            armed = True
+            sp_p, sp_q, sp_r = command.rate_frd_rad_s.tolist()
+            collective = command.thrust_norm * self.phys.max_total_thrust_n
         # the wind is held over this step (zero-order hold); the model moves on to its end
-        wind = None if self.wind is None else self.wind.step(dt, self._t, x[0:3], x[3:6])
+        wind = _STILL_AIR if self.wind is None else self.wind.step(dt, self._t, x[0:3], x[3:6])
         contact = self._site_contact
-        if contact is None:
-            x_new, event = step(x, rotor_cmd, dt, self.phys, self._t, wind_ned_m_s=wind)
-        else:
-            x_free = integrate(x, rotor_cmd, dt, self.phys, wind)
-            x_new, event = contact.resolve(x, x_free, self._t, dt)
-        self._step_count += 1
+        rates = self.rate_controller
+        x_new, rotors, rates.state, touch = kernel.period(
+            self.phys.constants, rates.constants, tuple(x), rates.state, armed,
+            sp_p, sp_q, sp_r, collective, dt, n, wind[0], wind[1], wind[2], contact is None,
+        )  # fmt: skip
+        event = None
+        if contact is not None:
+            x_new, event = contact.resolve(x, list(x_new), self._t, dt)
+        elif touch[0] >= 0:
+            j, frac, before, free = touch
+            event = touchdown(before, free, frac, (self._step_count + j) * dt, dt)
+        self._step_count += n
         self._t = self._step_count * dt  # integer count: no drift in sim time
-        self._x = x_new
+        self._x = list(x_new)
+        self._rotor_cmd = list(rotors)
         if self._poses is not None:
             self._record_pose()
         if event is not None and self.contact is None:
@@ -278,11 +293,15 @@ class Simulator:
     def step(self, command: Command | None) -> ContactEvent | None:
         """Advance one control period (``substeps`` physics steps) holding ``command``.
 
-        Returns the first contact that happened in this period, if any.
+        Returns the first contact that happened in this period, if any. Without wind, site or
+        camera latency the period is one kernel call; else one call per physics step.
         """
+        n = self.sim.substeps
+        if self.wind is None and self._site_contact is None and self._poses is None:
+            return self._advance(command, n)
         first = None
-        for _ in range(self.sim.substeps):
-            event = self.step_physics(command)
+        for _ in range(n):
+            event = self._advance(command, 1)
             if event is not None and first is None:
                 first = event
         return first

@@ -2,10 +2,13 @@
 
 ``bench sim``: the simulator's real-time factor on one core — physics (RK4 + rate loop), sensors
 and the camera at 10 Hz — flown by the cascade controller; in the same run, physics alone and the
-camera alone, so the split is visible whatever else the machine is doing. The camera is timed
-with both renderers in the same run: the headline figures are the chosen one's (default
-``fast``), and ``baseline`` holds pybullet's (the reference renderer), with the speed-up as a
-ratio. ``--scenario`` benches a scenario's first episode world (e.g. ``[visual]`` effects).
+camera alone, so the split is visible whatever else the machine is doing. ``physics_step_us`` is
+the physics-only flight's wall time per physics step (the cascade's command and the ground truth
+at 10 Hz included); ``kernel`` says whether the physics kernel ran compiled (numba) or as
+Python. The camera is timed with both renderers in the same run: the headline figures are the
+chosen one's (default ``fast``), and ``baseline`` holds pybullet's (the reference renderer), with
+the speed-up as a ratio. ``--scenario`` benches a scenario's first episode world (e.g.
+``[visual]`` effects).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any
 
 from expert.cascade import CascadeLander
 from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.physics import kernel
 from sitl_sim.scenario import InitialStateSampler, load_scenario
 from sitl_sim.simulator import Simulator
 from sitl_sim.world import episode_world
@@ -37,14 +41,23 @@ class SimBenchConfig:
     """A scenario file (default: configs/scenario.toml, the nominal world)."""
 
 
-def _fly(sim: Simulator, pilot: CascadeLander, seconds: float, render: bool) -> float:
+def _fly(
+    sim: Simulator, pilot: CascadeLander, seconds: float, render: bool, stepwise: bool = False
+) -> float:
+    """Wall time of a flight; ``stepwise``: one physics step per call (the SITL's path)."""
     steps = round(seconds * sim.sim.control_rate_hz)
+    substeps = sim.sim.substeps
     t0 = time.perf_counter()
     for k in range(steps):
         gt = sim.ground_truth()
         if render:
             sim.observe(frame_id=k, truth=gt)
-        sim.step(pilot.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz))
+        cmd = pilot.command(gt.pos_ned_m, gt.vel_ned_m_s, gt.quat_wxyz)
+        if stepwise:
+            for _ in range(substeps):
+                sim.step_physics(cmd)
+        else:
+            sim.step(cmd)
     return time.perf_counter() - t0
 
 
@@ -58,7 +71,7 @@ def _bench_renderer(cfg: SimBenchConfig, renderer: str) -> dict[str, Any]:
     full = Simulator(vehicle, sim_cfg, render=True)
     phys_only = Simulator(vehicle, sim_cfg, render=False)
     pilot = CascadeLander(vehicle, sim_cfg.planet)
-    walls_full, walls_phys, walls_cam = [], [], []
+    walls_full, walls_phys, walls_stepwise, walls_cam = [], [], [], []
 
     def world():
         return episode_world(scenario, cfg.seed, 0)
@@ -69,6 +82,10 @@ def _bench_renderer(cfg: SimBenchConfig, renderer: str) -> dict[str, Any]:
             walls_full.append(_fly(full, pilot, cfg.sim_seconds, render=True))
             phys_only.reset(initial, cfg.seed, world())
             walls_phys.append(_fly(phys_only, pilot, cfg.sim_seconds, render=False))
+            phys_only.reset(initial, cfg.seed, world())
+            walls_stepwise.append(
+                _fly(phys_only, pilot, cfg.sim_seconds, render=False, stepwise=True)
+            )
             full.reset(initial, cfg.seed, world())
             n = round(cfg.sim_seconds * sim_cfg.control_rate_hz)
             t0 = time.perf_counter()
@@ -84,11 +101,13 @@ def _bench_renderer(cfg: SimBenchConfig, renderer: str) -> dict[str, Any]:
     physics_steps = cfg.sim_seconds * sim_cfg.physics_rate_hz
     return {
         "renderer": renderer,
+        "kernel": kernel.KERNEL,
         "physics_rate_hz": sim_cfg.physics_rate_hz,
         "camera_rate_hz": sim_cfg.control_rate_hz,
         "realtime_factor": cfg.sim_seconds / wall_full,
         "realtime_factor_physics_only": cfg.sim_seconds / wall_phys,
         "physics_step_us": 1e6 * wall_phys / physics_steps,
+        "physics_step_us_stepwise": 1e6 * statistics.median(walls_stepwise) / physics_steps,
         "camera_frame_ms": 1e3 * wall_cam / frames,
         "camera_share_of_wall": wall_cam / wall_full,
     }

@@ -21,10 +21,10 @@ Forces and torques:
   ``q' = q (x) (0, w) / 2``.
 
 The ground is the plane ``down = 0``. :func:`step` integrates with classic RK4 and then resolves
-contact so that the vehicle never goes below it (see :func:`_resolve_ground_contact`).
+contact so that the vehicle never goes below it.
 
-The functions take plain floats internally: at 17 states, Python scalars are several times faster
-than small numpy arrays, and the simulator has to run tens of times faster than real time.
+The equations themselves are in :mod:`sitl_sim.physics.kernel` (compiled by numba where it is
+installed, else plain Python, the same floats either way); this module is their typed face.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import numpy as np
 
 from companion.contract.messages import quat_from_euler, quat_to_rotation
 from sitl_sim.config import Planet, VehicleConfig
+from sitl_sim.physics import kernel
 
 __all__ = [
     "LAYOUT",
@@ -53,6 +54,7 @@ __all__ = [
     "rk4_step",
     "step",
     "tilt_of",
+    "touchdown",
     "translational_accel_ned",
 ]
 
@@ -107,10 +109,9 @@ class Physics:
             ]
         )
         self.allocation_inv = np.linalg.inv(self.allocation)
-        self.rates_of_change, self.rk4 = _kernels(self)
-        """The integrator's kernels for these constants (:func:`_kernels`): ``rates_of_change``
-        is :func:`derivative` less the position rows, ``rk4`` is :func:`rk4_step`. A Physics
-        is not changed once built (the kernels hold its constants)."""
+        self.constants = kernel.plant_constants(self)
+        """The kernel's plant constants (:func:`sitl_sim.physics.kernel.plant_constants`). A
+        Physics is not changed once built."""
 
     @property
     def hover_rotor_thrust_n(self) -> float:
@@ -161,31 +162,42 @@ def translational_accel_ned(
 
     The velocity rows of :func:`derivative` (the kernel's equations, so the same floats), as the
     MPC expert's linearisation asks for them. ``wind_ned_m_s`` (3, NED, m/s): drag then acts on
-    the air-relative velocity ``v - wind``; None (the default) is still air, computed exactly as
-    before wind existed (not ``v - 0``).
+    the air-relative velocity ``v - wind``; None (the default) is still air.
     """
-    qw, qx, qy, qz = quat_wxyz
-    vn, ve, vd = vel_ned_m_s
+    qw, qx, qy, qz = (float(v) for v in quat_wxyz)
+    vn, ve, vd = (float(v) for v in vel_ned_m_s)
+    wn, we, wd = _wind(wind_ned_m_s)
     # The first three rows of the kernel's rates of change, the collective on one rotor: x + -0.0
     # is x for every float, so the rotors' sum is the collective itself, bit for bit.
-    accel = phys.rates_of_change(
-        vn, ve, vd, qw, qx, qy, qz, 0.0, 0.0, 0.0, collective_thrust_n, -0.0, -0.0, -0.0,
-        0.0, 0.0, 0.0, 0.0, wind_ned_m_s,
+    accel = kernel.rates(
+        phys.constants, vn, ve, vd, qw, qx, qy, qz, 0.0, 0.0, 0.0, float(collective_thrust_n),
+        -0.0, -0.0, -0.0, 0.0, 0.0, 0.0, 0.0, wn, we, wd,
     )  # fmt: skip
     return accel[0], accel[1], accel[2]
 
 
+def _wind(wind_ned_m_s) -> tuple[float, float, float]:
+    if wind_ned_m_s is None:
+        return _STILL_AIR
+    wn, we, wd = wind_ned_m_s
+    return float(wn), float(we), float(wd)
+
+
+_STILL_AIR = (0.0, 0.0, 0.0)
+
+
 def derivative(x, rotor_cmd_n, phys: Physics, wind_ned_m_s=None) -> list[float]:
     """Time derivative of the 17-float state for commanded rotor thrusts ``rotor_cmd_n`` (4, N)
-    in the wind ``wind_ned_m_s`` (3, NED; None: still air, see :func:`translational_accel_ned`)."""
-    c1, c2, c3, c4 = rotor_cmd_n
+    in the wind ``wind_ned_m_s`` (3, NED; None: still air)."""
+    x = [float(v) for v in x]
+    c1, c2, c3, c4 = (float(v) for v in rotor_cmd_n)
     return [
         x[3],
         x[4],
         x[5],
-        *phys.rates_of_change(
-            x[3], x[4], x[5], x[6], x[7], x[8], x[9], x[10], x[11], x[12],
-            x[13], x[14], x[15], x[16], c1, c2, c3, c4, wind_ned_m_s,
+        *kernel.rates(
+            phys.constants, x[3], x[4], x[5], x[6], x[7], x[8], x[9], x[10], x[11], x[12],
+            x[13], x[14], x[15], x[16], c1, c2, c3, c4, *_wind(wind_ned_m_s),
         ),
     ]  # fmt: skip
 
@@ -196,116 +208,9 @@ def rk4_step(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> lis
     The wind is held for the whole step (zero-order hold): all four stages see the same
     ``wind_ned_m_s``, as the commanded rotor thrusts are held.
     """
-    return phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
-
-
-def _kernels(phys: Physics):
-    """``(rates_of_change, rk4)`` for ``phys``'s constants, in plain Python floats.
-
-    ``rates_of_change(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4,
-    wind)`` is the state derivative but for the position rows (which are the velocity): the
-    equations of the module docstring (:func:`translational_accel_ned` reads its first three
-    rows). ``rk4(x, rotor_cmd_n, dt, wind)`` is the classic RK4 step of it with each stage's
-    rows unpacked into locals: ~2x faster than stage lists of 17, and the SITL steps its physics
-    250 times a simulated second.
-    """
-    kx, ky, kz = phys.kdrag
-    mass, g, km = phys.mass, phys.g, phys.km
-    ixx, iyy, izz = phys.ixx, phys.iyy, phys.izz
-    rx0, rx1, rx2, rx3 = phys.rx
-    ry0, ry1, ry2, ry3 = phys.ry
-    i_p, i_q, i_r = iyy - izz, izz - ixx, ixx - iyy  # Euler's coupling terms
-    lag = phys.tau_motor > 0.0
-    inv_tau = 1.0 / phys.tau_motor if lag else 0.0
-    inv_m = 1.0 / mass
-
-    def rates_of_change(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4, wind):
-        if wind is not None:
-            wn, we, wd = wind
-            vn, ve, vd = vn - wn, ve - we, vd - wd
-        # translation: rotation body -> NED, drag on the air-relative body velocity
-        r00 = 1 - 2 * (qy * qy + qz * qz)
-        r01 = 2 * (qx * qy - qw * qz)
-        r02 = 2 * (qx * qz + qw * qy)
-        r10 = 2 * (qx * qy + qw * qz)
-        r11 = 1 - 2 * (qx * qx + qz * qz)
-        r12 = 2 * (qy * qz - qw * qx)
-        r20 = 2 * (qx * qz - qw * qy)
-        r21 = 2 * (qy * qz + qw * qx)
-        r22 = 1 - 2 * (qx * qx + qy * qy)
-        vbx = r00 * vn + r10 * ve + r20 * vd
-        vby = r01 * vn + r11 * ve + r21 * vd
-        vbz = r02 * vn + r12 * ve + r22 * vd
-        fbx = -kx * abs(vbx) * vbx
-        fby = -ky * abs(vby) * vby
-        fbz = -kz * abs(vbz) * vbz - (t1 + t2 + t3 + t4)
-        # Euler: J w' = tau - w x (J w), J diagonal; q' = 1/2 q (x) (0, w); the rotor lag
-        if lag:
-            dt1, dt2 = (c1 - t1) * inv_tau, (c2 - t2) * inv_tau
-            dt3, dt4 = (c3 - t3) * inv_tau, (c4 - t4) * inv_tau
-        else:
-            dt1 = dt2 = dt3 = dt4 = 0.0
-        return (
-            (r00 * fbx + r01 * fby + r02 * fbz) * inv_m,
-            (r10 * fbx + r11 * fby + r12 * fbz) * inv_m,
-            (r20 * fbx + r21 * fby + r22 * fbz) * inv_m + g,
-            0.5 * (-qx * p - qy * q - qz * r),
-            0.5 * (qw * p + qy * r - qz * q),
-            0.5 * (qw * q - qx * r + qz * p),
-            0.5 * (qw * r + qx * q - qy * p),
-            (-(ry0 * t1 + ry1 * t2 + ry2 * t3 + ry3 * t4) + i_p * q * r) / ixx,
-            (rx0 * t1 + rx1 * t2 + rx2 * t3 + rx3 * t4 + i_q * r * p) / iyy,
-            (km * (t1 + t2 - t3 - t4) + i_r * p * q) / izz,
-            dt1,
-            dt2,
-            dt3,
-            dt4,
-        )
-
-    f = rates_of_change
-
-    def rk4(x, rotor_cmd_n, dt, wind=None):
-        pn, pe, pd, vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4 = x
-        c1, c2, c3, c4 = rotor_cmd_n
-        h = 0.5 * dt
-        # k1 at x; k2 at x + h k1; k3 at x + h k2; k4 at x + dt k3 (the position rows' k is
-        # the stage's velocity)
-        a = f(vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4, wind)
-        stages, vel = [a], []
-        for k in (h, h, dt):
-            an, ae, ad, dqw, dqx, dqy, dqz, dp, dq, dr, d1, d2, d3, d4 = a
-            vnk, vek, vdk = vn + k * an, ve + k * ae, vd + k * ad
-            a = f(
-                vnk, vek, vdk, qw + k * dqw, qx + k * dqx, qy + k * dqy, qz + k * dqz,
-                p + k * dp, q + k * dq, r + k * dr, t1 + k * d1, t2 + k * d2, t3 + k * d3,
-                t4 + k * d4, c1, c2, c3, c4, wind,
-            )  # fmt: skip
-            stages.append(a)
-            vel.append((vnk, vek, vdk))
-        (vn2, ve2, vd2), (vn3, ve3, vd3), (vn4, ve4, vd4) = vel
-        s = dt / 6.0  # x + dt/6 (k1 + 2 k2 + 2 k3 + k4), row by row
-        e, b, c, d = stages
-        return [
-            pn + s * (vn + 2.0 * vn2 + 2.0 * vn3 + vn4),
-            pe + s * (ve + 2.0 * ve2 + 2.0 * ve3 + ve4),
-            pd + s * (vd + 2.0 * vd2 + 2.0 * vd3 + vd4),
-            vn + s * (e[0] + 2.0 * b[0] + 2.0 * c[0] + d[0]),
-            ve + s * (e[1] + 2.0 * b[1] + 2.0 * c[1] + d[1]),
-            vd + s * (e[2] + 2.0 * b[2] + 2.0 * c[2] + d[2]),
-            qw + s * (e[3] + 2.0 * b[3] + 2.0 * c[3] + d[3]),
-            qx + s * (e[4] + 2.0 * b[4] + 2.0 * c[4] + d[4]),
-            qy + s * (e[5] + 2.0 * b[5] + 2.0 * c[5] + d[5]),
-            qz + s * (e[6] + 2.0 * b[6] + 2.0 * c[6] + d[6]),
-            p + s * (e[7] + 2.0 * b[7] + 2.0 * c[7] + d[7]),
-            q + s * (e[8] + 2.0 * b[8] + 2.0 * c[8] + d[8]),
-            r + s * (e[9] + 2.0 * b[9] + 2.0 * c[9] + d[9]),
-            t1 + s * (e[10] + 2.0 * b[10] + 2.0 * c[10] + d[10]),
-            t2 + s * (e[11] + 2.0 * b[11] + 2.0 * c[11] + d[11]),
-            t3 + s * (e[12] + 2.0 * b[12] + 2.0 * c[12] + d[12]),
-            t4 + s * (e[13] + 2.0 * b[13] + 2.0 * c[13] + d[13]),
-        ]
-
-    return rates_of_change, rk4
+    c1, c2, c3, c4 = (float(v) for v in rotor_cmd_n)
+    x = tuple(float(v) for v in x)
+    return list(kernel.rk4(phys.constants, x, c1, c2, c3, c4, float(dt), *_wind(wind_ned_m_s)))
 
 
 @dataclass(frozen=True)
@@ -352,47 +257,27 @@ def _tilt(qx: float, qy: float) -> float:
     return math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (qx * qx + qy * qy))))
 
 
-def _resolve_ground_contact(x_prev, x_new: list[float], t_prev: float, dt: float):
-    """Keep the vehicle on or above ``down = 0``; report a contact that happened in this step.
-
-    Contact is fully inelastic with full friction (skids on flat ground): the vehicle stops, its
-    roll and pitch settle level (the landing gear rests on the plane) and its yaw is kept. It
-    lifts off again as soon as thrust exceeds weight (then ``down`` decreases in the next step).
-    """
-    if x_new[2] < 0.0:
-        return x_new, None
-    d_prev, d_new = x_prev[2], x_new[2]
-    event = None
-    if d_prev < 0.0:
-        frac = d_prev / (d_prev - d_new) if d_new != d_prev else 1.0
-        lerp = [x_prev[i] + frac * (x_new[i] - x_prev[i]) for i in range(6)]
-        event = ContactEvent(
-            time_s=t_prev + frac * dt,
-            pos_ned_m=np.array([lerp[0], lerp[1], 0.0]),
-            vel_ned_m_s=np.array(lerp[3:6]),
-            tilt_rad=_tilt(x_new[7], x_new[8]),
-        )
-    # Resting on the ground: level attitude with the same heading, no motion.
-    qw, qz = x_new[6], x_new[9]
-    yaw = math.atan2(2 * qw * qz + 2 * x_new[7] * x_new[8], 1 - 2 * (x_new[8] ** 2 + qz * qz))
-    out = list(x_new)
-    out[2] = 0.0
-    out[3] = out[4] = out[5] = 0.0
-    out[6], out[7], out[8], out[9] = math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)
-    out[10] = out[11] = out[12] = 0.0
-    return out, event
+def touchdown(before, free, frac: float, t_prev: float, dt: float) -> ContactEvent:
+    """The flat ground's :class:`ContactEvent` of a step that came down from the air: the point
+    interpolated at ``frac`` of the step between the state ``before`` it and its free flight
+    ``free`` (:func:`sitl_sim.physics.kernel.flat_contact`), the tilt of the free flight's."""
+    lerp = [before[i] + frac * (free[i] - before[i]) for i in range(6)]
+    return ContactEvent(
+        time_s=t_prev + frac * dt,
+        pos_ned_m=np.array([lerp[0], lerp[1], 0.0]),
+        vel_ned_m_s=np.array(lerp[3:6]),
+        tilt_rad=_tilt(free[7], free[8]),
+    )
 
 
 def integrate(x, rotor_cmd_n, dt: float, phys: Physics, wind_ned_m_s=None) -> list[float]:
     """RK4 over ``dt`` and the quaternion renormalised: the free flight of one step, no ground
     (:func:`step` adds the flat ground; :mod:`sitl_sim.site.contact` a site's surfaces)."""
-    x_new = phys.rk4(x, rotor_cmd_n, dt, wind_ned_m_s)
-    n = math.sqrt(x_new[6] ** 2 + x_new[7] ** 2 + x_new[8] ** 2 + x_new[9] ** 2)
-    x_new[6] /= n
-    x_new[7] /= n
-    x_new[8] /= n
-    x_new[9] /= n
-    return x_new
+    c1, c2, c3, c4 = (float(v) for v in rotor_cmd_n)
+    x = tuple(float(v) for v in x)
+    return list(
+        kernel.integrate(phys.constants, x, c1, c2, c3, c4, float(dt), *_wind(wind_ned_m_s))
+    )
 
 
 def tilt_of(qx: float, qy: float) -> float:
@@ -402,6 +287,10 @@ def tilt_of(qx: float, qy: float) -> float:
 
 def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_s=None):
     """Advance the state by ``dt``: RK4, quaternion renormalisation, ground contact.
+
+    Contact with the plane ``down = 0`` is fully inelastic with full friction
+    (:func:`sitl_sim.physics.kernel.flat_contact`): the vehicle rests level with its heading kept
+    and lifts off as soon as thrust exceeds weight.
 
     Args:
         x: state (17 floats, :data:`LAYOUT`).
@@ -415,9 +304,8 @@ def step(x, rotor_cmd_n, dt: float, phys: Physics, t_s: float = 0.0, wind_ned_m_
         ``(x_next, contact)``: the new state as a list, and a :class:`ContactEvent` if the vehicle
         came down onto the ground during this step, else ``None``.
     """
-    on_ground = x[2] >= 0.0
-    x_new = integrate(x, rotor_cmd_n, dt, phys, wind_ned_m_s)
-    x_new, event = _resolve_ground_contact(x, x_new, t_s, dt)
-    if on_ground:
-        event = None  # still resting: not a new touchdown
-    return x_new, event
+    before = tuple(float(v) for v in x)
+    free = integrate(before, rotor_cmd_n, dt, phys, wind_ned_m_s)
+    x_new, frac = kernel.flat_contact(phys.constants, before, tuple(free))
+    event = touchdown(before, free, frac, t_s, dt) if frac >= 0.0 else None
+    return list(x_new), event
