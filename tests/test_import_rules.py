@@ -44,7 +44,7 @@ RULES: dict[str, tuple[tuple[str, ...], set[str]]] = {
             "companion.lazy",
             "companion.live",
         ),
-        {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2"},
+        {"numpy", "scipy", "pybullet", "gymnasium", "pymavlink", "PIL", "cv2", "numba"},
     ),
     "expert": (
         (
