@@ -541,6 +541,36 @@ def test_the_radar_gate_refuses_a_spurious_return_and_follows_a_real_change():
         NetConfig(radar_gate_sigma=-1.0)
 
 
+def test_a_full_radar_reset_restarts_a_vertical_axis_that_drifted():
+    """Over sloped ground one tilted range read as an altitude can knock the vertical velocity
+    and bias off (-26.6 m/s^2 in a kept validation flight): the altitude-only reset keeps them
+    and the prediction runs away from every later reading; radar_full_reset restarts them."""
+    level = np.array([0.0, 0.0, -9.80665])
+
+    def hover(full: bool):
+        cfg = NetConfig(radar_gate_sigma=5.0, accel_bias_states=True, radar_full_reset=full)
+        est = PadEstimator(cfg)
+        state = est.initial_state()
+        for _ in range(30):  # hovering at 80 m over flat ground: the axis settles
+            state = est.step(state, np.array([0.0, 0.0, -80.0]), False, np.zeros(3), level)
+        x = state.x.copy()
+        x[2, 1], x[2, 2] = 8.0, -26.6  # what the one bad fix left
+        state = replace(state, x=x)
+        alt = []
+        for _ in range(60):
+            state = est.step(state, np.array([0.0, 0.0, -80.0]), False, np.zeros(3), level)
+            alt.append(-state.x[2, 0])
+        return alt, state
+
+    kept, kept_state = hover(False)
+    assert max(abs(a - 80.0) for a in kept[-20:]) > 5.0  # re-acquired, and drifting off again
+    assert abs(kept_state.x[2, 2] + 26.6) < 2.0
+    full, state = hover(True)
+    assert max(abs(a - 80.0) for a in full[-20:]) < 0.5
+    assert abs(state.x[2, 1]) < 0.3 and abs(state.x[2, 2]) < 1.0
+    assert NetConfig.parse_setting("radar_full_reset=true") == ("radar_full_reset", True)
+
+
 def test_estimator_fields_are_config_fields_that_no_weight_depends_on(tmp_path):
     from companion.policy_net import ESTIMATOR_FIELDS
 

@@ -34,6 +34,7 @@ ESTIMATOR_FIELDS = (
     "accel_bias_sigma_m_s2",
     "accel_bias_walk_m_s2",
     "radar_gate_sigma",
+    "radar_full_reset",
     "latency_compensation",
     "land_floor_m",
     "confirm_fixes",
@@ -133,6 +134,14 @@ class NetConfig:
     taken). A spurious radar return (a bird, dust, a multipath echo) 50 m off at 2 m altitude
     otherwise moves the altitude estimate by 50 m, and the controller dives at the ground. After
     ``gate_reset_steps`` refusals in a row the estimate re-acquires from the radar."""
+    radar_full_reset: bool = False
+    """What a re-acquisition from the radar (``radar_gate_sigma``) restarts. False: the altitude
+    alone, the velocity and acceleration-bias estimates kept (a checkpoint saved before this key
+    flies as it did). True: the whole vertical axis, as at its first fix — altitude from the
+    radar, velocity 0 +- 2 m/s, bias from its prior. The gate refuses the radar for so long
+    because the prediction drifted, and a drift is a wrong velocity or bias: over sloped ground
+    a tilted range read as an altitude moves the bias tens of m/s^2 in one accepted fix, and
+    kept, it drives the altitude away from every later reading."""
     latency_compensation: bool = False
     """The camera fix is computed with the attitude at the image's exposure time
     (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward

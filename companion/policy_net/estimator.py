@@ -157,7 +157,12 @@ class PadEstimator:
                 innov = float(fix_ned_m[2]) - h_alt @ x[2]
                 if innov**2 > self.cfg.radar_gate_sigma**2 * (cov[2, 0, 0] + sigmas[2] ** 2):
                     rejected_alt += 1
-                    if rejected_alt >= self.cfg.gate_reset_steps:
+                    if rejected_alt >= self.cfg.gate_reset_steps and self.cfg.radar_full_reset:
+                        # the radar, not the prediction, is right, and what drifted is the
+                        # velocity or the bias: the whole axis re-acquires (radar_full_reset)
+                        x[2], cov[2] = self._acquire(2, float(fix_ned_m[2]), sigmas[2])
+                        rejected_alt = 0
+                    elif rejected_alt >= self.cfg.gate_reset_steps:
                         # the radar, not the prediction, is right: the altitude re-acquires
                         # from it; the velocity and bias estimates stay
                         x[2, 0] = float(fix_ned_m[2]) + float(vertical_lag_s) * x[2, 1]
