@@ -248,16 +248,11 @@ class Simulator:
         kernel changes between steps (no wind, no site, no camera latency)."""
         x = self._state()
         dt = self.sim.physics_dt_s
-        if command is None:
-            armed, sp_p, sp_q, sp_r, collective = False, 0.0, 0.0, 0.0, 0.0
-        else:
-            armed = True
-            sp_p, sp_q, sp_r = command.rate_frd_rad_s.tolist()
-            collective = command.thrust_norm * self.phys.max_total_thrust_n
+        rates = self.rate_controller
+        armed, sp_p, sp_q, sp_r, collective = rates.setpoint(command)
         # the wind is held over this step (zero-order hold); the model moves on to its end
         wind = _STILL_AIR if self.wind is None else self.wind.step(dt, self._t, x[0:3], x[3:6])
         contact = self._site_contact
-        rates = self.rate_controller
         x_new, rotors, rates.state, touch = kernel.period(
             self.phys.constants, rates.constants, tuple(x), rates.state, armed,
             sp_p, sp_q, sp_r, collective, dt, n, wind[0], wind[1], wind[2], contact is None,

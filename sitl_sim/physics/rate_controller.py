@@ -43,14 +43,10 @@ class RateController:
     def reset(self) -> None:
         self.state = kernel.RATE_RESET
 
-    def update(self, command: Command, rate_frd_rad_s, dt: float) -> list[float]:
-        """Rotor thrust commands (4, N, each in [0, max]) for ``command`` at measured rates:
-        ``J (kp e + ki int(e) + kd de/dt) + w x J w``, mixed with roll/pitch > yaw >
-        collective."""
-        sp_p, sp_q, sp_r = command.rate_frd_rad_s.tolist()
-        p, q, r = (float(v) for v in rate_frd_rad_s)
-        collective = command.thrust_norm * self._phys.max_total_thrust_n
-        rotors, self.state = kernel.rate_loop(
-            self.constants, self.state, sp_p, sp_q, sp_r, collective, p, q, r, float(dt)
-        )
-        return list(rotors)
+    def setpoint(self, command: Command | None) -> tuple[bool, float, float, float, float]:
+        """The kernel's view of a command: ``(armed, p, q, r, collective N)``; None is a
+        disarmed autopilot (the loop reset and the rotors at zero at every step)."""
+        if command is None:
+            return False, 0.0, 0.0, 0.0, 0.0
+        p, q, r = command.rate_frd_rad_s.tolist()
+        return True, p, q, r, command.thrust_norm * self._phys.max_total_thrust_n
