@@ -416,13 +416,16 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, t
             sitl_dir,
             *("--autopilot", "ardupilot", "--param", "GUID_OPTIONS=8"),
             *("--no-render", "--groundtruth"),
-            # long enough that the free-running SITL (the compiled physics: ~30x real time
-            # here) is still up when the restarted companion has imported and connected
-            *("--episode-timeout-s", "150", "--lockstep-timeout-s", "0.2"),
+            # the restarted companion must connect while the SITL is up: it runs free once the
+            # dead one stops answering (the compiled physics: 300 s in ~7 s here)
+            *("--episode-timeout-s", "300", "--lockstep-timeout-s", "0.2"),
         ),
     )
     procs.wait_text("companion", r"-> flying", 60.0)
-    time.sleep(0.3)
+    # killed soon: lockstep with the compiled physics flies tens of simulated seconds in a
+    # fraction of a wall second, and the vehicle must still be well above the ground when the
+    # setpoints stop (but have flown some in GUIDED_NOGPS, or no GUID_TIMEOUT runs)
+    time.sleep(0.1)
     comp.send_signal(signal.SIGKILL)
     comp.wait(10)
     # restarted in the air (as systemd restarts it), without the operator's --engage-in-air:
@@ -443,7 +446,7 @@ def test_card_companion_killed_mid_flight_guid_timeout_levels_and_holds(procs, t
     assert {m["mode"] for m in flight.topic("/autopilot/command")} == {"GUIDED_NOGPS"}
     last_sp_s = flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")[-1]["time_s"]
     modes = [c for c in flight.topic("/mavlink/in/COMMAND_LONG") if c["command"] == 176]
-    assert all(c["time_s"] <= last_sp_s for c in modes)  # no mode request after the kill either
+    assert len(modes) == 1  # the first companion's one request; none after the kill
     (timeout,) = [e for e in flight.topic("/events") if e["kind"] == "guided_timeout"]
     assert 3.0 <= timeout["time_s"] - last_sp_s <= 3.0 + 0.11  # GUID_TIMEOUT, seen at 10 Hz
     assert not any(
