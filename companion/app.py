@@ -104,6 +104,7 @@ class Companion:
         error = self.runtime.warm_up()
         if error is not None:
             raise CompanionError(f"policy {policy_name!r} fails on a synthetic hover: {error}")
+        self.log_scene = _log_scene(cfg.log_scene)
         self.store = TelemetryStore()
         self.camera, self.link = open_camera_and_link(cfg)
         if hasattr(self.camera, "follow"):  # camera_roi: cut each frame where the policy looks
@@ -219,7 +220,12 @@ class Companion:
             "flight": {"index": index, "shadow": self.cfg.shadow, "mode": self.cfg.mode},
             "policy": {"name": self.runtime.name, "privileged": self.runtime.privileged},
         }
-        flog = self.flight_log = CompanionLog(path, meta, self._clock, self._log_failed)
+        scene = None
+        if self.log_scene:
+            from companion.live.scene_log import SceneStream
+
+            scene = SceneStream()
+        flog = self.flight_log = CompanionLog(path, meta, self._clock, self._log_failed, scene)
         ctx = FlightContext(
             self.flight_cfg,
             self.link,
@@ -507,3 +513,24 @@ def _json_default(obj: Any) -> Any:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _log_scene(setting: str) -> bool:
+    """Whether flight logs take the live view's picture (``log_scene``): 'auto' where
+    foxglove-sdk is installed (a line on stderr where not)."""
+    if setting == "off":
+        return False
+    try:
+        import foxglove.messages  # noqa: F401
+    except ImportError:
+        if setting == "on":
+            raise CompanionError(
+                "log_scene = 'on' needs foxglove-sdk: pip install 'visland[live]' (or 'auto')"
+            ) from None
+        print(
+            "visland companion: flight logs without the live view's picture (foxglove-sdk not "
+            "installed; visland log scene adds it later)",
+            file=sys.stderr,
+        )
+        return False
+    return True

@@ -225,6 +225,15 @@ class CompanionConfig(Section):
         "the field laptop; pip install 'visland[live]'); '' = off",
     )
 
+    log_scene: str = option(
+        "auto",
+        "write the live view's picture (scene, transforms, camera annotations) into each flight "
+        "log as it flies, so a log opens in Foxglove as the live view shows it: 'auto' where "
+        "foxglove-sdk is installed ('visland[live]'), 'on' (an error without it), 'off' (add it "
+        "later with visland log scene)",
+        choices=("auto", "on", "off"),
+    )
+
     def __post_init__(self) -> None:
         super().__post_init__()  # each key's type and range (companion.table)
         if self.live:

@@ -26,7 +26,7 @@ from companion.states import Failsafe, FlightResult, FlightState, TouchdownActio
 
 if TYPE_CHECKING:
     from companion.link import MavlinkLink
-    from companion.live import LiveView
+    from companion.live import LiveFrame, LiveView
     from companion.safety import SafetyMonitor
     from companion.telemetry import TelemetryStore
 
@@ -164,6 +164,11 @@ class FlightRecorder(Protocol):
 
     def flight_start(self, t: float, text: str, shadow: bool) -> None: ...
 
+    scene: Any
+    """Not None: the log also takes the live view's picture (:meth:`scene_frame`)."""
+
+    def scene_frame(self, frame: LiveFrame, rx_s: float) -> None: ...
+
     def flush_pending(self) -> None: ...
 
 
@@ -264,6 +269,17 @@ class FlightMachine(ABC):
             self.live.event(latest if math.isfinite(latest) else 0.0, f"{kind}: {text}", error)
         self.outcome.events.append(f"{kind}: {text}")
         log.info("flight %d %s: %s", self.outcome.index, kind, text)
+
+    def _show(self, build: Callable[[], LiveFrame], rx_s: float) -> None:
+        """After a frame's answer has left: its picture to the live view (if a client watches)
+        and into the log (``log_scene``), built only if one of them takes it."""
+        live = self.live is not None and self.live.watched
+        if not (live or self.log.scene is not None):
+            return
+        frame = build()
+        if live:
+            self.live.publish(frame)
+        self.log.scene_frame(frame, rx_s)
 
     def _enter(self, state: FlightState, text: str) -> None:
         self._event(EventKind.STATE, f"{self.state.value} -> {state.value}: {text}")

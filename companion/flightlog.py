@@ -306,6 +306,9 @@ class FlightLogWriter:
         chan = self._channels.get(topic)
         if chan is None:
             chan = self._channel(topic, schema_name)
+        self._add(chan, topic, time_s, data)
+
+    def _add(self, chan: int, topic: str, time_s: float, data: bytes) -> None:
         t_ns = self.epoch_ns + round(time_s * 1e9)  # log_time_ns
         seq = self._seq[topic]
         self._seq[topic] = seq + 1
@@ -316,6 +319,31 @@ class FlightLogWriter:
                 channel_id=chan, log_time=t_ns, publish_time=t_ns, data=data, sequence=seq
             )
         self._maybe_flush(time_s)
+
+    def write_encoded(
+        self,
+        topic: str,
+        message_encoding: str,
+        schema: tuple[str, str, bytes] | None,
+        time_s: float,
+        data: bytes,
+    ) -> None:
+        """Write one already-encoded message (e.g. foxglove-sdk protobuf: the live view's scene)
+        on ``topic``, whose channel is registered with ``message_encoding`` and ``schema``
+        ((name, encoding, data); None: schemaless) on its first message."""
+        if self._closed:
+            raise FlightLogError(f"{self.path}: write after close")
+        chan = self._channels.get(topic)
+        if chan is None:
+            sid = 0
+            if schema is not None:
+                name, encoding, sdata = schema
+                key = f"{encoding}:{name}"  # beside the JSON schemas, which go by name
+                sid = self._schemas.get(key) or self._writer.register_schema(name, encoding, sdata)
+                self._schemas[key] = sid
+            chan = self._writer.register_channel(topic, message_encoding, sid)
+            self._channels[topic] = chan
+        self._add(chan, topic, time_s, data)
 
     def write_mavlink(
         self,

@@ -392,12 +392,17 @@ class LandingTargetController(FlightMachine):
             latency_ms=((sent or self._clock()) - frame.rx_s) * 1e3,
         )
         self.log.landing_target(now, record)
-        if result is not None and self.live is not None and self.live.watched:  # after the send
-            truth = store.groundtruth_at(frame.time_s)
-            self.live.publish(
-                live_frame(
-                    obs, truth, self.tracker.state, None, self.state.value, self.link.counters
-                )
+        if result is not None:  # after the send
+            self._show(
+                lambda: live_frame(
+                    obs,
+                    store.groundtruth_at(frame.time_s),
+                    self.tracker.state,
+                    None,
+                    self.state.value,
+                    self.link.counters,
+                ),
+                frame.rx_s,
             )
 
     # ------------------------------------------------------------------ the landing guard

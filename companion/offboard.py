@@ -382,17 +382,17 @@ class FlightController(FlightMachine):
                 sync_ms=(now - t_in) * 1e3,
             ),
         )
-        if self.live is not None and self.live.watched:  # after the setpoint left: never before
-            self.live.publish(
-                live_frame(
-                    obs,
-                    gt if gt is not None else self.store.groundtruth_at(at),
-                    self.runtime.next_state(),
-                    cmd,
-                    self.state.value,
-                    self.link.counters,
-                )
-            )
+        self._show(  # after the setpoint left: never before
+            lambda: live_frame(
+                obs,
+                gt if gt is not None else self.store.groundtruth_at(at),
+                self.runtime.next_state(),
+                cmd,
+                self.state.value,
+                self.link.counters,
+            ),
+            frame.rx_s,
+        )
         if self._touchdown.update(self.store, self._flight_start_rx) and not self.cfg.bench:
             self._on_touchdown()
 

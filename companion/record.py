@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -59,6 +59,10 @@ from companion.contract.topics import (
 from companion.flightlog import FlightLogWriter, read_log
 from companion.telemetry import TelemetryStore, assemble_observation
 
+if TYPE_CHECKING:
+    from companion.live.frame import LiveFrame
+    from companion.live.scene_log import SceneStream
+
 __all__ = [
     "CompanionLog",
     "ReplayReport",
@@ -79,6 +83,9 @@ class CompanionLog:
         metadata: MCAP metadata records (``config``, ``flight``, ``policy``...).
         clock: the companion's monotonic clock.
         on_failure: called once with the reason when logging stops.
+        scene: also write the live view's picture as the flight goes (``log_scene``): a
+            :class:`companion.live.scene_log.SceneStream` (None: not; ``visland log scene``
+            adds it afterwards).
     """
 
     def __init__(
@@ -87,8 +94,10 @@ class CompanionLog:
         metadata: dict[str, dict[str, Any]],
         clock: Callable[[], float] = time.monotonic,
         on_failure: Callable[[str], None] | None = None,
+        scene: SceneStream | None = None,
     ) -> None:
         self.path = Path(path)
+        self.scene = scene
         self._clock = clock
         self.t0 = clock()
         self._pending: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
@@ -177,6 +186,25 @@ class CompanionLog:
         )
         self.writer.write_image_record(TOPIC_IMAGE, t, record)
 
+    def scene_frame(self, frame: LiveFrame, rx_s: float) -> None:
+        """The live view's picture of the frame received at ``rx_s`` (built and encoded when
+        the write runs, after the answer), stamped as its logged image so the annotations sit
+        on it; nothing without :attr:`scene`."""
+        if self.scene is not None:
+            self._put(self._write_scene, frame, rx_s)
+
+    def _write_scene(self, frame: LiveFrame, rx_s: float) -> None:
+        assert self.writer is not None and self.scene is not None  # queued only while writing
+        t = max(0.0, self.rel(rx_s))
+        frame.stamp_ns = self.writer.log_time_ns(t)
+        for chan, data in self.scene.frame(frame):
+            self.writer.write_encoded(chan.topic, chan.message_encoding, chan.schema, t, data)
+
+    def _write_scene_event(self, t: float, text: str) -> None:
+        assert self.writer is not None and self.scene is not None
+        chan, data = self.scene.event(self.writer.log_time_ns(t), text)
+        self.writer.write_encoded(chan.topic, chan.message_encoding, chan.schema, t, data)
+
     def observation(self, t: float, record: CompanionObservationRecord) -> None:
         self._put_record(TOPIC_COMPANION_OBSERVATION, t, record)
 
@@ -188,8 +216,11 @@ class CompanionLog:
         self._put_record(TOPIC_COMPANION_LANDING_TARGET, t, record)
 
     def event(self, t: float, kind: EventKind, text: str, **extra: Any) -> None:
-        """An ``/events`` record (``extra``: the companion's ``state`` or ``shadow``)."""
+        """An ``/events`` record (``extra``: the companion's ``state`` or ``shadow``), and with
+        :attr:`scene` the same on ``/log`` as ``foxglove.Log``."""
         self._put_record(TOPIC_EVENTS, t, EventRecord(kind=kind, text=text, **extra))
+        if self.scene is not None and self.writer is not None and self.failed is None:
+            self._put(self._write_scene_event, max(0.0, self.rel(t)), f"{kind}: {text}")
 
     def flight_start(self, t: float, text: str, shadow: bool) -> None:
         """The policy takes over (state reset): where :func:`replay_log` resets it too."""
@@ -273,7 +304,8 @@ class ReplayReport:
 
 
 def _raw_records(path: Path):
-    """(topic, message) in file order — the receipt order."""
+    """(topic, message) of the JSON channels in file order — the receipt order (the scene's
+    protobuf channels are the live view's picture, not inputs)."""
     import json
 
     from mcap.exceptions import McapError
@@ -285,7 +317,8 @@ def _raw_records(path: Path):
         try:
             for record in StreamReader(fh, skip_magic=False).records:
                 if isinstance(record, Channel):
-                    channels[record.id] = record.topic
+                    if record.message_encoding == "json":
+                        channels[record.id] = record.topic
                 elif isinstance(record, Message):
                     topic = channels.get(record.channel_id)
                     if topic is not None:

@@ -597,3 +597,42 @@ def test_card_a_checkpoint_flies_by_path_and_its_vision_log_replays_exactly(low_
     replay = replay_log(log_path, PolicyRuntime(load_policy_file(ckpt), str(ckpt)))
     assert replay.errors == [] and replay.commands == report.latency_ms["commands"]
     assert replay.max_abs_diff <= 1e-5
+    _assert_scene_logged_in_flight(log_path, report.latency_ms["commands"])
+
+
+def _assert_scene_logged_in_flight(log_path: Path, commands: int) -> None:
+    """``log_scene`` (default 'auto', foxglove-sdk installed here): the companion wrote the live
+    view's picture as it flew — one scene per policy step, each frame's annotations stamped as
+    the image it was drawn on (so they sit on it in Foxglove), its events as ``foxglove.Log``;
+    and ``visland log scene`` afterwards replaces them rather than adding a second set."""
+    pytest.importorskip("foxglove")
+    from mcap.reader import make_reader
+
+    from companion.live.messages import protobuf_decoder
+    from companion.live.scene_log import SCENE_TOPICS, add_scene
+
+    def read(path):
+        got: dict[str, list] = {}
+        with open(path, "rb") as fh:
+            for schema, chan, msg in make_reader(fh).iter_messages():
+                if chan.message_encoding == "protobuf":
+                    msg = (msg.log_time, protobuf_decoder(schema.name, schema.data)(msg.data))
+                got.setdefault(chan.topic, []).append(msg)
+        return got
+
+    got = read(log_path)
+    assert len(got["/scene"]) == len(got["/camera/annotations"]) == len(got["/tf"]) == commands
+    assert len(got["/live/state"]) == commands and got["/log"]
+    images = {m.log_time: json.loads(m.data)["timestamp"] for m in got["/camera/image"]}
+    for t, ann in got["/camera/annotations"]:
+        stamp = images[t]  # at an image's log time, with that image's stamp
+        assert (ann.points[0].timestamp.seconds, ann.points[0].timestamp.nanos) == (
+            stamp["sec"],
+            stamp["nsec"],
+        )
+    assert {"vehicle", "frustum"} <= {e.id for e in got["/scene"][-1][1].entities}
+    assert any("flight_start" in m.message for _, m in got["/log"])
+    add_scene(log_path)  # afterwards: a scene per received frame, replacing the flight's
+    again = read(log_path)
+    assert len(again["/scene"]) == len(got["/camera/image"]) >= commands
+    assert {t for t in again if t in SCENE_TOPICS} == {t for t in got if t in SCENE_TOPICS}

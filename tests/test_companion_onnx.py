@@ -72,7 +72,12 @@ def test_shipped_model_onnx_flies_the_companion_and_torch_reproduces_it(shipped,
     from tools.bench_companion import bench_companion, format_bench
 
     res = bench_companion(
-        policy=str(shipped), episodes=1, seed=0, scenario=low_scenario, runtime="onnx"
+        policy=str(shipped),
+        episodes=1,
+        seed=0,
+        scenario=low_scenario,
+        runtime="onnx",
+        scene_baseline=True,
     )
     assert res["runtime"] == "onnx" and res["commands"] > 20
     assert 0 < res["median_ms"] < 50 and res["p99_ms"] >= res["median_ms"]
@@ -81,8 +86,28 @@ def test_shipped_model_onnx_flies_the_companion_and_torch_reproduces_it(shipped,
     assert cmp["onnx"]["max_abs_diff_vs_flown"] <= 1e-9  # its own log: deterministic
     assert cmp["torch"]["max_abs_diff_vs_flown"] <= 1e-5  # the other backend
     assert cmp["onnx_speedup"] > 0
+    # --scene-baseline: the same flight with --log-scene off; its log has no scene, ours has
+    plain = res["scene_off"]
+    assert plain["success_rate"] == res["success_rate"] and plain["commands"] == res["commands"]
+    assert res["scene_vs_off"]["log_bytes_per_flight"] > 1.0
+    run = Path(res["run"])
+    (with_scene,) = read_log_topics(run / "fly" / "companion")
+    (without,) = read_log_topics(run / "scene_off" / "companion")
+    assert with_scene["/scene"] == res["commands"] and "/scene" not in without
     text = format_bench(res)
     assert "frame receipt -> setpoint sent (runtime onnx" in text and "onnx median" in text
+    assert "with --log-scene off" in text
+
+
+def read_log_topics(folder: Path) -> list[dict[str, int]]:
+    """topic -> message count of each companion log in ``folder``."""
+    from companion.flightlog import read_log
+
+    out = []
+    for path in sorted(folder.glob("*.mcap")):
+        log = read_log(path)
+        out.append({**{t: len(v) for t, v in log.messages.items()}, **log.binary})
+    return out
 
 
 @needs_onnx

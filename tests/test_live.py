@@ -227,3 +227,24 @@ def test_card_landing_target_mode_serves_its_camera_and_estimate_live(tmp_path):
     assert report.summary.success_rate == 1.0, report.per_episode
     assert any(n.texts for n in seen.messages["/camera/annotations"])
     assert any("estimate" in s and "truth" in s for s in seen.messages["/live/state"])
+
+
+def test_log_scene_setting_auto_follows_foxglove_on_needs_it_off_never(monkeypatch, capsys):
+    """``log_scene``: 'auto' writes the picture where foxglove-sdk imports and says so on stderr
+    where it does not; 'on' without it stops the companion before a link opens, naming the fix;
+    'off' never writes it. (foxglove-sdk is installed here: its absence is a module that fails
+    to import.)"""
+    import sys
+
+    from companion.app import _log_scene
+    from companion.config import CompanionConfig, CompanionError
+
+    assert _log_scene("auto") and _log_scene("on") and not _log_scene("off")
+    monkeypatch.setitem(sys.modules, "foxglove.messages", None)  # import raises ImportError
+    assert not _log_scene("auto")
+    assert "visland log scene adds it later" in capsys.readouterr().err
+    with pytest.raises(CompanionError, match=r"log_scene = 'on' needs foxglove-sdk"):
+        _log_scene("on")
+    assert not _log_scene("off")
+    with pytest.raises(CompanionError, match="log_scene"):
+        CompanionConfig(log_scene="sometimes")

@@ -104,13 +104,17 @@ def bench_companion(
     runtime: str = "torch",
     compare: bool = True,
     live: bool = False,
+    scene_baseline: bool = False,
 ) -> dict[str, Any]:
     """Latency figures from ``logs``, or from a fresh ``fly`` run of ``policy`` on ``runtime``
     (``torch`` | ``onnx``); with ``compare`` and a checkpoint file, also
     :func:`compare_runtimes` on the run's first flight. With ``live``, the same flights again
     with the live view on and a Foxglove-protocol client subscribed to every channel
     (:mod:`tools.live_client`): ``live`` holds their latency and ``live_vs_off`` the ratios of
-    median and p99 (with a viewer / without)."""
+    median and p99 (with a viewer / without). With ``scene_baseline``, the same flights again
+    with ``--log-scene off``: ``scene_off`` holds their latency and log size, and
+    ``scene_vs_off`` the ratios (the default ``auto`` writes the live view's picture into each
+    log after each answer: what that costs)."""
     if logs:
         return {"logs": [str(p) for p in logs], **latency_stats(list(logs))}
     from companion.runtime import RUNTIMES
@@ -133,19 +137,27 @@ def bench_companion(
         flown.parent.mkdir(parents=True)
         shutil.copyfile(policy, flown)
         export_onnx(flown)
-    report = fly(
-        FlyConfig(
-            policy=str(flown) if is_file else policy,
-            episodes=episodes,
-            seed=seed,
-            scenario=scenario,
-            render=True,
-            progress=False,
-            out=str(run / "fly"),
-            companion_args=("--runtime", runtime),
+
+    def flights(folder: str, *companion_args: str) -> tuple[Any, list[Path]]:
+        report = fly(
+            FlyConfig(
+                policy=str(flown) if is_file else policy,
+                episodes=episodes,
+                seed=seed,
+                scenario=scenario,
+                render=True,
+                progress=False,
+                out=str(run / folder),
+                companion_args=("--runtime", runtime, *companion_args),
+            )
         )
-    )
-    logs = sorted((Path(report.out) / "companion").glob("*.mcap"))
+        return report, sorted((Path(report.out) / "companion").glob("*.mcap"))
+
+    report, logs = flights("fly")
+    baseline = None
+    if scene_baseline:
+        plain, plain_logs = flights("scene_off", "--log-scene", "off")
+        baseline = {"success_rate": plain.summary.success_rate, **_with_size(plain_logs)}
     watched = None
     if live:
         watched = _fly_watched(
@@ -158,10 +170,16 @@ def bench_companion(
         "seed": seed,
         "success_rate": report.summary.success_rate,
         "run": str(run),
-        **latency_stats(list(logs)),
+        **_with_size(logs),
     }
     if is_file and compare and logs:
         res["compare"] = compare_runtimes(flown, logs[0])
+    if baseline is not None:
+        res["scene_off"] = baseline
+        res["scene_vs_off"] = {
+            k: res[k] / baseline[k] if baseline.get(k) else None
+            for k in ("median_ms", "p99_ms", "log_bytes_per_flight")
+        }
     if watched is not None:
         res["live"] = watched
         res["live_vs_off"] = {
@@ -169,6 +187,12 @@ def bench_companion(
             for k in ("median", "p99")
         }
     return res
+
+
+def _with_size(logs: list[Path]) -> dict[str, Any]:
+    """:func:`latency_stats` of ``logs`` and their mean size."""
+    size = sum(p.stat().st_size for p in logs) / len(logs) if logs else None
+    return {**latency_stats(list(logs)), "log_bytes_per_flight": size}
 
 
 def _fly_watched(
@@ -240,6 +264,15 @@ def format_bench(res: dict[str, Any]) -> str:
         lines.append(
             f"commands vs the flown ones ({res['runtime']}): torch max |diff| "
             f"{t['max_abs_diff_vs_flown']:.2g}, onnx max |diff| {o['max_abs_diff_vs_flown']:.2g}"
+        )
+    plain = res.get("scene_off")
+    if plain:
+        ratio = res["scene_vs_off"]
+        lines.append(
+            f"the same flights with --log-scene off: median {plain['median_ms']:.2f} ms, p99 "
+            f"{plain['p99_ms']:.2f} ms, {plain['log_bytes_per_flight'] / 1e6:.2f} MB a log "
+            f"(with the scene: x{ratio['median_ms']:.2f} median, x{ratio['p99_ms']:.2f} p99, "
+            f"x{ratio['log_bytes_per_flight']:.2f} log size)"
         )
     watched = res.get("live")
     if watched:

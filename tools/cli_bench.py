@@ -77,6 +77,7 @@ def _bench_companion(args: argparse.Namespace) -> int:
             seed=args.seed,
             runtime=args.runtime or "torch",
             live=args.live_client,
+            scene_baseline=args.scene_baseline,
         )
     except FlyError as exc:
         print(f"visland bench companion: failed: {exc}", file=sys.stderr)
@@ -204,6 +205,13 @@ def register_bench(sub: argparse._SubParsersAction) -> None:
         help="bench companion: fly the same episodes again with the live view on and a "
         "Foxglove-protocol client subscribed to every channel, and report both latencies and "
         "their ratio (default: off)",
+    )
+    b.add_argument(
+        "--scene-baseline",
+        action="store_true",
+        help="bench companion: fly the same episodes again with --log-scene off, and report "
+        "what writing the live view's picture into each log costs (latency, log size; "
+        "default: off)",
     )
     b.add_argument(
         "--runtime",

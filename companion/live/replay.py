@@ -44,6 +44,7 @@ from companion.contract.topics import (
 )
 from companion.flightlog import FlightLog
 from companion.live.frame import LiveFrame, live_frame, with_truth
+from companion.policy_net.guard import PadNotFound
 
 __all__ = ["REPLAY_TOPICS", "LoggedEvent", "logged_frames", "policy_of"]
 
@@ -81,7 +82,8 @@ def logged_frames(log: FlightLog, policy: Any = None) -> Iterator[LiveFrame | Lo
     """The flight in ``log`` (read with at least :data:`REPLAY_TOPICS`) in time order: a
     :class:`LiveFrame` per camera frame (``stamp_ns``: the image's own stamp) and a
     :class:`LoggedEvent` per event. ``policy`` (a loaded policy, or None) is run again on the
-    logged observations."""
+    logged observations, up to where its landing guard gives up (a ``pad_not_found`` flight
+    ends there too)."""
     state = None if policy is None else policy.initial_state()
     # by time; at one time the image last, so its frame has the readings stamped with it
     rank = {topic: (1 if topic == TOPIC_IMAGE else 0) for topic in REPLAY_TOPICS}
@@ -117,10 +119,14 @@ def logged_frames(log: FlightLog, policy: Any = None) -> Iterator[LiveFrame | Lo
             frame = _frame(t, image, truth, obs_rec, command, estimate)
             if policy is not None and obs_rec is not None:
                 obs = _observation(obs_rec, image)
-                _, state = policy.act(obs, None, state)
-                frame = live_frame(obs, truth, state, None)
-                frame.command = command
-                frame.time_s = t
+                try:
+                    _, state = policy.act(obs, None, state)
+                except PadNotFound:  # the guard gave up here, as the flight did: the rest
+                    policy = None  # of the log is drawn as it was logged
+                else:
+                    frame = live_frame(obs, truth, state, None)
+                    frame.command = command
+                    frame.time_s = t
             frame.stamp_ns = rec.timestamp.sec * 1_000_000_000 + rec.timestamp.nsec
             yield frame
 

@@ -45,7 +45,7 @@ from companion.live.messages import (
 )
 from companion.live.replay import REPLAY_TOPICS, LoggedEvent, logged_frames, policy_of
 
-__all__ = ["SCENE_TOPICS", "SceneReport", "add_scene"]
+__all__ = ["SCENE_TOPICS", "SceneChannel", "SceneReport", "SceneStream", "add_scene"]
 
 SCENE_TOPICS = (
     "/camera/calibration",
@@ -82,11 +82,16 @@ class SceneReport:
 
 
 @dataclass(frozen=True)
-class _Raw:
+class SceneChannel:
+    """A channel of the scene (or of a log being rewritten)."""
+
     topic: str
     schema: tuple[str, str, bytes] | None
     """(name, encoding, data); None: schemaless."""
     message_encoding: str
+
+
+_STATE = SceneChannel("/live/state", None, "json")
 
 
 def add_scene(
@@ -133,61 +138,85 @@ def add_scene(
     )
 
 
-def _scene_messages(log: Any, policy: Any) -> list[tuple[int, str, _Raw, bytes]]:
-    """``(log_time_ns, topic, channel, data)`` of every message the scene adds."""
-    trail: deque[tuple[float, float, float]] = deque(maxlen=TRAIL)
-    out: list[tuple[int, str, _Raw, bytes]] = []
-    channels: dict[str, _Raw] = {}
-    epoch_ns = None  # the file's clock: a frame's image stamp less its time
+class SceneStream:
+    """The live view's channels for one flight, frame by frame: what :func:`add_scene` writes
+    into a log afterwards and a flying process (``log_scene``) writes as it goes — the same
+    builders, the same trail, so both files show the same picture.
 
-    def add(topic: str, log_time_ns: int, msg: Any) -> None:
-        chan = channels.get(topic)
+    Needs foxglove-sdk (its protobuf messages): constructing one raises ImportError without it.
+    """
+
+    def __init__(self) -> None:
+        import foxglove.messages  # noqa: F401  (ImportError before anything is built)
+
+        self._trail: deque[tuple[float, float, float]] = deque(maxlen=TRAIL)
+        self._channels: dict[str, SceneChannel] = {"/live/state": _STATE}
+
+    def _encoded(self, topic: str, msg: Any) -> tuple[SceneChannel, bytes]:
+        chan = self._channels.get(topic)
         if chan is None:
             schema = type(msg).get_schema()
-            chan = _Raw(topic, (schema.name, schema.encoding, bytes(schema.data)), "protobuf")
-            channels[topic] = chan
-        out.append((log_time_ns, topic, chan, msg.encode()))
+            chan = SceneChannel(
+                topic, (schema.name, schema.encoding, bytes(schema.data)), "protobuf"
+            )
+            self._channels[topic] = chan
+        return chan, msg.encode()
 
-    state_chan = _Raw("/live/state", None, "json")
+    def frame(self, f: LiveFrame) -> list[tuple[SceneChannel, bytes]]:
+        """``f``'s messages (stamped ``f.stamp_ns``, else its time), in the order they go."""
+        if f.vehicle_pos_ned_m is not None:
+            self._trail.append(tuple(float(v) for v in f.vehicle_pos_ned_m))
+        out = [self._encoded(topic, build(f)) for topic, build in _BUILDERS]
+        out.append(self._encoded("/scene", scene_update(f, self._trail)))
+        out.append((_STATE, json.dumps(state_values(f)).encode()))
+        return out
+
+    def event(self, ns: int, text: str) -> tuple[SceneChannel, bytes]:
+        """A log event (``/events``' text) as ``foxglove.Log`` stamped ``ns``; a failsafe is an
+        error, as the live view marks it."""
+        from foxglove.messages import Log, LogLevel
+
+        error = text.split(":", 1)[0] == EventKind.FAILSAFE.value
+        level = LogLevel.Error if error else LogLevel.Info
+        return self._encoded(
+            "/log", Log(timestamp=stamp_ns(ns), level=level, message=text, name="visland")
+        )
+
+
+def _scene_messages(log: Any, policy: Any) -> list[tuple[int, str, SceneChannel, bytes]]:
+    """``(log_time_ns, topic, channel, data)`` of every message the scene adds."""
+    stream = SceneStream()
+    out: list[tuple[int, str, SceneChannel, bytes]] = []
+    epoch_ns = None  # the file's clock: a frame's image stamp less its time
+
+    def event(e: LoggedEvent) -> None:
+        ns = epoch_ns + round(e.time_s * 1e9)
+        chan, data = stream.event(ns, e.text)
+        out.append((ns, chan.topic, chan, data))
+
     pending: list[LoggedEvent] = []
     for item in logged_frames(log, policy):
         if isinstance(item, LoggedEvent):
             if epoch_ns is None:
                 pending.append(item)
             else:
-                _event(add, epoch_ns, item)
+                event(item)
             continue
-        f: LiveFrame = item
-        ns = int(f.stamp_ns)
+        ns = int(item.stamp_ns)
         if epoch_ns is None:
-            epoch_ns = ns - round(f.time_s * 1e9)
-            for event in pending:
-                _event(add, epoch_ns, event)
-        if f.vehicle_pos_ned_m is not None:
-            trail.append(tuple(float(v) for v in f.vehicle_pos_ned_m))
-        for topic, build in _BUILDERS:
-            add(topic, ns, build(f))
-        add("/scene", ns, scene_update(f, trail))
-        out.append((ns, "/live/state", state_chan, json.dumps(state_values(f)).encode()))
+            epoch_ns = ns - round(item.time_s * 1e9)
+            for e in pending:
+                event(e)
+        out.extend((ns, chan.topic, chan, data) for chan, data in stream.frame(item))
     return out
 
 
-def _event(add: Any, epoch_ns: int, event: LoggedEvent) -> None:
-    from foxglove.messages import Log, LogLevel
-
-    ns = epoch_ns + round(event.time_s * 1e9)
-    error = event.text.split(":", 1)[0] == EventKind.FAILSAFE.value  # as the live view marks
-    level = LogLevel.Error if error else LogLevel.Info
-    msg = Log(timestamp=stamp_ns(ns), level=level, message=event.text, name="visland")
-    add("/log", ns, msg)
-
-
-def _rewrite(src: Path, dst: Path, added: list[tuple[int, str, _Raw, bytes]]) -> None:
+def _rewrite(src: Path, dst: Path, added: list[tuple[int, str, SceneChannel, bytes]]) -> None:
     """``src``'s records (less any earlier scene) and ``added``, by log time, into ``dst``."""
     metadata: list[tuple[str, dict[str, str]]] = []
     schemas: dict[int, Schema] = {}
-    chans: dict[int, _Raw] = {}
-    messages: list[tuple[int, str, _Raw, bytes]] = []
+    chans: dict[int, SceneChannel] = {}
+    messages: list[tuple[int, str, SceneChannel, bytes]] = []
     # a truncated log stops where read_log stopped: its readable prefix is what the scene is of
     cut = (McapError, struct.error, zstandard.ZstdError, ValueError, EOFError)
     with src.open("rb") as fh, contextlib.suppress(*cut):
@@ -200,7 +229,7 @@ def _rewrite(src: Path, dst: Path, added: list[tuple[int, str, _Raw, bytes]]) ->
                 if record.topic in SCENE_TOPICS:
                     continue
                 s = schemas.get(record.schema_id)
-                chans[record.id] = _Raw(
+                chans[record.id] = SceneChannel(
                     record.topic,
                     None if s is None else (s.name, s.encoding, bytes(s.data)),
                     record.message_encoding,
@@ -218,7 +247,7 @@ def _rewrite(src: Path, dst: Path, added: list[tuple[int, str, _Raw, bytes]]) ->
         for name, values in metadata:
             writer.add_metadata(name, values)
         schema_ids: dict[tuple[str, str, bytes], int] = {}
-        chan_ids: dict[_Raw, int] = {}
+        chan_ids: dict[SceneChannel, int] = {}
         seq: dict[int, int] = {}
         for log_time, _, chan, data in merged:
             cid = chan_ids.get(chan)
