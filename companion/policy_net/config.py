@@ -35,6 +35,7 @@ ESTIMATOR_FIELDS = (
     "accel_bias_walk_m_s2",
     "radar_gate_sigma",
     "radar_full_reset",
+    "radar_terrain_slope_deg",
     "latency_compensation",
     "land_floor_m",
     "confirm_fixes",
@@ -142,6 +143,14 @@ class NetConfig:
     because the prediction drifted, and a drift is a wrong velocity or bias: over sloped ground
     a tilted range read as an altitude moves the bias tens of m/s^2 in one accepted fix, and
     kept, it drives the altitude away from every later reading."""
+    radar_terrain_slope_deg: float = 0.0
+    """The steepest ground the radar may look at between the vehicle and the pad (0: flat, the
+    radar's range below the vehicle is its height above the pad). The radar measures the ground
+    under the vehicle, which on a slope, among rocks or in a crater field lies up to ``tan(slope)
+    x horizontal distance`` above or below the pad: the altitude fix's 1-sigma grows by that
+    (in quadrature; the distance is the estimate's, once it has one), so far from the pad a
+    reading of the ground is a weak fix of the altitude above the pad — it cannot yank the
+    velocity and bias — and over the pad a precise one."""
     latency_compensation: bool = False
     """The camera fix is computed with the attitude at the image's exposure time
     (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward
@@ -178,6 +187,11 @@ class NetConfig:
         if not (math.isfinite(self.radar_gate_sigma) and self.radar_gate_sigma >= 0):
             raise CheckpointError(
                 f"net config radar_gate_sigma: expected >= 0 (0: off), got {self.radar_gate_sigma}"
+            )
+        if not 0.0 <= self.radar_terrain_slope_deg < 90.0:
+            raise CheckpointError(
+                "net config radar_terrain_slope_deg: expected in [0, 90) degrees, got "
+                f"{self.radar_terrain_slope_deg}"
             )
         for key in (
             "visibility_threshold",

@@ -146,6 +146,10 @@ class PadEstimator:
             sigma_v = self.cfg.alt_noise_m + self.cfg.alt_noise_fraction * alt
             if vertical_sigma_m > 0.0:
                 sigma_v = math.hypot(sigma_v, float(vertical_sigma_m))
+            slope = self.cfg.radar_terrain_slope_deg
+            if slope > 0.0 and init[0] and init[1]:  # the ground under the vehicle, not the pad's
+                away = math.hypot(float(x[0, 0]), float(x[1, 0]))
+                sigma_v = math.hypot(sigma_v, math.tan(math.radians(slope)) * away)
             sigmas = (sigma_h, sigma_h, sigma_v)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes: tuple[int, ...] = (0, 1, 2) if horizontal_fix else (2,)
