@@ -101,6 +101,10 @@ class FakeRecorder:
         self.commands: list[CompanionCommandRecord] = []
         self.observations: list[CompanionObservationRecord] = []
         self.deferred_writes = 0
+        self.scene = None  # no picture in this log (log_scene off)
+
+    def scene_frame(self, frame: Any, rx_s: float) -> None:
+        raise AssertionError("scene_frame without a scene")
 
     def _deferred(self) -> None:
         self.deferred_writes += self.deferring
