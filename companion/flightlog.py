@@ -279,17 +279,22 @@ class FlightLogWriter:
     # ------------------------------------------------------------------ writing
 
     def _channel(self, topic: str, schema_name: str) -> int:
+        """The JSON channel of ``topic`` (its jsonschema ``schema_name``), registered once."""
         chan = self._channels.get(topic)
         if chan is None:
             sid = self._schemas.get(schema_name)
             if sid is None:
-                sid = self._writer.register_schema(
-                    schema_name, "jsonschema", json.dumps(_schema(schema_name)).encode()
-                )
-                self._schemas[schema_name] = sid
-            chan = self._writer.register_channel(topic, "json", sid)
-            self._channels[topic] = chan
+                schema = json.dumps(_schema(schema_name)).encode()
+                sid = self._schema_id(schema_name, (schema_name, "jsonschema", schema))
+            chan = self._channels[topic] = self._writer.register_channel(topic, "json", sid)
         return chan
+
+    def _schema_id(self, key: str, schema: tuple[str, str, bytes]) -> int:
+        """The id of ``schema`` ((name, encoding, data)) under ``key``, registered once."""
+        sid = self._schemas.get(key)
+        if sid is None:
+            sid = self._schemas[key] = self._writer.register_schema(*schema)
+        return sid
 
     def log_time_ns(self, time_s: float) -> int:
         return self.epoch_ns + round(time_s * 1e9)
@@ -335,14 +340,11 @@ class FlightLogWriter:
             raise FlightLogError(f"{self.path}: write after close")
         chan = self._channels.get(topic)
         if chan is None:
-            sid = 0
-            if schema is not None:
-                name, encoding, sdata = schema
-                key = f"{encoding}:{name}"  # beside the JSON schemas, which go by name
-                sid = self._schemas.get(key) or self._writer.register_schema(name, encoding, sdata)
-                self._schemas[key] = sid
-            chan = self._writer.register_channel(topic, message_encoding, sid)
-            self._channels[topic] = chan
+            # keyed beside the JSON schemas, which go by name
+            sid = 0 if schema is None else self._schema_id(f"{schema[1]}:{schema[0]}", schema)
+            chan = self._channels[topic] = self._writer.register_channel(
+                topic, message_encoding, sid
+            )
         self._add(chan, topic, time_s, data)
 
     def write_mavlink(
