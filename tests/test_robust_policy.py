@@ -613,6 +613,45 @@ def test_radar_terrain_slope_is_a_checked_estimator_setting():
         NetConfig(radar_terrain_slope_deg=90.0)
 
 
+def test_bias_held_near_the_pad_keeps_a_steady_camera_error_out_of_the_bias():
+    """Hovering 3 m over the pad while the camera's fix slides 0.5 m/s away for 2 s (the view
+    taken over by a rover's cab beside the pad): the estimator that learns the bias everywhere
+    moves it by 0.06 m/s^2 (with the robust profile's noise), and once the fixes stop the
+    vehicle drifts by that; with bias_learn_min_altitude_m above 3 m the bias stays where it
+    was learnt, the position and velocity still follow the fix, and the covariance stays
+    symmetric and positive."""
+    level = np.array([0.0, 0.0, -9.80665])
+
+    def hover(lift: float) -> PadEstimator:
+        cfg = NetConfig(
+            **ROBUST,
+            accel_noise_m_s2=0.06,
+            accel_bias_walk_m_s2=0.002,
+            bias_learn_min_altitude_m=lift,
+        )
+        est = PadEstimator(cfg)
+        state = est.initial_state()
+        for _ in range(100):  # learnt high up over the pad: no bias
+            state = est.step(state, np.array([0.0, 0.0, -30.0]), True, np.zeros(3), level)
+        for i in range(20):
+            fix = np.array([0.05 * (i + 1), 0.0, -3.0])
+            state = est.step(state, fix, True, np.zeros(3), level)
+        return state
+
+    free, held = hover(0.0), hover(5.0)
+    assert free.x[0, 2] > 0.04
+    assert abs(held.x[0, 2]) < 0.005
+    assert abs(held.x[0, 0] - 1.0) < 0.2 and held.x[0, 1] > 0.3  # they follow the fix
+    cov = held.cov[0]
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert NetConfig.parse_setting("bias_learn_min_altitude_m=5") == (
+        "bias_learn_min_altitude_m",
+        5.0,
+    )
+    with pytest.raises(Exception, match="bias_learn_min_altitude_m"):
+        NetConfig(bias_learn_min_altitude_m=-1.0)
+
+
 def test_estimator_fields_are_config_fields_that_no_weight_depends_on(tmp_path):
     from companion.policy_net import ESTIMATOR_FIELDS
 

@@ -36,6 +36,7 @@ ESTIMATOR_FIELDS = (
     "radar_gate_sigma",
     "radar_full_reset",
     "radar_terrain_slope_deg",
+    "bias_learn_min_altitude_m",
     "latency_compensation",
     "land_floor_m",
     "confirm_fixes",
@@ -151,6 +152,15 @@ class NetConfig:
     (in quadrature; the distance is the estimate's, once it has one), so far from the pad a
     reading of the ground is a weak fix of the altitude above the pad — it cannot yank the
     velocity and bias — and over the pad a precise one."""
+    bias_learn_min_altitude_m: float = 0.0
+    """Below this altitude (m, the fix's: the radar's) the horizontal acceleration-bias states
+    (``accel_bias_states``) are held: a camera fix still moves the position and velocity, with
+    the bias's uncertainty accounted (a Schmidt "consider" update), but no longer the bias.
+    Close to the pad the CNN's errors are not white noise but the same for seconds — the pad
+    filling the view, a rover's cab or a ship's deckhouse beside it — and a fix trusted to a few
+    centimetres there moves the bias by a tenth of a m/s^2 in half a second; below
+    ``min_fix_altitude_m`` nothing corrects it, and the vehicle drifts off the pad while it
+    settles. 0: learnt at every altitude (a checkpoint saved before this key flies as it did)."""
     latency_compensation: bool = False
     """The camera fix is computed with the attitude at the image's exposure time
     (``image_time_s``, interpolated between the last two ATTITUDE samples) and carried forward
@@ -192,6 +202,11 @@ class NetConfig:
             raise CheckpointError(
                 "net config radar_terrain_slope_deg: expected in [0, 90) degrees, got "
                 f"{self.radar_terrain_slope_deg}"
+            )
+        lift = self.bias_learn_min_altitude_m
+        if not (math.isfinite(lift) and 0.0 <= lift <= 200.0):
+            raise CheckpointError(
+                f"net config bias_learn_min_altitude_m: expected in [0, 200] m, got {lift}"
             )
         for key in (
             "visibility_threshold",

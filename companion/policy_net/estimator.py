@@ -210,6 +210,13 @@ class PadEstimator:
                 ph = p @ h
                 s = h @ ph + sigmas[axis] ** 2
                 k = ph / s
+                if axis < 2 and self._n == 3 and alt < self.cfg.bias_learn_min_altitude_m:
+                    # the bias is held (a consider state): Joseph form for the gain without it
+                    k[2] = 0.0
+                    i_kh = np.eye(self._n) - np.outer(k, h)
+                    x[axis] = x[axis] + k * (z - h @ x[axis])
+                    cov[axis] = i_kh @ p @ i_kh.T + np.outer(k, k) * sigmas[axis] ** 2
+                    continue
                 x[axis] = x[axis] + k * (z - h @ x[axis])
                 cov[axis] = p - np.outer(k, ph)
         return EstimatorState(
