@@ -32,8 +32,9 @@ from sitl_sim.render.pads import PadDesign
 from sitl_sim.render.visual import VisualConfig, VisualSample
 from sitl_sim.scenario import Scenario
 from sitl_sim.site.site import Site
+from sitl_sim.site.terrain import TerrainConfig
 
-__all__ = ["EpisodeWorld", "episode_world"]
+__all__ = ["EpisodeWorld", "episode_site", "episode_world"]
 
 
 @dataclass(frozen=True)
@@ -103,25 +104,32 @@ def episode_world(scenario: Scenario, seed: int, index: int) -> EpisodeWorld:
         if scenario.sensors is not None
         else None
     )
-    site = _site(scenario, seed, index, visual.pad() if visual is not None else PadGeometry())
+    look = visual.pad() if visual is not None else PadGeometry()
+    site = episode_site(scenario.terrain, scenario.pad, seed, index, look)
     return EpisodeWorld(
         wind=wind, airframe=airframe, visual=visual, sensors=sensors, pad=pad, site=site
     )
 
 
-def _site(scenario: Scenario, seed: int, index: int, pad: PadLook) -> Site | None:
-    """The episode's landing site (None: flat ground and a still pad at height 0, nominal):
-    the terrain drawn first (a rover follows it, a still pad lies on its slope), then the
-    motion; the vehicle is sized to the pad the renderers draw."""
-    cfg = scenario.pad
-    if scenario.terrain is None and (cfg is None or cfg.still_on_ground):
+def episode_site(
+    terrain_cfg: TerrainConfig | None,
+    cfg: PadConfig | None,
+    seed: int,
+    index: int,
+    pad: PadLook,
+) -> Site | None:
+    """Episode ``index``'s landing site from a scenario's ``[terrain]`` and ``[pad]`` sections
+    (None: flat ground and a still pad at height 0, nominal): the terrain drawn first (a rover
+    follows it, a still pad lies on its slope), then the motion; the vehicle is sized to the pad
+    the renderers draw (``pad``)."""
+    if terrain_cfg is None and (cfg is None or cfg.still_on_ground):
         return None
     if isinstance(pad, PadTexture):
         size = (pad.size_m[1], pad.size_m[0])  # (along north: forward, across)
     else:
         size = (pad.side_m, pad.side_m)
     clear_m = 0.5 * math.hypot(1.4 * size[0] + 0.6, size[1] + 0.6)
-    terrain = scenario.terrain.draw(seed, index, clear_m) if scenario.terrain is not None else None
+    terrain = terrain_cfg.draw(seed, index, clear_m) if terrain_cfg is not None else None
     motion = (cfg or PadConfig()).draw_motion(
         seed,
         index,

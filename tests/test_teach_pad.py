@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import scenario_with
 
 from companion.files import sha256_file
 from companion.policy_net import load_networks
@@ -21,6 +22,8 @@ from sitl_sim.config import load_sim
 from sitl_sim.errors import ConfigError
 from sitl_sim.render import pads as pads_module
 from sitl_sim.render.pad_section import PadConfig
+from sitl_sim.scenario import load_scenario
+from sitl_sim.world import episode_world
 from tools.cli import main
 from training.pad_teach import PadMetrics, pad_suite_text, pad_worlds, teach_pad
 from training.perception_data import PoseSampling, render_pose_frames
@@ -134,6 +137,45 @@ def test_pose_frames_show_the_worlds_pad(tmp_path):
     assert np.array_equal(render_pose_frames(24, 3, cam, sampling=low, pads=(None,))[0], paper)
     with np.load(tmp_path / "poses_s3_n24.npz") as z:
         assert "helipad_1m" in str(z["key"])  # the last render (the helipad) is the cache
+
+
+def test_pose_frames_show_the_site_that_carries_the_pad(tmp_path):
+    """In a rover world the frames show the pad on the rover's roof with its cab beside it (a
+    CNN never shown the cab takes pad and cab for one and answers towards the cab); the labels
+    still point at the pad's centre (the red cross, seen through the roof's height); on a steep
+    slope no camera sits under the hillside, and a lifted pose keeps its bearing."""
+    cam = load_sim().camera
+    low = PoseSampling(
+        altitude_m=(6.0, 12.0), in_view_fraction=1.0, level_fraction=1.0, level_tilt_deg=3.0
+    )
+    rover = load_scenario("configs/sites/rover_slow.toml")
+    flat, pos, quat = render_pose_frames(24, 3, cam, sampling=low, visuals=(rover.visual,))
+    site, pos_s, quat_s = render_pose_frames(
+        24, 3, cam, cache_dir=tmp_path, sampling=low, visuals=(rover.visual,),
+        pads=(rover.pad,), terrains=(rover.terrain,),
+    )  # fmt: skip
+    assert np.array_equal(pos, pos_s) and np.array_equal(quat, quat_s)  # none under ground
+    assert max(centre_luma(site, pos_s, quat_s)) < 120  # the cross where the label says
+    # the cab, the wheels and the ground 1.2-1.8 m lower: the frames are not the flat ones
+    changed = np.abs(site.astype(int) - flat.astype(int)).mean(axis=(1, 2))
+    assert np.all(changed > 2.0), changed
+    with np.load(tmp_path / "poses_s3_n24.npz") as z:
+        assert "rover" in str(z["key"])  # the site is in the cache key
+    hill = scenario_with(terrain={"slope_deg": [25.0, 25.0]})
+    near = PoseSampling(altitude_m=(1.0, 2.0), in_view_fraction=0.0, out_of_view_tan=1.0)
+    _, rel, q = render_pose_frames(24, 3, cam, sampling=near)
+    images, lifted, q2 = render_pose_frames(
+        24, 3, cam, sampling=near, terrains=(hill.terrain,), pads=(hill.pad,)
+    )
+    assert np.array_equal(q, q2) and images.shape[0] == 24
+    moved = np.any(lifted != rel, axis=1)
+    assert moved.any()  # some poses beside the pad were inside the hillside
+    site = episode_world(hill, 3, 0).site
+    for p in lifted + site.pad_pose(0.0).position_ned:
+        assert -p[2] - site.surface_height(float(p[0]), float(p[1]), 0.0) >= 0.5 - 1e-9
+    assert np.allclose(
+        bearing_labels(lifted, q2, cam.fov_deg)[:, :2], bearing_labels(rel, q, cam.fov_deg)[:, :2]
+    )
 
 
 def test_pad_worlds_scale_altitudes_keep_files_and_seeds(tmp_path):

@@ -21,7 +21,14 @@ learns the pad on every ground and in every light the worlds fly, not only in th
 expert happened to see. ``None`` stands for the nominal ground and camera. With ``pads`` (the
 worlds' ``[pad]`` sections) the chunk's pad is that world's design, drawn and carried as
 :func:`sitl_sim.world.episode_world` draws an episode's, so the frames show the pad the worlds
-fly (without them, the paper's pad).
+fly (without them, the paper's pad). With ``terrains`` (the worlds' ``[terrain]`` sections) a
+world whose site is not a still pad on flat ground — a rover, a deck, a slope, rocks — is drawn as
+:func:`sitl_sim.world.episode_site` draws an episode's, at its time 0, and the frames show the
+pad where it lies in it, with the vehicle that carries it (a rover's cab beside the pad, a ship's
+deckhouse, the water) and the relief around it: a CNN that has never seen a cab beside the pad
+takes the pair for the pad and answers a metre or two towards the cab. The poses stay relative
+to the pad's centre (the labels); a camera that would sit less than half a metre above the
+ground under it is lifted along its ray to the pad.
 """
 
 from __future__ import annotations
@@ -39,6 +46,8 @@ from sitl_sim.render.ground import PadGeometry, nominal_ground
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.scene import Camera, make_renderer
 from sitl_sim.render.visual import CameraEffects, VisualConfig, VisualSample
+from sitl_sim.site.terrain import TerrainConfig
+from sitl_sim.world import episode_site
 
 CHUNK = 256
 """Frames per rendering job, and per drawn visual world."""
@@ -104,13 +113,16 @@ def sample_poses(
 _WORKER: dict = {}
 
 
-def _init(cfg: dict, seed: int, visuals: tuple, weights: tuple, pads: tuple) -> None:
+def _init(
+    cfg: dict, seed: int, visuals: tuple, weights: tuple, pads: tuple, terrains: tuple
+) -> None:
     camera = CameraConfig(**cfg)
     _WORKER["scene"] = make_renderer(camera.renderer)
     _WORKER["cfg"] = camera
     _WORKER["seed"] = seed
     _WORKER["visuals"] = visuals
     _WORKER["pads"] = pads
+    _WORKER["terrains"] = terrains
     _WORKER["weights"] = np.asarray(weights, float) / float(np.sum(weights))
 
 
@@ -127,23 +139,48 @@ def _look(
     return visual.draw(seed, chunk) if visual is not None else None
 
 
-def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> np.ndarray:
+def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The chunk's frames and its poses (relative to the pad; lifted where under the ground)."""
     chunk, pos, quat = args
     seed, cfg, scene = _WORKER["seed"], _WORKER["cfg"], _WORKER["scene"]
     rng = np.random.default_rng([seed, chunk])
     pick = np.random.default_rng([seed, chunk, 1])
     k = int(pick.choice(len(_WORKER["visuals"]), p=_WORKER["weights"]))
-    sample = _look(_WORKER["visuals"][k], _WORKER["pads"][k], seed, chunk)
+    pad_cfg, terrain = _WORKER["pads"][k], _WORKER["terrains"][k]
+    sample = _look(_WORKER["visuals"][k], pad_cfg, seed, chunk)
+    look = sample.pad() if sample is not None else PadGeometry()
+    site = episode_site(terrain, pad_cfg, seed, chunk, look)
+    origin = np.zeros(3)
+    if site is not None:
+        origin = np.asarray(site.pad_pose(0.0).position_ned, float)
+        pos = np.array([_above_ground(site, p, origin) for p in pos])
     if sample is None:
-        scene.configure(nominal_ground(), PadGeometry())
+        scene.configure(nominal_ground(), PadGeometry(), site)
         cam = Camera(scene, cfg, rng)
         rates = np.zeros((len(pos), 3))
     else:
-        scene.configure(sample.ground(), sample.pad())
+        scene.configure(sample.ground(), look, site, sample.sun)
         effects = CameraEffects(sample, cfg, sample.light)
         cam = Camera(scene, cfg, rng, light=sample.light, effects=effects)
         rates = pick.uniform(-0.5, 0.5, (len(pos), 3))  # motion blur as a manoeuvre smears
-    return np.stack([cam.capture(p, q, r) for p, q, r in zip(pos, quat, rates, strict=True)])
+    frames = [cam.capture(p + origin, q, r) for p, q, r in zip(pos, quat, rates, strict=True)]
+    return np.stack(frames), pos
+
+
+_CLEARANCE_M = 0.5
+
+
+def _above_ground(site, rel: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """``rel`` (the camera relative to the pad's centre ``origin``), moved out along its ray
+    from the pad until it is :data:`_CLEARANCE_M` above the surface under it (a hillside, a
+    rock, the cab): the bearing to the pad — its label — is kept."""
+    out = np.array(rel, float)
+    for _ in range(60):
+        n, e, d = out + origin
+        if -d - site.surface_height(float(n), float(e), 0.0) >= _CLEARANCE_M:
+            break
+        out *= 1.1
+    return out
 
 
 def render_pose_frames(
@@ -156,12 +193,15 @@ def render_pose_frames(
     visuals: tuple[VisualConfig | None, ...] = (None,),
     weights: tuple[float, ...] | None = None,
     pads: tuple[PadConfig | None, ...] | None = None,
+    terrains: tuple[TerrainConfig | None, ...] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` rendered frames: images (n, H, W) uint8, poses (n, 3) NED and quaternions (n, 4).
 
     ``visuals`` / ``weights``: the looks to render in, one drawn per chunk (module docstring);
     the default is the nominal ground and camera. ``pads``: each look's ``[pad]`` section (None:
-    the paper's pad everywhere). With ``cache_dir`` the result is stored as
+    the paper's pad everywhere). ``terrains``: each look's ``[terrain]`` section (None: flat);
+    with them and the pads, a look's site is drawn as an episode's (module docstring). With
+    ``cache_dir`` the result is stored as
     ``poses_s<seed>_n<n>.npz`` and reloaded when its camera, sampling, visuals and pads match
     (its ``key``); a damaged cache file is rendered again.
     """
@@ -173,6 +213,11 @@ def render_pose_frames(
     pads = tuple(pads) if pads is not None else (None,) * len(visuals)
     if len(pads) != len(visuals):
         raise ValueError(f"pads: {len(pads)} sections; expected one per visual ({len(visuals)})")
+    terrains = tuple(terrains) if terrains is not None else (None,) * len(visuals)
+    if len(terrains) != len(visuals):
+        raise ValueError(
+            f"terrains: {len(terrains)} sections; expected one per visual ({len(visuals)})"
+        )
     pos, quat = sample_poses(n, seed, camera.fov_deg, sampling)
     key = {
         "camera": asdict(camera),
@@ -182,6 +227,17 @@ def render_pose_frames(
     }
     if any(pad is not None for pad in pads):  # (a key without pads: the caches made before)
         key["pads"] = [None if pad is None else _pad_key(pad) for pad in pads]
+    sites = [
+        t is not None or (p is not None and not p.still_on_ground)
+        for t, p in zip(terrains, pads, strict=True)
+    ]
+    if any(sites):  # (likewise: a key without sites for the caches made before)
+        key["sites"] = [
+            [None if t is None else t.to_dict(), None if p is None else p.to_dict()]
+            if site
+            else None
+            for t, p, site in zip(terrains, pads, sites, strict=True)
+        ]
     path = Path(cache_dir) / f"poses_s{seed}_n{n}.npz" if cache_dir is not None else None
     if path is not None and path.exists():
         try:
@@ -191,7 +247,7 @@ def render_pose_frames(
         except (OSError, ValueError, KeyError):
             pass  # damaged or foreign cache: render again
     jobs = [(k, pos[s : s + CHUNK], quat[s : s + CHUNK]) for k, s in enumerate(range(0, n, CHUNK))]
-    initargs = (asdict(camera), seed, tuple(visuals), weights, pads)
+    initargs = (asdict(camera), seed, tuple(visuals), weights, pads, terrains)
     if workers > 1:
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, initializer=_init, initargs=initargs) as pool:
@@ -202,7 +258,11 @@ def render_pose_frames(
             parts = [_render_chunk(j) for j in jobs]
         finally:
             _WORKER.pop("scene").close()
-    images = np.concatenate(parts) if parts else np.zeros((0, camera.height_px, camera.width_px))
+    if parts:
+        images = np.concatenate([frames for frames, _ in parts])
+        pos = np.concatenate([where for _, where in parts])
+    else:
+        images = np.zeros((0, camera.height_px, camera.width_px))
     images = images.astype(np.uint8)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -48,6 +48,7 @@ def pose_frames(
         visuals=tuple(w.scenario.visual for w in worlds),
         weights=tuple(w.share for w in worlds),
         pads=tuple(w.scenario.pad for w in worlds),
+        terrains=tuple(w.scenario.terrain for w in worlds),
     )
     r.say(f"perception: {n} pose-sampled frames{what} ({time.perf_counter() - t0:.0f} s)")
     return frames
