@@ -46,6 +46,7 @@ from sitl_sim.render.ground import PadGeometry, nominal_ground
 from sitl_sim.render.pad_section import PadConfig
 from sitl_sim.render.scene import Camera, make_renderer
 from sitl_sim.render.visual import CameraEffects, VisualConfig, VisualSample
+from sitl_sim.site.site import Site
 from sitl_sim.site.terrain import TerrainConfig
 from sitl_sim.world import episode_site
 
@@ -170,7 +171,7 @@ def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> tuple[np.ndarray,
 _CLEARANCE_M = 0.5
 
 
-def _above_ground(site, rel: np.ndarray, origin: np.ndarray) -> np.ndarray:
+def _above_ground(site: Site, rel: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """``rel`` (the camera relative to the pad's centre ``origin``), moved out along its ray
     from the pad until it is :data:`_CLEARANCE_M` above the surface under it (a hillside, a
     rock, the cab): the bearing to the pad — its label — is kept."""

@@ -214,11 +214,10 @@ class PadEstimator:
                     # the bias is held (a consider state): Joseph form for the gain without it
                     k[2] = 0.0
                     i_kh = np.eye(self._n) - np.outer(k, h)
-                    x[axis] = x[axis] + k * (z - h @ x[axis])
                     cov[axis] = i_kh @ p @ i_kh.T + np.outer(k, k) * sigmas[axis] ** 2
-                    continue
+                else:
+                    cov[axis] = p - np.outer(k, ph)
                 x[axis] = x[axis] + k * (z - h @ x[axis])
-                cov[axis] = p - np.outer(k, ph)
         return EstimatorState(
             x=x,
             cov=cov,
