@@ -572,6 +572,19 @@ def test_a_full_radar_reset_restarts_a_vertical_axis_that_drifted():
     assert NetConfig.parse_setting("radar_full_reset=true") == ("radar_full_reset", True)
 
 
+def validation_flight(site: str, episode: int, *settings: str) -> dict:
+    """``visland eval`` of the shipped model on ``configs/sites/<site>.toml`` at the validation
+    seed with ``--estimator`` ``settings``: episode ``episode``'s row of its JSON."""
+    flags = [arg for setting in settings for arg in ("--estimator", setting)]
+    r = visland(
+        "eval", "--policy", "models/visland_vision.pt",
+        "--scenario", f"configs/sites/{site}.toml", "--episodes", str(episode + 1),
+        "--seed", "500", "--workers", "1", "--json", *flags,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)["per_episode"][episode]
+
+
 @pytest.mark.parametrize(
     ("site", "episode"), [("slope", 0), ("mars_craters", 1)], ids=["slope", "mars_craters"]
 )
@@ -580,14 +593,7 @@ def test_card_rough_ground_lands_with_the_terrain_settings(site, episode):
     the flat-ground estimator crashed (slope episode 0: 28.5 m/s, 40 m off; craters episode 1:
     139 m/s, 650 m off — the ground under the vehicle read as its height above the pad), lands
     on the pad with radar_terrain_slope_deg=15 and radar_full_reset=true."""
-    r = visland(
-        "eval", "--policy", "models/visland_vision.pt",
-        "--scenario", f"configs/sites/{site}.toml", "--episodes", str(episode + 1),
-        "--seed", "500", "--workers", "1", "--json",
-        "--estimator", "radar_terrain_slope_deg=15", "--estimator", "radar_full_reset=true",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    row = json.loads(r.stdout)["per_episode"][episode]
+    row = validation_flight(site, episode, "radar_terrain_slope_deg=15", "radar_full_reset=true")
     assert row["success"] and row["landing_error_m"] < 0.5, row
     assert row["touchdown_speed_m_s"] < 0.5, row
 
@@ -657,19 +663,9 @@ def test_card_slow_rover_lands_with_the_bias_held_near_the_pad():
     episode 1 settles onto the pad 1.09 m from its centre by default (a fail: the bias learnt
     from the cab-pulled fixes at 2-3 m drifts it while it settles) and 0.61 m with
     bias_learn_min_altitude_m=5."""
-
-    def fly(*settings: str) -> dict:
-        r = visland(
-            "eval", "--policy", "models/visland_vision.pt",
-            "--scenario", "configs/sites/rover_slow.toml", "--episodes", "2",
-            "--seed", "500", "--workers", "1", "--json", *settings,
-        )  # fmt: skip
-        assert r.returncode == 0, r.stderr
-        return json.loads(r.stdout)["per_episode"][1]
-
-    default = fly()
+    default = validation_flight("rover_slow", 1)
     assert not default["success"] and default["landing_error_m"] > 1.0, default
-    held = fly("--estimator", "bias_learn_min_altitude_m=5")
+    held = validation_flight("rover_slow", 1, "bias_learn_min_altitude_m=5")
     assert held["success"] and held["landing_error_m"] < 0.8, held
     assert held["touchdown_speed_m_s"] < 1.0 and held["touched_pad"], held
 
