@@ -27,6 +27,7 @@ from companion.runtime import level_observation
 from training.dataset import DatasetError, load_episode
 from training.replay import BufferedEpisode, ReplayBuffer
 from training.train import (
+    LabelGate,
     _shift,
     bearing_labels,
     privileged_episode,
@@ -97,6 +98,67 @@ def test_buffered_episode_rejects_misaligned_or_nan():
     bad[3, 2] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
         BufferedEpisode("x", bad, np.zeros((10, 4), np.float32))
+
+
+def test_replay_buffer_weights_are_the_loss_mask():
+    """A step's weight is its loss mask; an episode with no weight at all is never drawn."""
+    w = np.zeros(60, np.float32)
+    w[30:] = 1.0
+    buf = ReplayBuffer(segment_steps=25, seed=4)
+    buf.add(BufferedEpisode("half", _episode("h", 60).features, _episode("h", 60).labels, w))
+    zero = _episode("z", 60, offset=1000.0)
+    buf.add(BufferedEpisode("none", zero.features, zero.labels, np.zeros(60, np.float32)))
+    feats, _labels, mask = buf.sample(300)
+    assert np.all(feats[:, 0, 0] < 1000.0)  # "none" is never drawn
+    assert np.array_equal(mask, (feats[:, :, 0] >= 30).astype(np.float32))
+    with pytest.raises(ValueError, match="weights: expected"):
+        BufferedEpisode("x", zero.features, zero.labels, np.full(60, 2.0, np.float32))
+    with pytest.raises(ValueError, match="weights: expected"):
+        BufferedEpisode("x", zero.features, zero.labels, np.ones(59, np.float32))
+
+
+def test_a_step_of_weight_zero_teaches_nothing():
+    """Two buffers that differ only in the labels of weight-0 steps train the same weights."""
+    base = _episode("e", 80)
+    w = (np.arange(80) % 3 != 0).astype(np.float32)
+    wild = base.labels.copy()
+    wild[w == 0] = 7.0  # a saturated dash to a pad the learner did not know of
+    nets = []
+    for labels in (base.labels, wild):
+        buf = ReplayBuffer(segment_steps=25, seed=5)
+        buf.add(BufferedEpisode("e", base.features / 80.0, labels / 80.0, w))
+        torch.manual_seed(0)
+        control = ControlLSTM(NetConfig(kind="privileged"))
+        train_controller(control, buf, 20, batch_segments=8, seed=3)
+        nets.append(control.state_dict())
+    for k, v in nets[0].items():
+        assert torch.equal(v, nets[1][k]), k
+
+
+def test_label_gate_keeps_only_steps_whose_estimate_has_the_pad():
+    gate = LabelGate()  # max(2 m, 10 % of the altitude); 1 m/s
+    truth = np.array([[0, 0, -10.0], [0, 0, -10.0], [0, 0, -80.0], [0, 0, -80.0], [0, 0, -1.0]])
+    est = truth + np.array([[1.5, 0, 0], [3.0, 0, 0], [7.0, 0, 0], [0, 9.0, 0], [0, 0, 1.9]])
+    vel = np.zeros((5, 3))
+    assert gate.weights(est, truth, vel, vel).tolist() == [1, 0, 1, 0, 1]
+    est[0] = np.nan  # no estimate yet: the learner does not know where the pad is
+    fast = vel.copy()
+    fast[2] = [0.0, 1.5, 0.0]  # a pad that moves under an estimate that takes it as still
+    assert gate.weights(est, truth, fast, vel).tolist() == [0, 0, 0, 0, 1]
+
+
+def test_vision_episode_gates_the_labels_by_the_replayed_estimate(expert_logs):
+    """The shipped model replayed on an expert flight has the pad after acquisition: those
+    steps are learnt; the same flight with the truth moved 50 m has no step learnt."""
+    policy = load_policy("models/visland_vision.pt")
+    ep = load_episode(expert_logs[0], None, with_images=True)
+    gated = vision_episode(policy, ep, LabelGate())
+    plain = vision_episode(policy, ep)
+    assert plain.weights is None
+    assert np.array_equal(gated.features, plain.features)  # the gate only weighs
+    assert gated.weights.mean() > 0.8, gated.weights.mean()
+    moved = dataclasses.replace(ep, pos_ned_m=ep.pos_ned_m + np.array([50.0, 0.0, 0.0]))
+    assert vision_episode(policy, moved, LabelGate()).weights.sum() == 0
 
 
 # ----------------------------------------------------------------------------- real data
@@ -449,7 +511,7 @@ def test_a_finished_run_takes_new_estimator_settings_and_flies_vision_and_eval_a
 
 def test_an_estimator_ablation_starts_from_another_runs_trained_stages(tmp_path):
     """``visland pipeline --from RUN``: a new run folder whose profile differs from RUN's only
-    in estimator settings takes RUN's records of collect through perception (not vision or
+    in estimator settings (or in how the vision stage learns) takes RUN's records of collect through perception (not vision or
     eval) and says so in profile.json; anything else is refused with the keys named, and a
     refused start leaves no record behind."""
     import json
@@ -481,6 +543,13 @@ def test_an_estimator_ablation_starts_from_another_runs_trained_stages(tmp_path)
     with pytest.raises(PipelineError, match="needs a new run folder"):
         again.start_from(src)
     again.close()
+    # how the vision stage learns may differ too: the stages taken do not read it
+    gated = replace(quick, vision_label_gate=True, vision_truth_inputs=True, vision_rounds=4)
+    vis = Run(tmp_path / "vis", gated, progress=False)
+    try:
+        assert sorted(vis.start_from(src)) == sorted(taken)
+    finally:
+        vis.close()
     other = Run(tmp_path / "net", replace(quick, bc_steps=quick.bc_steps + 1), progress=False)
     with pytest.raises(PipelineError, match="differs in bc_steps"):
         other.start_from(src)

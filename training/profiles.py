@@ -16,6 +16,7 @@ __all__ = [
     "NET_OPTIONS",
     "PROFILES",
     "ROLLOUT_TRANSPORTS",
+    "VISION_KEYS",
     "PipelineError",
     "Profile",
 ]
@@ -49,6 +50,20 @@ NET_OPTIONS = (
 LABEL_KEYS = ("name", "eval_suite_baseline")
 """The profile keys that name a run and what its eval stage flies beside it: two runs that
 differ only in them trained and flew the same (an ablation's profile differs in them too)."""
+
+VISION_KEYS = (
+    "vision_bc_steps",
+    "vision_rounds",
+    "vision_rollouts",
+    "vision_steps",
+    "vision_seed",
+    "vision_dagger_from_prior",
+    "vision_label_gate",
+    "vision_truth_inputs",
+)
+"""The profile keys only the ``vision`` stage reads (how the vision controller learns): a run
+``--from`` another may differ in them, as in estimator settings — the stages it takes
+(collect through perception) do not read them."""
 
 ESTIMATOR_KEYS = tuple(k for k in NET_OPTIONS if k in ESTIMATOR_FIELDS)
 """The profile keys no network weight depends on (the pad estimator's settings): a finished
@@ -139,6 +154,19 @@ class Profile(Record):
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
     (not the expert's, whose near-perfect vision features teach the controller to ignore the
     position estimate: regression dilution). False: the paper profile's schedule."""
+    vision_label_gate: bool = field(default=False, metadata=ADDED)
+    """Vision DAgger rounds learn a learner step's label only where the estimate it flew by
+    had the pad (:class:`training.train.LabelGate`: position within max(2 m, 10 % of the
+    altitude), velocity within 1 m/s of the truth); elsewhere the label is a dash to a pad the
+    learner did not know of, and fitting it made the first round of a robust run fly worse than
+    the controller it started from (0 % on the nominal world). False: every step learnt."""
+    vision_truth_inputs: bool = field(default=False, metadata=ADDED)
+    """Vision DAgger rounds add each relabelled learner flight twice: with the inputs the
+    learner flew by (CNN + estimator, gated by ``vision_label_gate``) and with the true state
+    as inputs (privileged DAgger on the vision learner's states). The second keeps the
+    controller's gain on the position it is given (fitting noisy estimates alone shrinks it:
+    regression dilution) and teaches it the states a vision learner visits; the first teaches
+    it the estimate's lag and noise."""
     eval_suite: str | None = None
     """A benchmark suite (``training.suite``) the eval stage also flies the vision policy on,
     beside the Table 3 rows (which fly the run's scenario, or the paper's for a worlds run)."""
@@ -248,6 +276,8 @@ PROFILES: dict[str, Profile] = {
         unsure_sigma_scale=3.0,
         unsure_max_tilt_deg=15.0,
         vision_dagger_from_prior=True,
+        vision_label_gate=True,
+        vision_truth_inputs=True,
         eval_suite="configs/suites/standard.toml",
         eval_suite_baseline="models/visland_vision_paper.pt",
         hover_input=True,
@@ -289,5 +319,6 @@ PROFILES["robust_sites"] = replace(
     name="robust_sites",
     worlds="configs/train/robust_sites.toml",
     dagger_rounds=4,
+    vision_rounds=4,
     eval_suite_baseline="models/visland_vision.pt",
 )

@@ -17,6 +17,10 @@ class BufferedEpisode:
     name: str
     features: np.ndarray  # (T, F) float32
     labels: np.ndarray  # (T, 4) float32
+    weights: np.ndarray | None = None
+    """(T,) each step's loss weight in [0, 1] (None: all 1). A step of weight 0 still feeds the
+    LSTM's state; only its label is not learnt (e.g. a learner step whose expert label the
+    learner could not know: :func:`training.train.vision_episode`'s gate)."""
 
     def __post_init__(self) -> None:
         if self.features.ndim != 2 or self.labels.shape != (self.features.shape[0], 4):
@@ -26,6 +30,14 @@ class BufferedEpisode:
             )
         if not (np.isfinite(self.features).all() and np.isfinite(self.labels).all()):
             raise ValueError(f"episode {self.name}: non-finite features or labels")
+        w = self.weights
+        if w is not None and (
+            w.shape != (self.features.shape[0],) or not (np.all(w >= 0) and np.all(w <= 1))
+        ):
+            raise ValueError(
+                f"episode {self.name}: weights: expected ({self.features.shape[0]},) in [0, 1], "
+                f"got shape {w.shape}"
+            )
 
 
 class ReplayBuffer:
@@ -69,13 +81,18 @@ class ReplayBuffer:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(features (n, B+S, F), labels (n, B+S, 4), loss mask (n, B+S))`` float32.
 
-        Each row holds one 25-step segment (mask 1) preceded by up to ``burn_in_steps`` of the
-        same episode (mask 0) that only warm the LSTM state — R2D2's burn-in, so the network
-        learns from the recurrent states it really has late in a flight, not only from a zero
-        state. Rows whose segment starts near the episode start have a shorter burn-in and are
-        padded at the end (mask 0; a causal LSTM never sees the padding before the segment).
+        Each row holds one 25-step segment (mask 1, or the episode's ``weights``) preceded by
+        up to ``burn_in_steps`` of the same episode (mask 0) that only warm the LSTM state —
+        R2D2's burn-in, so the network learns from the recurrent states it really has late in
+        a flight, not only from a zero state. Rows whose segment starts near the episode start
+        have a shorter burn-in and are padded at the end (mask 0; a causal LSTM never sees the
+        padding before the segment).
         """
-        eligible = [e for e in self._episodes if e.features.shape[0] >= self.segment_steps]
+        eligible = [
+            e
+            for e in self._episodes
+            if e.features.shape[0] >= self.segment_steps and (e.weights is None or e.weights.any())
+        ]
         if not eligible:
             raise ValueError(
                 f"replay buffer: no episode has {self.segment_steps} steps "
@@ -93,5 +110,5 @@ class ReplayBuffer:
             n = start + s - w0
             feats[row, :n] = ep.features[w0 : start + s]
             labels[row, :n] = ep.labels[w0 : start + s]
-            mask[row, start - w0 : n] = 1.0
+            mask[row, start - w0 : n] = 1.0 if ep.weights is None else ep.weights[start : start + s]
         return feats, labels, mask

@@ -30,7 +30,7 @@ from training.stage_records import (
 from training.stages.fitting import fit_controller
 from training.stages.flights import episodes, expert_pairs, fly, relabel
 from training.stages.selection import select, validate
-from training.train import vision_episode
+from training.train import LabelGate, privileged_episode, vision_episode
 
 __all__ = ["privileged_controllers", "run", "select_vision", "vision_rounds"]
 
@@ -86,9 +86,18 @@ def vision_rounds(
         logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
         pairs = relabel(r, logs, name)
         policy = LearnedPolicy(cfg, control, cnn)
+        gate = LabelGate() if p.vision_label_gate else None
+        steps = learnt = 0.0
         for ep in episodes(r, pairs, images=True):
-            buf.add(vision_episode(policy, ep))
+            b = vision_episode(policy, ep, gate)
+            buf.add(b)
+            if p.vision_truth_inputs:
+                buf.add(privileged_episode(ep, cfg))
             names.append(ep.name)
+            steps += len(ep)
+            learnt += len(ep) if b.weights is None else float(b.weights.sum())
+        if gate is not None:
+            r.say(f"{name}: labels learnt at {learnt / max(steps, 1):.0%} of the learner's steps")
         fits.append(
             fit_controller(r, control, buf, p.vision_steps, p.finetune_lr, name, p.seed + 30 + k)
         )
