@@ -511,9 +511,9 @@ def test_a_finished_run_takes_new_estimator_settings_and_flies_vision_and_eval_a
 
 def test_an_estimator_ablation_starts_from_another_runs_trained_stages(tmp_path):
     """``visland pipeline --from RUN``: a new run folder whose profile differs from RUN's only
-    in estimator settings (or in how the vision stage learns) takes RUN's records of collect through perception (not vision or
-    eval) and says so in profile.json; anything else is refused with the keys named, and a
-    refused start leaves no record behind."""
+    in estimator settings (or in how the vision stage learns) takes RUN's records of collect
+    through perception (not vision or eval) and says so in profile.json; anything else is
+    refused with the keys named, and a refused start leaves no record behind."""
     import json
     from dataclasses import replace
 
