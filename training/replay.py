@@ -36,7 +36,7 @@ class BufferedEpisode:
         ):
             raise ValueError(
                 f"episode {self.name}: weights: expected ({self.features.shape[0]},) in [0, 1], "
-                f"got shape {w.shape}"
+                f"got shape {w.shape}, range [{np.min(w, initial=0):g}, {np.max(w, initial=0):g}]"
             )
 
 
