@@ -64,6 +64,8 @@ class EpisodeResult(EpisodeResultRecord):
         site = {k: bool(values[k]) for k in _SITE_KEYS if values.get(k) is not None}
         if values.get("failsafe") is not None:
             site["failsafe"] = str(values["failsafe"])
+        if values.get("took_over") is not None:
+            site["took_over"] = bool(values["took_over"])
         return cls(
             **{k: math.nan if values[k] is None else values[k] for k in _RESULT_KEYS}, **site
         )
@@ -149,7 +151,9 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
     out so nothing is hidden (all timed out: the stats are NaN, null in JSON). ``aborts``
     are the flights the pilot ended in the air (``failsafe``: pad not found), counted apart
     from the timeouts; ``off_pad`` the touchdowns more than :data:`OFF_PAD_M` from the pad,
-    the unsafe failures.
+    the unsafe failures. ``not_started`` are the SITL episodes nobody took over from HOLD (a
+    companion that never engaged), failures counted apart from the ``timeouts`` of flights
+    that ran out of time.
     """
     n = len(results)
     landed = [r for r in results if r.landed]
@@ -162,7 +166,10 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
         "tilt_deg": _stats([r.tilt_deg for r in results]),
         "time_s": _stats([r.time_s for r in results]),
         "success_rate": (sum(r.success for r in results) / n) if n else math.nan,
-        "timeouts": sum(not r.landed and r.failsafe is ABSENT for r in results),
+        "timeouts": sum(
+            not r.landed and r.failsafe is ABSENT and r.took_over is not False for r in results
+        ),
+        "not_started": sum(r.took_over is False for r in results),
         "aborts": sum(r.failsafe is not ABSENT for r in results),
         "off_pad": sum(r.off_pad for r in results),
     }

@@ -4,6 +4,7 @@ companion (``visland fly``): an abort named pad_not_found, never a touchdown off
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -134,10 +135,14 @@ def test_aborts_and_off_pad_touchdowns_are_counted_apart():
     ok, off, near = landed(0.1), landed(OFF_PAD_M + 0.1), landed(OFF_PAD_M - 0.1)
     abort = EpisodeResult.aborted_by("pad_not_found", 40.0, (100.0, 0.0, -30.0))
     timeout = EpisodeResult.timeout(90.0, (1.0, 0.0, -30.0), None)
-    s = summarize([ok, off, near, abort, timeout])
+    # the SITL's HOLD timeout: nobody took over (a companion that never saw the pad)
+    held = dataclasses.replace(EpisodeResult.timeout(0.0, (5.0, 0.0, -90.0), None), took_over=False)
+    s = summarize([ok, off, near, abort, timeout, held])
     assert (s["off_pad"], s["aborts"], s["timeouts"], s["landed"]) == (1, 1, 1, 3)
+    assert s["not_started"] == 1 and s["success_rate"] == pytest.approx(1 / 6)
     assert abort.to_dict()["failsafe"] == "pad_not_found" and "failsafe" not in ok.to_dict()
     assert EpisodeResult.read(abort.to_dict()) == abort
+    assert EpisodeResult.read(held.to_dict()) == held and "took_over" not in ok.to_dict()
 
 
 def _eval(tmp_path, *extra: str) -> dict:

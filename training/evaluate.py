@@ -251,8 +251,9 @@ def format_table(report: EvalReport | CollectReport | FlyReport, out: TextIO) ->
     row("time to touchdown", s.time_s, "s")
     counters = {} if isinstance(report, FlyReport) else report.policy_stats
     unsafe = "" if s.off_pad is None else f"   off pad {s.off_pad}   aborts {s.aborts}"
+    held = f"   not started {s.not_started} (HOLD timeout)" if s.not_started else ""
     out.write(
-        f"  success rate {100 * s.success_rate:.1f} %{unsafe}   timeouts {timeouts}"
+        f"  success rate {100 * s.success_rate:.1f} %{unsafe}   timeouts {timeouts}{held}"
         f"   policy counters {counters}\n"
     )
     kept = [

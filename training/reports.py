@@ -66,6 +66,9 @@ class LandingSummary(Record):
     off_pad: int | None = field(default=None, metadata=_OMIT)
     """Touchdowns more than 2 m from the pad (``sitl_sim.metrics.OFF_PAD_M``): the unsafe
     failures; absent in reports written before they were counted."""
+    not_started: int | None = field(default=None, metadata=_OMIT)
+    """SITL episodes nobody took over from HOLD (a companion that never engaged): failures
+    counted apart from ``timeouts``; absent in reports written before they were."""
 
     @classmethod
     def of(cls, results: Sequence[EpisodeResult]) -> LandingSummary:
@@ -95,6 +98,8 @@ class EpisodeRow(Record):
     """On a site: the surface it came down on was too steep to stand on."""
     failsafe: str | None = field(default=None, metadata=_OMIT)
     """Why the pilot ended the flight in the air (``pad_not_found``); absent otherwise."""
+    took_over: bool | None = field(default=None, metadata=_OMIT)
+    """False: the SITL episode ended in HOLD, nobody took over; absent otherwise."""
     touchdown_ne_m: tuple[float, float] | None = field(
         default=None, metadata={"omit_none": True, "what": "[north, east] in m"}
     )
@@ -112,11 +117,14 @@ class EpisodeRow(Record):
 
     def verdict(self) -> str:
         """A word for a table: ``success``, the failsafe that ended it in the air (an abort,
-        e.g. ``pad_not_found``), ``timeout``, or ``failed`` (landed, not a success)."""
+        e.g. ``pad_not_found``), ``not_started`` (nobody took over from the SITL's HOLD),
+        ``timeout``, or ``failed`` (landed, not a success)."""
         if self.success:
             return "success"
         if self.failsafe:
             return self.failsafe
+        if self.took_over is False:
+            return "not_started"
         return "failed" if self.landed else "timeout"
 
 

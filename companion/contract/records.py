@@ -448,6 +448,11 @@ class EpisodeResultRecord(LogRecord):
     """The pilot ended the flight itself, never touching down: the reason (``pad_not_found``:
     the landing guard found no pad, ``companion.policy_net.guard``). An abort is a failure,
     not an unsafe one; absent when the flight ran to a touchdown or the timeout."""
+    took_over: bool | Absent = ABSENT
+    """False: the episode ended in the SITL's frozen HOLD, nobody took over (a landing-target
+    companion that never saw the pad, a client that never engaged); counted apart from the
+    timeouts of flights that ran out of time. Absent when the flight started (and in process,
+    where there is no HOLD)."""
     link_stats: Mapping[str, int] | Absent = ABSENT
     gcs_link_stats: Mapping[str, int] | Absent = ABSENT
     lockstep_timeouts: int | Absent = ABSENT

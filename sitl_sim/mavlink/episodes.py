@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -193,6 +193,8 @@ class Episodes:
         else:
             gt = self.sim.ground_truth()
             result = EpisodeResult.timeout(self.sim.time_s, *gt.pad_relative)
+            if not self.state.flying:  # the HOLD timeout: nobody took over
+                result = replace(result, took_over=False)
         if not aborted:
             self.results.append(result)
         imp = self.links.impairment
@@ -213,7 +215,11 @@ class Episodes:
         self.flight_log.close_with_result(record)
         log.info("episode %d %s: %s", ep.index, "aborted" if aborted else "ended", record.to_dict())
         if not aborted:
-            what = "landed" if result.landed else "timeout"
+            what = (
+                "landed"
+                if result.landed
+                else ("not started (HOLD timeout)" if result.took_over is False else "timeout")
+            )
             self.publisher.statustext(
                 6, f"Episode {ep.index} {what}: err {result.landing_error_m:.2f} m"
             )
