@@ -383,7 +383,9 @@ def test_card_guid_options_0_companion_refuses_to_engage_and_says_why(tmp_path):
         sitl_params=("GUID_OPTIONS=0",),  # after fly's GUID_OPTIONS=8: wins
         sitl_args=("--hold-timeout-s", "5"),  # the SITL gives up on a take-over
     )
-    assert report.summary.success_rate == 0.0 and report.summary.timeouts == 1
+    s = report.summary
+    assert (s.success_rate, s.not_started, s.timeouts) == (0.0, 1, 0)  # never taken over
+    assert report.per_episode[0].verdict() == "not_started"
     flight = read_log(report.per_episode[0].log)
     assert not flight.topic("/autopilot/command")  # never taken over: frozen in ALT_HOLD
     modes = [c for c in flight.topic("/mavlink/in/COMMAND_LONG") if c["command"] == 176]

@@ -445,14 +445,10 @@ class EpisodeResultRecord(LogRecord):
     tipped_over: bool | Absent = ABSENT
     """On a site: the surface it came down on was too steep to stand on (a failure)."""
     failsafe: str | Absent = ABSENT
-    """The pilot ended the flight itself, never touching down: the reason (``pad_not_found``:
-    the landing guard found no pad, ``companion.policy_net.guard``). An abort is a failure,
-    not an unsafe one; absent when the flight ran to a touchdown or the timeout."""
+    """The pilot ended the flight in the air: why (``pad_not_found``: the landing guard,
+    ``companion.policy_net.guard``); a failure, not an unsafe one; else absent."""
     took_over: bool | Absent = ABSENT
-    """False: the episode ended in the SITL's frozen HOLD, nobody took over (a landing-target
-    companion that never saw the pad, a client that never engaged); counted apart from the
-    timeouts of flights that ran out of time. Absent when the flight started (and in process,
-    where there is no HOLD)."""
+    """False: the episode ended in the SITL's HOLD, nobody took over (``not_started``)."""
     link_stats: Mapping[str, int] | Absent = ABSENT
     gcs_link_stats: Mapping[str, int] | Absent = ABSENT
     lockstep_timeouts: int | Absent = ABSENT
