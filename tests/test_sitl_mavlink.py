@@ -51,6 +51,7 @@ from sitl_sim.mavlink.endpoint import (
     SitlPortInUseError,
 )
 from sitl_sim.mavlink.sitl import MavlinkSitl
+from sitl_sim.metrics import summarize
 from tools.sitl_client import (
     HOLD_CUSTOM_MODE,
     LAND_CUSTOM_MODE,
@@ -876,3 +877,20 @@ def test_the_companions_expert_models_the_scenarios_planet(tmp_path):
     )
     (row,) = report.per_episode
     assert row.success and row.landing_error_m < 0.05, row
+
+
+def test_an_episode_nobody_takes_over_is_not_started_not_a_timeout(
+    tmp_path, low_scenario, loopback_sitl
+):
+    """A client that never engages (a landing-target companion that never sees the pad): the
+    episode ends at the HOLD timeout, scored ``took_over = False`` in the result and its log,
+    and reports count it under ``not_started``, apart from the flights that ran out of time."""
+    p, cfg = loopback_sitl(low_scenario, tmp_path / "logs", seed=6, hold_timeout_s=1.0)
+    with sitl_with_client(p, cfg) as (client, runner):
+        client.wait_for("HEARTBEAT", 5.0)
+        results = runner.finish(30.0)
+    assert len(results) == 1 and results[0].took_over is False and not results[0].landed
+    s = summarize(results)
+    assert (s["not_started"], s["timeouts"], s["success_rate"]) == (1, 0, 0.0)
+    log = read_log(tmp_path / "logs" / "sitl_seed6_ep0000.mcap")
+    assert log.messages["/episode/result"][-1]["took_over"] is False

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -194,7 +194,7 @@ class Episodes:
             gt = self.sim.ground_truth()
             result = EpisodeResult.timeout(self.sim.time_s, *gt.pad_relative)
             if not self.state.flying:  # the HOLD timeout: nobody took over
-                result = replace(result, took_over=False)
+                result = dataclasses.replace(result, took_over=False)
         if not aborted:
             self.results.append(result)
         imp = self.links.impairment
@@ -215,11 +215,9 @@ class Episodes:
         self.flight_log.close_with_result(record)
         log.info("episode %d %s: %s", ep.index, "aborted" if aborted else "ended", record.to_dict())
         if not aborted:
-            what = (
-                "landed"
-                if result.landed
-                else ("not started (HOLD timeout)" if result.took_over is False else "timeout")
-            )
+            what = "landed" if result.landed else "timeout"
+            if result.took_over is False:
+                what = "not started (HOLD timeout)"
             self.publisher.statustext(
                 6, f"Episode {ep.index} {what}: err {result.landing_error_m:.2f} m"
             )
