@@ -34,9 +34,10 @@ class BufferedEpisode:
         if w is not None and (
             w.shape != (self.features.shape[0],) or not (np.all(w >= 0) and np.all(w <= 1))
         ):
+            got = f"[{np.min(w):g}, {np.max(w):g}]" if w.size else "none"
             raise ValueError(
                 f"episode {self.name}: weights: expected ({self.features.shape[0]},) in [0, 1], "
-                f"got shape {w.shape}, range [{np.min(w, initial=0):g}, {np.max(w, initial=0):g}]"
+                f"got shape {w.shape}, values {got}"
             )
 
 
