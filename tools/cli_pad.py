@@ -7,7 +7,9 @@
 - ``check``: the model's CNN on a photograph of the laid-out pad taken from above — is it
   detected, and where (:func:`pad_check`);
 - ``acquire``: from how high the model acquires the pad on a full-resolution camera, with and
-  without the region of interest around the predicted pad (:mod:`tools.bench_roi`).
+  without the region of interest around the predicted pad (:mod:`tools.bench_roi`);
+- ``error``: where the model's CNN places a scenario's pad (on a rover, a deck, any ground) per
+  altitude band, in metres along the pad's axes (:mod:`tools.cnn_error`).
 
 A pad is a pad file (``configs/pads/NAME.toml``) or the name of a shipped one (``paper``,
 ``helipad_1m``, ``quadrant_2m``). A bad pad file, ground image or photograph is an error naming
@@ -182,13 +184,29 @@ def _cmd_pad_acquire(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_pad_error(args: argparse.Namespace) -> int:
+    from tools.cnn_error import ErrorConfig, cnn_error, format_error
+
+    cfg = ErrorConfig(
+        checkpoint=args.checkpoint,
+        scenarios=tuple(args.scenario) if args.scenario else ErrorConfig().scenarios,
+        bands_m=tuple(args.band) if args.band else ErrorConfig().bands_m,
+        frames=args.frames,
+        seed=args.seed,
+        chunk=args.chunk,
+        workers=args.workers,
+    )
+    print_result(cnn_error(cfg), args.json, format_error)
+    return 0
+
+
 def register_pad(sub: argparse._SubParsersAction) -> None:
     """Add ``pad`` (``info``, ``print``, ``check``) to the ``visland`` subcommands."""
     from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
     from tools.pad_print import PAPERS
 
     pad_help = "pad file (configs/pads/NAME.toml) or a shipped pad's name"
-    pd = sub.add_parser("pad", help="make the landing pad: info, print, check, acquire")
+    pd = sub.add_parser("pad", help="make the landing pad: info, print, check, acquire, error")
     pd_sub = pd.add_subparsers(dest="what", required=True)
 
     def pad_command(name: str, help: str, default: str = "paper") -> argparse.ArgumentParser:
@@ -259,6 +277,7 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     )
     json_command(pc, _cmd_pad_check)
     _register_acquire(pad_command)
+    _register_error(pad_command)
 
 
 def _register_acquire(pad_command: _PadCommand) -> None:
@@ -296,3 +315,41 @@ def _register_acquire(pad_command: _PadCommand) -> None:
     )
     pa.add_argument("--scenario", default=d.scenario, help="--flights: the scenario file")
     json_command(pa, _cmd_pad_acquire)
+
+
+def _register_error(pad_command: _PadCommand) -> None:
+    from tools.cnn_error import ErrorConfig, parse_band
+
+    def band(text: str) -> tuple[float, float]:
+        try:
+            return parse_band(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    d = ErrorConfig()
+    pe = pad_command(
+        "error",
+        "where the model's CNN places the pad of a scenario (a rover, a deck, a slope, any "
+        "ground) per altitude band: share seen, error in metres, its bias along the pad's axes",
+    )
+    pe.add_argument(
+        "--checkpoint", type=Path, default=None, help="vision checkpoint (default: the shipped)"
+    )
+    pe.add_argument(
+        "--scenario",
+        type=Path,
+        action="append",
+        help="scenario file (repeatable; default configs/scenario.toml): its [visual], [pad] "
+        "and [terrain] are drawn as an episode's",
+    )
+    pe.add_argument(
+        "--band",
+        type=band,
+        action="append",
+        help="altitude band LO-HI in metres (repeatable; default 1-8 8-20 20-40 40-100)",
+    )
+    pe.add_argument("--frames", type=int, default=d.frames, help="frames per scenario and band")
+    pe.add_argument("--seed", type=int, default=d.seed, help="500: the validation seed")
+    pe.add_argument("--chunk", type=int, default=d.chunk, help="frames per drawn look and site")
+    pe.add_argument("--workers", type=int, default=d.workers, help="rendering processes")
+    json_command(pe, _cmd_pad_error)

@@ -53,7 +53,7 @@ from sitl_sim.world import episode_site
 CHUNK = 256
 """Frames per rendering job, and per drawn visual world."""
 
-__all__ = ["PoseSampling", "render_pose_frames", "sample_poses"]
+__all__ = ["PoseSampling", "chunk_pad_frame", "render_pose_frames", "sample_poses"]
 
 
 @dataclass(frozen=True)
@@ -140,6 +140,35 @@ def _look(
     return visual.draw(seed, chunk) if visual is not None else None
 
 
+def _chunk_world(
+    seed: int,
+    chunk: int,
+    visual: VisualConfig | None,
+    pad: PadConfig | None,
+    terrain: TerrainConfig | None,
+) -> tuple[VisualSample | None, PadGeometry, Site | None]:
+    """Chunk ``chunk``'s look (:func:`_look`), its pad's geometry and its site (None: a still
+    pad on flat ground), drawn from one world's sections as an episode's are."""
+    sample = _look(visual, pad, seed, chunk)
+    look = sample.pad() if sample is not None else PadGeometry()
+    return sample, look, episode_site(terrain, pad, seed, chunk, look)
+
+
+def chunk_pad_frame(
+    seed: int,
+    chunk: int,
+    visual: VisualConfig | None,
+    pad: PadConfig | None,
+    terrain: TerrainConfig | None,
+) -> np.ndarray:
+    """R_pad_to_ned (3, 3) of the pad in chunk ``chunk`` of :func:`render_pose_frames` (seed
+    ``seed``) in a one-world run with these sections, at the frames' time 0: the axes a
+    carried pad's error is read in (x: the carrier's nose). A still pad on flat ground:
+    the identity (north, east, down)."""
+    _, _, site = _chunk_world(seed, chunk, visual, pad, terrain)
+    return np.eye(3) if site is None else np.asarray(site.pad_pose(0.0).R_pad_to_ned, float)
+
+
 def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The chunk's frames and its poses (relative to the pad; lifted where under the ground)."""
     chunk, pos, quat = args
@@ -147,10 +176,9 @@ def _render_chunk(args: tuple[int, np.ndarray, np.ndarray]) -> tuple[np.ndarray,
     rng = np.random.default_rng([seed, chunk])
     pick = np.random.default_rng([seed, chunk, 1])
     k = int(pick.choice(len(_WORKER["visuals"]), p=_WORKER["weights"]))
-    pad_cfg, terrain = _WORKER["pads"][k], _WORKER["terrains"][k]
-    sample = _look(_WORKER["visuals"][k], pad_cfg, seed, chunk)
-    look = sample.pad() if sample is not None else PadGeometry()
-    site = episode_site(terrain, pad_cfg, seed, chunk, look)
+    sample, look, site = _chunk_world(
+        seed, chunk, _WORKER["visuals"][k], _WORKER["pads"][k], _WORKER["terrains"][k]
+    )
     origin = np.zeros(3)
     if site is not None:
         origin = np.asarray(site.pad_pose(0.0).position_ned, float)
@@ -195,6 +223,7 @@ def render_pose_frames(
     weights: tuple[float, ...] | None = None,
     pads: tuple[PadConfig | None, ...] | None = None,
     terrains: tuple[TerrainConfig | None, ...] | None = None,
+    chunk: int = CHUNK,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` rendered frames: images (n, H, W) uint8, poses (n, 3) NED and quaternions (n, 4).
 
@@ -204,8 +233,11 @@ def render_pose_frames(
     with them and the pads, a look's site is drawn as an episode's (module docstring). With
     ``cache_dir`` the result is stored as
     ``poses_s<seed>_n<n>.npz`` and reloaded when its camera, sampling, visuals and pads match
-    (its ``key``); a damaged cache file is rendered again.
+    (its ``key``); a damaged cache file is rendered again. ``chunk``: frames per drawn look
+    (fewer: more looks, sites and pads in as many frames).
     """
+    if chunk < 1:
+        raise ValueError(f"chunk = {chunk}; expected >= 1 frames per look")
     if not visuals:
         raise ValueError("visuals: expected at least one (None: the nominal look)")
     weights = tuple(weights) if weights is not None else (1.0,) * len(visuals)
@@ -226,6 +258,8 @@ def render_pose_frames(
         "visuals": [None if v is None else v.to_dict() for v in visuals],
         "weights": list(weights),
     }
+    if chunk != CHUNK:  # (a key without it: the caches made before)
+        key["chunk"] = chunk
     if any(pad is not None for pad in pads):  # (a key without pads: the caches made before)
         key["pads"] = [None if pad is None else _pad_key(pad) for pad in pads]
     sites = [
@@ -247,7 +281,7 @@ def render_pose_frames(
                     return z["images"], z["pos"], z["quat"]
         except (OSError, ValueError, KeyError):
             pass  # damaged or foreign cache: render again
-    jobs = [(k, pos[s : s + CHUNK], quat[s : s + CHUNK]) for k, s in enumerate(range(0, n, CHUNK))]
+    jobs = [(k, pos[s : s + chunk], quat[s : s + chunk]) for k, s in enumerate(range(0, n, chunk))]
     initargs = (asdict(camera), seed, tuple(visuals), weights, pads, terrains)
     if workers > 1:
         ctx = mp.get_context("spawn")
