@@ -27,11 +27,16 @@ what (``shared/reference/precland_notes.md`` 1.3, 2.1, 3.2):
 PX4 copies angle_x/angle_y into ``irlock_report`` as tangents; sending angles understates an
 offset by (tan θ − θ)/tan θ (1 % at 0.17 rad), a gain error that vanishes as the vehicle centres.
 
-**When it is sent**: the estimator has a horizontal estimate and the CNN saw the pad (visibility
-≥ the policy's threshold) within ``target_timeout_s`` of frame time; otherwise nothing (no stale
-detection is re-sent, so the autopilot's PLD_BTOUT works). With a SITL camera (autopilot clock)
-a frame without a LANDING_TARGET is answered with NAMED_VALUE_INT ``VL_FRAME`` (the SITL's
-lockstep; an autopilot only logs it).
+**When it is sent**: the estimator has a horizontal estimate and the pad was seen within
+``target_timeout_s`` of frame time: the CNN's pad probability at or above
+``visibility_threshold``, or a bearing the estimator took as a horizontal fix by the rule it flies
+by in offboard mode (at ``acquire_threshold`` while it has no position; an unsure bearing its
+innovation gate accepts). What is sent is always the estimate. Otherwise nothing (no stale
+detection is re-sent, so the autopilot's PLD_BTOUT works). (Waiting for ``visibility_threshold``
+alone, a flight over a carried pad often never started: at 75-100 m a CNN's probability for a
+pad on a rover sits between the two thresholds, while it places it within a metre.)
+With a SITL camera (autopilot clock) a frame without a LANDING_TARGET is answered with
+NAMED_VALUE_INT ``VL_FRAME`` (the SITL's lockstep; an autopilot only logs it).
 
 **States** (:class:`~companion.states.FlightState`): WAITING (link, armed, fresh telemetry and
 camera, range ≥ ``engage_min_range_m``; ArduPilot: PLND_ENABLED = 1) → PRESTREAM (targets
@@ -136,7 +141,8 @@ class TrackResult:
     Attributes:
         target_rel_ned_m: (3,) pad − vehicle (NED, m) while tracked, else None.
         visibility: the CNN's pad visibility (0..1).
-        seen: visibility ≥ the policy's threshold on this frame.
+        seen: visibility ≥ the policy's threshold, or the estimator took this frame's bearing
+            as a horizontal fix (module docstring: when it is sent).
         error: why the step failed (None: it did not).
         confirmed: the estimator holds a confirmed pad (the landing guard's test).
         altitude_m: the estimator's altitude above the ground (None: no radar fix yet).
@@ -164,7 +170,7 @@ class PadTracker:
     Args:
         policy: a vision :class:`~companion.policy_net.LearnedPolicy` (torch or ONNX backend).
         target_timeout_s: the pad counts as tracked this long (frame time) after it was last
-            seen; the estimator coasts on the IMU meanwhile (and below its
+            seen (:class:`TrackResult`); the estimator coasts on the IMU meanwhile (and below its
             ``min_fix_altitude_m``, where the view is a piece of the pad).
 
     Raises:
@@ -203,11 +209,11 @@ class PadTracker:
         self._state = state
         raw = state.last_perception
         vis = 1.0 / (1.0 + math.exp(-float(np.clip(raw[2], -30, 30))))
-        seen = vis >= self.threshold
+        est = state.estimator
+        seen = vis >= self.threshold or bool(est.took_horizontal)
         t = float(observation.image_time_s)
         if seen:
             self._last_seen_s = t
-        est = state.estimator
         tracked = bool(np.all(est.initialised[:2])) and t - self._last_seen_s <= (
             self.target_timeout_s
         )
