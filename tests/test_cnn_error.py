@@ -87,3 +87,28 @@ def test_chunk_pad_frame_is_the_carriers_axes():
     assert np.array_equal(
         frames[1], chunk_pad_frame(500, 1, rover.visual, rover.pad, rover.terrain)
     )
+
+
+def test_site_weights_give_the_sites_their_share_of_the_cnns_frames():
+    from training.perception_data import has_site, site_weights
+    from training.profiles import PROFILES, PipelineError, Profile
+    from training.worlds import load_worlds
+
+    worlds = load_worlds("configs/train/robust_sites.toml").worlds
+    shares = tuple(w.share for w in worlds)
+    sites = tuple(has_site(w.scenario.pad, w.scenario.terrain) for w in worlds)
+    named = {w.name for w, s in zip(worlds, sites, strict=True) if s}
+    assert named == {"rover_mixed", "deck_mixed", "ground_mixed", "mars_ground"}
+    assert site_weights(shares, sites, None) == shares
+    w = np.array(site_weights(shares, sites, 0.55))
+    assert w[list(sites)].sum() == pytest.approx(0.55 * sum(shares))
+    # within a group, the worlds keep their proportions
+    rover, deck = (
+        (names := [x.name for x in worlds]).index("rover_mixed"),
+        names.index("deck_mixed"),
+    )
+    assert w[rover] / w[deck] == pytest.approx(shares[rover] / shares[deck])
+    assert site_weights((1.0, 2.0), (False, False), 0.5) == (1.0, 2.0)
+    assert PROFILES["robust_sites_cnn"].perception_site_share == 0.55
+    with pytest.raises(PipelineError, match=r"perception_site_share = 1\.0"):
+        Profile(**{**PROFILES["quick"].to_dict(), "perception_site_share": 1.0})

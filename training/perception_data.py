@@ -53,7 +53,14 @@ from sitl_sim.world import episode_site
 CHUNK = 256
 """Frames per rendering job, and per drawn visual world."""
 
-__all__ = ["PoseSampling", "chunk_pad_frame", "render_pose_frames", "sample_poses"]
+__all__ = [
+    "PoseSampling",
+    "chunk_pad_frame",
+    "has_site",
+    "render_pose_frames",
+    "sample_poses",
+    "site_weights",
+]
 
 
 @dataclass(frozen=True)
@@ -212,6 +219,25 @@ def _above_ground(site: Site, rel: np.ndarray, origin: np.ndarray) -> np.ndarray
     return out
 
 
+def has_site(pad: PadConfig | None, terrain: TerrainConfig | None) -> bool:
+    """Whether a world with these ``[pad]`` and ``[terrain]`` sections draws a site: a pad
+    carried by a rover or a deck, or ground that is not flat."""
+    return terrain is not None or (pad is not None and not pad.still_on_ground)
+
+
+def site_weights(
+    shares: tuple[float, ...], sites: tuple[bool, ...], site_share: float | None
+) -> tuple[float, ...]:
+    """The worlds' ``shares`` rescaled so that the worlds with a site (``sites``) hold
+    ``site_share`` of the whole and the others the rest, each group split by its shares;
+    ``site_share`` None, or worlds all of one kind: the shares as they are."""
+    if site_share is None or all(sites) or not any(sites):
+        return tuple(shares)
+    total = [sum(s for s, k in zip(shares, sites, strict=True) if k == want) for want in (0, 1)]
+    part = (1.0 - site_share, site_share)
+    return tuple(s * part[k] / total[k] for s, k in zip(shares, sites, strict=True))
+
+
 def render_pose_frames(
     n: int,
     seed: int,
@@ -262,10 +288,7 @@ def render_pose_frames(
         key["chunk"] = chunk
     if any(pad is not None for pad in pads):  # (a key without pads: the caches made before)
         key["pads"] = [None if pad is None else _pad_key(pad) for pad in pads]
-    sites = [
-        t is not None or (p is not None and not p.still_on_ground)
-        for t, p in zip(terrains, pads, strict=True)
-    ]
+    sites = [has_site(p, t) for t, p in zip(terrains, pads, strict=True)]
     if any(sites):  # (likewise: a key without sites for the caches made before)
         key["sites"] = [
             [None if t is None else t.to_dict(), None if p is None else p.to_dict()]

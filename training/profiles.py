@@ -14,6 +14,7 @@ __all__ = [
     "ESTIMATOR_KEYS",
     "LABEL_KEYS",
     "NET_OPTIONS",
+    "PERCEPTION_KEYS",
     "PROFILES",
     "ROLLOUT_TRANSPORTS",
     "VISION_KEYS",
@@ -64,6 +65,16 @@ VISION_KEYS = (
 """The profile keys only the ``vision`` stage reads (how the vision controller learns): a run
 ``--from`` another may differ in them, as in estimator settings — the stages it takes
 (collect through perception) do not read them."""
+
+PERCEPTION_KEYS = (
+    "perception_epochs",
+    "perception_frame_stride",
+    "perception_pose_frames",
+    "perception_site_share",
+)
+"""The profile keys the ``perception`` stage reads first (how the CNN learns): a run ``--from``
+another that differs in them takes its stages before perception and trains perception, vision
+and eval itself."""
 
 ESTIMATOR_KEYS = tuple(k for k in NET_OPTIONS if k in ESTIMATOR_FIELDS)
 """The profile keys no network weight depends on (the pad estimator's settings): a finished
@@ -173,6 +184,12 @@ class Profile(Record):
     eval_suite_baseline: str | None = None
     """A checkpoint the eval stage flies on ``eval_suite`` too, for the comparison (the
     paper-world model for the robust profile)."""
+    perception_site_share: float | None = field(default=None, metadata=ADDED)
+    """The share of the pose-sampled frames rendered in the worlds with a site (a pad carried by
+    a rover or a deck, ground that is not flat: ``training.perception_data``), the rest in the
+    other worlds, each group split by the worlds' shares; None: every world by its share. A
+    carried pad is one blob with its carrier from altitude and has a cab beside it close up:
+    the CNN needs more of those frames than the flights' shares give."""
     pad_pose_frames: int = field(default=40000, metadata=ADDED)
     """A run that teaches a pad (``visland pipeline --pad``, ``training.pad_teach``): frames
     rendered at sampled poses with the new pad, the CNN's only data."""
@@ -193,6 +210,12 @@ class Profile(Record):
         return {f.name: f.default for f in fields(cls) if f.metadata.get("added")}
 
     def __post_init__(self) -> None:
+        share = self.perception_site_share
+        if share is not None and not 0.0 < share < 1.0:
+            raise PipelineError(
+                f"profile {self.name!r}: perception_site_share = {share}; expected None or "
+                "0 < share < 1"
+            )
         if self.rollouts not in ROLLOUT_TRANSPORTS:
             raise PipelineError(
                 f"profile {self.name!r}: rollouts = {self.rollouts!r}; expected one of "
@@ -321,4 +344,12 @@ PROFILES["robust_sites"] = replace(
     dagger_rounds=4,
     vision_rounds=4,
     eval_suite_baseline="models/visland_vision.pt",
+)
+
+# The sites profile with the CNN trained on more site frames (issue 34): 55 % of the pose frames
+# in the four site worlds (35 % by their shares). `visland pipeline --profile robust_sites_cnn
+# --from runs/robust_sites --out runs/robust_sites_cnn` takes collect through dagger and trains
+# perception, vision and eval; `visland pad error` measures the CNN per site and altitude.
+PROFILES["robust_sites_cnn"] = replace(
+    PROFILES["robust_sites"], name="robust_sites_cnn", perception_site_share=0.55
 )

@@ -21,7 +21,14 @@ from tqdm import tqdm
 from companion.flightlog import jsonable
 from sitl_sim.config import load_sim, load_vehicle, planet
 from training.exec.backend import Backend, LocalBackend
-from training.profiles import ESTIMATOR_KEYS, LABEL_KEYS, VISION_KEYS, PipelineError, Profile
+from training.profiles import (
+    ESTIMATOR_KEYS,
+    LABEL_KEYS,
+    PERCEPTION_KEYS,
+    VISION_KEYS,
+    PipelineError,
+    Profile,
+)
 from training.provenance import git_commit
 from training.record import RecordError
 from training.stage_records import STAGES, StageRecord, record_type
@@ -150,14 +157,15 @@ class Run:
         path.write_text(json.dumps(theirs, indent=2))
 
     def start_from(self, other: str | Path) -> list[str]:
-        """Begin this (empty) run from ``other``'s trained stages, for an estimator or a vision
-        ablation: the two profiles may differ only in estimator settings
-        (:data:`ESTIMATOR_KEYS`), in how the vision stage learns (:data:`VISION_KEYS`) and in
-        what the eval stage flies beside the run, so every network ``other`` trained (collect
-        through perception) is this run's too; their records are copied (they keep pointing at
-        ``other``'s checkpoints and flights) and the vision and eval stages run here with this
-        profile's estimator. ``profile.json`` records it (``started_from``: run, commit,
-        stages). Returns the stages taken.
+        """Begin this (empty) run from ``other``'s trained stages, for an estimator, a vision
+        or a perception ablation: the two profiles may differ only in estimator settings
+        (:data:`ESTIMATOR_KEYS`), in how the vision stage learns (:data:`VISION_KEYS`), in how
+        the CNN learns (:data:`PERCEPTION_KEYS`) and in what the eval stage flies beside the
+        run, so every network ``other`` trained before the first stage that reads a difference
+        (collect through perception; through dagger where perception keys differ) is this
+        run's too; their records are copied (they keep pointing at ``other``'s checkpoints and
+        flights) and the later stages run here with this profile. ``profile.json`` records it
+        (``started_from``: run, commit, stages). Returns the stages taken.
 
         Raises:
             PipelineError: this run has stage records already, ``other`` is not a run folder,
@@ -178,17 +186,19 @@ class Run:
             raise PipelineError(f"{src}/profile.json: expected an object with a 'profile' object")
         prof = {**Profile.added_defaults(), **theirs["profile"]}
         mine = self.profile.to_dict()
-        free = set(ESTIMATOR_KEYS) | set(LABEL_KEYS) | set(VISION_KEYS)
+        free = set(ESTIMATOR_KEYS) | set(LABEL_KEYS) | set(VISION_KEYS) | set(PERCEPTION_KEYS)
         differ = sorted(k for k in mine if k not in free and prof.get(k) != mine[k])
         if theirs.get("scenario") != self.scenario_path:
             differ.append("scenario")
         if differ:
+            may = ESTIMATOR_KEYS + VISION_KEYS + PERCEPTION_KEYS
             raise PipelineError(
                 f"--from {src}: its profile differs in {', '.join(differ)} (only estimator "
-                f"settings and the vision stage's may: {', '.join(ESTIMATOR_KEYS + VISION_KEYS)}"
+                f"settings, the perception and the vision stage's may: {', '.join(may)}"
                 "); train this run from scratch"
             )
-        trained = STAGES[: STAGES.index("vision")]
+        cnn = any(prof.get(k) != mine[k] for k in PERCEPTION_KEYS)
+        trained = STAGES[: STAGES.index("perception" if cnn else "vision")]
         taken = []
         for record in sorted((src / "stages").glob("*.json")):
             stage = record.stem.split("_r")[0]

@@ -19,7 +19,7 @@ from companion.policy_net import (
     save_checkpoint,
 )
 from training.dataset import Episode
-from training.perception_data import PoseSampling, render_pose_frames
+from training.perception_data import PoseSampling, has_site, render_pose_frames, site_weights
 from training.run_folder import Run
 from training.stage_records import PerceptionRecord
 from training.stages.flights import episodes, expert_pairs
@@ -32,12 +32,18 @@ def pose_frames(
     r: Run, n: int, sampling: PoseSampling | None = None, what: str = ""
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` frames rendered at poses drawn from ``sampling`` (None: the default
-    distribution) in the run's worlds, each world with its pad, cached in ``<run>/cache``
-    under the seed ``profile.seed + 7``; says how many and how long (``what`` after the
-    count)."""
+    distribution) in the run's worlds, each world with its pad, by the worlds' shares (with
+    ``perception_site_share``: the worlds with a site hold that share), cached in
+    ``<run>/cache`` under the seed ``profile.seed + 7``; says how many and how long (``what``
+    after the count)."""
     p = r.profile
     t0 = time.perf_counter()
     worlds = r.worlds.worlds
+    weights = site_weights(
+        tuple(w.share for w in worlds),
+        tuple(has_site(w.scenario.pad, w.scenario.terrain) for w in worlds),
+        p.perception_site_share,
+    )
     frames = render_pose_frames(
         n,
         p.seed + 7,
@@ -46,7 +52,7 @@ def pose_frames(
         workers=p.workers,
         sampling=PoseSampling() if sampling is None else sampling,
         visuals=tuple(w.scenario.visual for w in worlds),
-        weights=tuple(w.share for w in worlds),
+        weights=weights,
         pads=tuple(w.scenario.pad for w in worlds),
         terrains=tuple(w.scenario.terrain for w in worlds),
     )
