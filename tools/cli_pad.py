@@ -201,7 +201,8 @@ def _cmd_pad_error(args: argparse.Namespace) -> int:
 
 
 def register_pad(sub: argparse._SubParsersAction) -> None:
-    """Add ``pad`` (``info``, ``print``, ``check``) to the ``visland`` subcommands."""
+    """Add ``pad`` (``info``, ``print``, ``check``, ``acquire``, ``error``) to the ``visland``
+    subcommands."""
     from companion.contract import CAMERA_FOV_DEG, IMAGE_SIZE_PX
     from tools.pad_print import PAPERS
 
@@ -277,7 +278,7 @@ def register_pad(sub: argparse._SubParsersAction) -> None:
     )
     json_command(pc, _cmd_pad_check)
     _register_acquire(pad_command)
-    _register_error(pad_command)
+    _register_error(pd_sub)
 
 
 def _register_acquire(pad_command: _PadCommand) -> None:
@@ -317,7 +318,7 @@ def _register_acquire(pad_command: _PadCommand) -> None:
     json_command(pa, _cmd_pad_acquire)
 
 
-def _register_error(pad_command: _PadCommand) -> None:
+def _register_error(pd_sub: argparse._SubParsersAction) -> None:
     from tools.cnn_error import ErrorConfig, parse_band
 
     def band(text: str) -> tuple[float, float]:
@@ -327,9 +328,9 @@ def _register_error(pad_command: _PadCommand) -> None:
             raise argparse.ArgumentTypeError(str(exc)) from None
 
     d = ErrorConfig()
-    pe = pad_command(
+    pe = pd_sub.add_parser(  # no --pad: each scenario's [pad] is the pad
         "error",
-        "where the model's CNN places the pad of a scenario (a rover, a deck, a slope, any "
+        help="where the model's CNN places the pad of a scenario (a rover, a deck, a slope, any "
         "ground) per altitude band: share seen, error in metres, its bias along the pad's axes",
     )
     pe.add_argument(

@@ -120,7 +120,6 @@ def cnn_error(cfg: ErrorConfig) -> dict[str, Any]:
         ConfigError: a bad scenario file; CheckpointError: a bad or privileged checkpoint;
         ValueError: a bad band, frame count or chunk.
     """
-    import torch
 
     from companion.packaged import shipped_policy
     from companion.policy_net import CheckpointError, load_networks
@@ -137,7 +136,6 @@ def cnn_error(cfg: ErrorConfig) -> dict[str, Any]:
     if cnn is None:
         raise CheckpointError(f"{ckpt}: a privileged policy has no CNN; give a vision checkpoint")
     cnn.eval()
-    torch.set_num_threads(max(1, cfg.workers))
     thresholds = (
         float(net_cfg.visibility_threshold),
         float(
