@@ -50,15 +50,19 @@ class ErrorConfig:
     workers: int = 1
 
 
+def _check_band(lo: float, hi: float, text: str) -> None:
+    if not 0.5 <= lo < hi <= 500.0:  # (NaN fails too)
+        raise ValueError(f"band {text!r}: expected LO-HI in metres, 0.5 <= LO < HI <= 500")
+
+
 def parse_band(text: str) -> tuple[float, float]:
     """``"LO-HI"`` (metres) as a band; a clear error otherwise."""
     lo, sep, hi = text.partition("-")
     try:
-        band = (float(lo), float(hi))
+        band = (float(lo), float(hi)) if sep else (math.nan, math.nan)
     except ValueError:
         band = (math.nan, math.nan)
-    if not sep or not (0.5 <= band[0] < band[1] <= 500.0):
-        raise ValueError(f"band {text!r}: expected LO-HI in metres, 0.5 <= LO < HI <= 500")
+    _check_band(*band, text)
     return band
 
 
@@ -84,17 +88,16 @@ def _band_row(
     labels = bearing_labels(pos, quat, fov_deg)
     inside = labels[:, 2] >= 0.5
     height = -pos[:, 2]
+    d_tan = out[:, :2] - labels[:, :2]  # (right, forward)
     errors = []  # (forward, right) in the pad's axes, metres
     for i in np.flatnonzero(inside):
-        d_tan = out[i, :2] - labels[i, :2]  # (right, forward)
-        body = np.array([d_tan[1], d_tan[0], 0.0]) * height[i]
-        pad = pad_frames[i].T @ (quat_to_rotation(quat[i]) @ body)
-        errors.append(pad[:2])
+        body = np.array([d_tan[i, 1], d_tan[i, 0], 0.0]) * height[i]
+        errors.append((pad_frames[i].T @ (quat_to_rotation(quat[i]) @ body))[:2])
     e = np.asarray(errors, float).reshape(-1, 2)
     size = e.shape[0]
     norm = np.hypot(e[:, 0], e[:, 1])
     focal_px = (images.shape[-1] / 2) / math.tan(math.radians(fov_deg) / 2)
-    px = np.hypot(*(out[inside, :2] - labels[inside, :2]).T) * focal_px
+    px = np.hypot(d_tan[inside, 0], d_tan[inside, 1]) * focal_px
 
     def stat(values: np.ndarray, q: float) -> float:
         return float(np.percentile(values, q)) if size else math.nan
@@ -130,7 +133,7 @@ def cnn_error(cfg: ErrorConfig) -> dict[str, Any]:
     if cfg.frames < 1 or cfg.chunk < 1:
         raise ValueError(f"frames = {cfg.frames}, chunk = {cfg.chunk}; expected both >= 1")
     for lo, hi in cfg.bands_m:
-        parse_band(f"{lo}-{hi}")
+        _check_band(lo, hi, f"{lo}-{hi}")
     ckpt = Path(cfg.checkpoint) if cfg.checkpoint is not None else shipped_policy()
     net_cfg, _, cnn, _ = load_networks(ckpt)
     if cnn is None:
