@@ -108,7 +108,7 @@ class Companion:
         self.store = TelemetryStore()
         self.camera, self.link = open_camera_and_link(cfg)
         if hasattr(self.camera, "follow"):  # camera_roi: cut each frame where the policy looks
-            self.camera.follow(self.runtime)
+            self.camera.follow(self.tracker if self.tracker is not None else self.runtime)
         self._stop = threading.Event()
         self._stop_reason = ""
         self._heard_autopilot = False

@@ -67,6 +67,8 @@ class _BenchCheck:
             self.tracker = None  # a privileged policy has no camera: link and camera only
         self.store = TelemetryStore()
         self.camera, self.link = open_camera_and_link(cfg)
+        if self.tracker is not None and hasattr(self.camera, "follow"):  # camera_roi
+            self.camera.follow(self.tracker)
         self.stop = threading.Event()
         self.frames = 0
         self.pad_seen = 0

@@ -102,8 +102,8 @@ class CompanionConfig(Section):
     camera_roi: bool = option(
         False,
         "real camera: cut the policy's image from the full-resolution frame around the pad the "
-        "estimator predicts, resampled to 128 px (companion.roi; offboard mode), instead of the "
-        "centred 45 deg crop",
+        "estimator predicts, resampled to 128 px (companion.roi; offboard and landing-target "
+        "modes), instead of the centred 45 deg crop",
     )
     camera_roi_pad_m: float = option(
         1.0,
@@ -251,10 +251,10 @@ class CompanionConfig(Section):
                 check_intrinsics(self.camera_fx_px, self.camera_hfov_deg)
             except CameraError as exc:
                 raise CompanionError(f"camera {self.camera!r}: {exc}") from None
-        if self.camera_roi and (not self.camera.startswith("opencv:") or self.mode != "offboard"):
+        if self.camera_roi and not self.camera.startswith("opencv:"):
             raise CompanionError(
-                f"camera_roi = true: expected an opencv: camera in offboard mode, got camera = "
-                f"{self.camera!r}, mode = {self.mode!r} (SITL frames are 128 px already)"
+                f"camera_roi = true: expected an opencv: camera, got camera = {self.camera!r} "
+                "(SITL frames are 128 px already)"
             )
 
     def estimator_settings(self) -> dict[str, Any]:

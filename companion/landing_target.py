@@ -200,6 +200,11 @@ class PadTracker:
         """The policy state of the last step (its CNN output and estimator: the live view's)."""
         return self._state
 
+    def next_state(self) -> Any:
+        """The state the next :meth:`step` starts from: a region-of-interest camera
+        (:meth:`companion.roi.RoiCameraSource.follow`) cuts the next frame with its window."""
+        return self._state
+
     def step(self, observation: Observation) -> TrackResult:
         """Never raises: a failing step is reported (and nothing is tracked)."""
         try:

@@ -283,6 +283,59 @@ def test_a_real_camera_cuts_the_window_its_policy_asks_for(policy, tmp_path):
     assert abs(last.x0 + (last.side - 1) / 2 - u) < 8 and abs(last.y0 + (last.side - 1) / 2 - v) < 8
 
 
+def test_landing_target_mode_tracks_through_the_window_its_tracker_asks_for(policy, tmp_path):
+    """The same camera with the landing-target mode's tracker (no controller): the windows
+    follow the tracker's estimate, and the target it would send is the pad's true offset."""
+    import cv2
+
+    from companion.landing_target import PadTracker
+    from companion.roi import RoiCameraSource
+    from sitl_sim.full_res import camera_geometry
+    from sitl_sim.render.render_fast import FastRenderer
+
+    cam = sim_camera().camera
+    renderer = FastRenderer()  # the paper's pad, the shipped model's
+    path = tmp_path / "pad.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H))
+    for _ in range(30):
+        frame = renderer.render([3.0, -4.0, -60.0], [1.0, 0.0, 0.0, 0.0], cam)
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    _, _, fx, cx, cy = camera_geometry(cam)
+    source = RoiCameraSource(
+        str(path), pad_m=4.0, fx_px=fx, cx_px=cx, cy_px=cy, rate_hz=None, realtime=False
+    )
+    tracker = PadTracker(policy)
+    try:
+        source.follow(tracker)
+        tracker.reset()  # a flight starts (LandingTargetController) once the camera follows
+        assert policy.roi == source.roi and roi_window(tracker.next_state()) == source.roi.view()
+        frames, steps, result = 0, 0, None
+        while frames < 30:
+            polled = source.poll()
+            frames += len(polled)
+            if polled:
+                obs = level_observation(60.0, time_s=0.1 * steps, image=polled[-1].image)
+                result = tracker.step(obs)
+                assert result.error is None
+                steps += 1
+    finally:
+        policy.roi = None
+        source.close()
+    window = roi_window(tracker.next_state())
+    assert window.kind == "track" and window.side < source.roi.view().side
+    # the vehicle is 3 m north and 4 m west of the pad: the pad 3 m south, 4 m east of it
+    assert result is not None and result.target_rel_ned_m is not None
+    assert np.hypot(result.target_rel_ned_m[0] + 3.0, result.target_rel_ned_m[1] - 4.0) < 1.0, (
+        result
+    )
+
+
+def test_camera_roi_is_a_landing_target_setting_too():
+    cfg = CompanionConfig(camera="opencv:0", camera_roi=True, mode="landing-target")
+    assert cfg.camera_roi and cfg.mode == "landing-target"
+
+
 # --------------------------------------------------------------------------- the command
 
 
