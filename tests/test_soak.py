@@ -131,11 +131,15 @@ def test_card_the_wall_clock_stepping_an_hour_mid_flight_changes_nothing_but_a_n
     on the monotonic clock), the log's times go on without a jump, and the step is noted."""
     from companion.flightlog import read_log
 
+    # the step comes once the first flight's log exists (mid-flight), not after a wall-clock
+    # delay: on a loaded machine the companion's start alone can outlast any fixed delay
+    logs_dir = tmp_path / "run" / "companion"
     stepped = (
-        "import threading, time\n"
+        "import pathlib, threading, time\n"
         "real, real_ns = time.time, time.time_ns\n"
         "def later():\n"
-        "    time.sleep(2.5)\n"
+        f"    while not list(pathlib.Path({str(logs_dir)!r}).glob('*.mcap')):\n"
+        "        time.sleep(0.05)\n"
         "    time.time = lambda: real() + 3600.0\n"
         "    time.time_ns = lambda: real_ns() + 3_600_000_000_000\n"
         "threading.Thread(target=later, daemon=True).start()"
