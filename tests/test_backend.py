@@ -195,7 +195,15 @@ def test_ray_flies_sitl_companion_pairs_as_the_local_backend(tmp_path, ray_backe
     from training.exec.fly import FlyConfig
     from training.exec.fly_many import fly_many
 
-    cfg = FlyConfig(policy="expert", seed=48, scenario=low_scenario, progress=False)
+    # equal records need every frame answered: a loaded machine must not let the SITL's 0.5 s
+    # lockstep wait lapse in one run and not in the other (a patient wait, as other tests use)
+    cfg = FlyConfig(
+        policy="expert",
+        seed=48,
+        scenario=low_scenario,
+        progress=False,
+        sitl_args=("--lockstep-timeout-s", "5"),
+    )
     local = fly_many(replace(cfg, out=str(tmp_path / "l")), [0, 1, 2], instances=2, chunk=2)
     ray = fly_many(replace(cfg, out=str(tmp_path / "r")), [0, 1, 2], chunk=2, backend=ray_backend)
     assert ray.backend.name == "ray" and ray.runs == 2
