@@ -234,29 +234,36 @@ def test_an_in_process_flight_finds_the_pad_in_the_tiles_and_tracks_it(policy):
     assert w.x0 <= u <= w.x0 + w.side and w.y0 <= v <= w.y0 + w.side
 
 
-def test_a_real_camera_cuts_the_window_its_policy_asks_for(policy, tmp_path):
-    """RoiCameraSource on a lossless video of 640 x 480 renders 40 m above the pad: the frames
-    leave as 128 px windows, the first the 45° view, then around the pad."""
+def _hovering_video(tmp_path, renderer, altitude_m: float, frames: int, pad_m: float):
+    """A lossless 640 x 480 video of ``frames`` renders ``altitude_m`` above the pad, 3 m north
+    and 4 m west of it, opened as a RoiCameraSource; and the camera's (fx, cx, cy) in px."""
     import cv2
 
     from companion.roi import RoiCameraSource
     from sitl_sim.full_res import camera_geometry
-    from sitl_sim.render.render_fast import FastRenderer
-    from tools.pad_info import resolve_pad
 
-    design = resolve_pad("helipad_1m")
     cam = sim_camera().camera
-    renderer = FastRenderer(pad=design.scene_pad())
     path = tmp_path / "pad.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H))
-    for _ in range(25):
-        frame = renderer.render([3.0, -4.0, -40.0], [1.0, 0.0, 0.0, 0.0], cam)
+    for _ in range(frames):
+        frame = renderer.render([3.0, -4.0, -altitude_m], [1.0, 0.0, 0.0, 0.0], cam)
         writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
     writer.release()
     _, _, fx, cx, cy = camera_geometry(cam)
     source = RoiCameraSource(
-        str(path), pad_m=1.0, fx_px=fx, cx_px=cx, cy_px=cy, rate_hz=None, realtime=False
+        str(path), pad_m=pad_m, fx_px=fx, cx_px=cx, cy_px=cy, rate_hz=None, realtime=False
     )
+    return source, (fx, cx, cy)
+
+
+def test_a_real_camera_cuts_the_window_its_policy_asks_for(policy, tmp_path):
+    """RoiCameraSource on a lossless video of 640 x 480 renders 40 m above the pad: the frames
+    leave as 128 px windows, the first the 45° view, then around the pad."""
+    from sitl_sim.render.render_fast import FastRenderer
+    from tools.pad_info import resolve_pad
+
+    renderer = FastRenderer(pad=resolve_pad("helipad_1m").scene_pad())
+    source, (fx, cx, cy) = _hovering_video(tmp_path, renderer, 40.0, 25, pad_m=1.0)
     runtime = PolicyRuntime(policy, "shipped")
     try:
         assert (source.roi.width_px, source.roi.height_px) == (W, H)
@@ -286,25 +293,11 @@ def test_a_real_camera_cuts_the_window_its_policy_asks_for(policy, tmp_path):
 def test_landing_target_mode_tracks_through_the_window_its_tracker_asks_for(policy, tmp_path):
     """The same camera with the landing-target mode's tracker (no controller): the windows
     follow the tracker's estimate, and the target it would send is the pad's true offset."""
-    import cv2
-
     from companion.landing_target import PadTracker
-    from companion.roi import RoiCameraSource
-    from sitl_sim.full_res import camera_geometry
     from sitl_sim.render.render_fast import FastRenderer
 
-    cam = sim_camera().camera
-    renderer = FastRenderer()  # the paper's pad, the shipped model's
-    path = tmp_path / "pad.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H))
-    for _ in range(30):
-        frame = renderer.render([3.0, -4.0, -60.0], [1.0, 0.0, 0.0, 0.0], cam)
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
-    writer.release()
-    _, _, fx, cx, cy = camera_geometry(cam)
-    source = RoiCameraSource(
-        str(path), pad_m=4.0, fx_px=fx, cx_px=cx, cy_px=cy, rate_hz=None, realtime=False
-    )
+    # the paper's pad, the shipped model's
+    source, _ = _hovering_video(tmp_path, FastRenderer(), 60.0, 30, pad_m=4.0)
     tracker = PadTracker(policy)
     try:
         source.follow(tracker)
