@@ -9,9 +9,13 @@ from __future__ import annotations
 import dataclasses
 import json
 
+from helpers import visland
+
+from companion.files import sha256_file
 from companion.policy_net import load_networks
 from training.pipeline import run_pipeline
 from training.profiles import PROFILES
+from training.provenance import SHIPPED_MODEL
 from training.ship import ship
 
 TINY = dataclasses.replace(
@@ -83,3 +87,36 @@ def test_every_stage_runs_and_the_card_is_written_from_the_run(tmp_path, low_sce
         line for line in card.splitlines() if line.startswith("| CNN + LSTM (vision) | **ours**")
     )
     assert row.endswith(f"| {vision_row['off_pad']} / {vision_row['aborts']} |"), row
+
+    # a variant (`visland ship --name`) ships beside the default model with its own card, a
+    # suite flown with the run's model as a section of it; the default model and card stay
+    default = {p.name: p.read_bytes() for p in out.iterdir()}
+    suite = tmp_path / "suite.toml"
+    suite.write_text(
+        f'[suite]\nepisodes = 2\nseed = 1000000\n\n[conditions.low]\nscenario = "{low_scenario}"\n'
+    )
+    report = tmp_path / "suite.json"
+    checkpoint = run / "checkpoints" / "vision.pt"
+    proc = visland("eval", "--suite", str(suite), "--policy", str(checkpoint), "--json")
+    assert proc.returncode == 0, proc.stderr
+    report.write_text(proc.stdout)
+    ship_args = ("ship", "--run", str(run), "--out", str(out), "--name", "tiny_sites")
+    proc = visland(*ship_args, "--suite-report", str(report))
+    assert proc.returncode == 0, proc.stderr
+    variant = out / "visland_vision_tiny_sites.pt"
+    assert sha256_file(variant) == sha256_file(checkpoint)
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name in default} == default
+    assert (out / "visland_vision_tiny_sites.control.onnx").is_file()
+    vcard = (out / "visland_vision_tiny_sites.md").read_text()
+    assert vcard.startswith("# visland vision landing policy `visland_vision_tiny_sites.pt`")
+    assert f"--name tiny_sites --suite-report {report}" in vcard
+    low = json.loads(report.read_text())["conditions"]["low"]
+    assert f"| low | {100 * low['success_rate']:.1f} % (2) |" in vcard
+    # a report of another model is refused before anything is written
+    other = json.loads(report.read_text())
+    other["policy"] = str(SHIPPED_MODEL)  # the repository's model: another sha256
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    proc = visland(*ship_args[:-1], "other", "--suite-report", str(tmp_path / "other.json"))
+    assert proc.returncode == 2 and "is not the model being shipped" in proc.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from tools.cli_args import config_from_args
@@ -105,13 +106,26 @@ def _cmd_ship(args: argparse.Namespace) -> int:
     from training.ship_pad import is_pad_run, ship_pad
 
     if is_pad_run(args.run):
+        if args.name or args.suite_report:
+            print(
+                f"visland ship: {args.run} taught a pad; it ships as "
+                "models/visland_vision_<pad>.pt by the pad's name (--name and --suite-report "
+                "are for runs of the paper's pad)",
+                file=sys.stderr,
+            )
+            return 2
         dst = ship_pad(args.run, args.out)
         print(f"shipped {dst} with {dst.with_suffix('.md')}")
         return 0
     from training.ship import ship
 
-    dst = ship(args.run, args.out)
-    print(f"shipped {dst} with {dst.parent / 'MODEL_CARD.md'}")
+    try:
+        dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
+    except ValueError as exc:
+        print(f"visland ship: {exc}", file=sys.stderr)
+        return 2
+    card = dst.parent / ("MODEL_CARD.md" if args.name is None else dst.with_suffix(".md").name)
+    print(f"shipped {dst} with {card}")
     return 0
 
 
@@ -217,6 +231,20 @@ def register_training(sub: argparse._SubParsersAction) -> None:
     sh.add_argument("--run", type=Path, required=True, help="run folder with metrics.json")
     sh.add_argument(
         "--out", type=Path, default=Path("models"), help="folder of the shipped model and card"
+    )
+    sh.add_argument(
+        "--name",
+        default=None,
+        help="ship a variant beside the default model: models/visland_vision_NAME.pt with its "
+        "own card models/visland_vision_NAME.md (the default model and MODEL_CARD.md stay)",
+    )
+    sh.add_argument(
+        "--suite-report",
+        action="append",
+        default=[],
+        metavar="JSON",
+        help="a suite flown with the run's model (visland eval --suite ... --json > JSON), as a "
+        "section of the card; repeatable",
     )
     sh.set_defaults(func=_cmd_ship)
 

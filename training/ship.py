@@ -7,6 +7,7 @@ typed by hand — and the card names the command, commit, data and time that pro
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -17,10 +18,66 @@ from training.paper import PAPER_RUNTIME_S
 from training.provenance import SHIPPED_MODEL
 from training.report.markdown import rollouts_text, table3
 from training.report.metrics import load_metrics
-from training.report.targets import fmt
+from training.report.targets import fmt, value_text
 from training.reports import SuiteReport
 
-__all__ = ["ship"]
+__all__ = ["ship", "variant_file"]
+
+
+def variant_file(variant: str | None) -> str:
+    """The shipped model's file name: ``visland_vision.pt`` (the default model, its card
+    ``MODEL_CARD.md``) or, for a variant (``visland ship --name sites``),
+    ``visland_vision_<variant>.pt`` with its own card beside it. A name that is not a plain
+    file-name word is refused."""
+    if variant is None:
+        return SHIPPED_MODEL.name
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", variant):
+        raise ValueError(
+            f"--name {variant!r}: expected letters, digits, '_', '-' or '.' (it names "
+            "models/visland_vision_<name>.pt)"
+        )
+    return f"{SHIPPED_MODEL.stem}_{variant}{SHIPPED_MODEL.suffix}"
+
+
+def _extra_suite_section(path: Path, model: Path) -> str:
+    """A suite report flown with this run's model outside its eval stage (``visland eval
+    --suite FILE --policy ... --json``), as a card section. A report of another model (its
+    policy file's sha256 differs from the shipped file's) is refused."""
+    report = SuiteReport.load(path)
+    sha = report.policy_sha256
+    if sha is None and Path(report.policy).is_file():
+        sha = sha256_file(report.policy)
+    if sha != sha256_file(model):
+        raise ValueError(
+            f"{path}: policy {report.policy} (sha256 {str(sha)[:16]}…) is not the model "
+            f"being shipped, {model} (sha256 {sha256_file(model)[:16]}…); fly the suite with "
+            "that file"
+        )
+    rows = [
+        "| condition | success | mean | max | touchdown | off pad | aborts |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, r in report.conditions.items():
+        s = r.summary
+        rows.append(
+            f"| {name} | {100 * s.success_rate:.1f} % ({r.episodes}) "
+            f"| {value_text(s.landing_error_m.mean, 'm')} "
+            f"| {value_text(s.landing_error_m.max, 'm')} "
+            f"| {value_text(s.touchdown_speed_m_s.mean, 'm/s')} "
+            f"| {'—' if s.off_pad is None else s.off_pad} "
+            f"| {'—' if s.aborts is None else s.aborts} |"
+        )
+    table = "\n".join(rows)
+    return f"""## Results on `{report.suite}` (seed {report.seed})
+
+    visland eval --suite {report.suite} --policy {report.policy} --json > {path}
+
+{table}
+
+Off pad: touchdowns more than 2 m from the pad (the unsafe failures); aborts: flights ended
+in the air for want of a pad. On a site the error and touchdown speed are in the pad's frame.
+
+"""
 
 
 def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
@@ -37,7 +94,7 @@ def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
     base_name = Path(baseline.policy).name if baseline else ""
     standing, met, total = suite_standing(report)
     base_line = (
-        f"The baseline is the paper-world model (`{base_name}`), flown on the same episodes."
+        f"The baseline is {_baseline_words(base_name)} (`{base_name}`), flown on the same episodes."
         if baseline
         else ""
     )
@@ -60,9 +117,19 @@ Each cell: success (episodes), mean and max landing error, mean touchdown speed.
 {which}"""
 
 
+def _baseline_words(base_name: str) -> str:
+    """What a suite baseline is, by its file: the paper-world model (the robust profile's
+    baseline) or the default shipped model (a variant's)."""
+    return (
+        "the default shipped model" if base_name == SHIPPED_MODEL.name else "the paper-world model"
+    )
+
+
 def _which_model(report: SuiteReport, baseline: SuiteReport, shipped: str, base_name: str) -> str:
     """Which model to fly where, from the two suite reports: the conditions where the baseline
-    lands more often, or as often and at least 10 % closer on average."""
+    lands more often, or as often and at least 10 % closer on average. A variant measured
+    against the default model is not the default: the default stays, the variant is for the
+    sites its own tables show it better on."""
     better = []
     for name, report_r in report.conditions.items():
         base_r = baseline.conditions.get(name)
@@ -81,6 +148,13 @@ def _which_model(report: SuiteReport, baseline: SuiteReport, shipped: str, base_
                 f"mean {base_e if base_e is None else round(base_e, 3)} m vs "
                 f"{ours_e if ours_e is None else round(ours_e, 3)} m)"
             )
+    if base_name == SHIPPED_MODEL.name:
+        where = "; ".join(better) if better else "no condition of this suite"
+        return (
+            f"### Which model\n\n`{base_name}` stays the default. `{shipped}` is a variant "
+            "for the sites its tables below show it better on (a pad carried by a rover or a "
+            f"deck, rough ground); on this suite the default model is better in: {where}.\n\n"
+        )
     if not better:
         return (
             f"### Which model\n\n`{shipped}` everywhere: the paper-world model `{base_name}` is "
@@ -117,17 +191,28 @@ def _run_scenario(run: Path) -> str:
     return scenario or "configs/scenario.toml (paper 4.1)"
 
 
-def ship(run: str | Path, out: str | Path = "models", name: str = SHIPPED_MODEL.name) -> Path:
-    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/<name>``, export its ONNX graphs beside
-    it (the board runtime; a previous model's export there would otherwise be refused as stale)
-    and write ``MODEL_CARD.md``."""
+def ship(
+    run: str | Path,
+    out: str | Path = "models",
+    variant: str | None = None,
+    suite_reports: tuple[str | Path, ...] = (),
+) -> Path:
+    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/visland_vision.pt`` (a ``variant``:
+    ``visland_vision_<variant>.pt``, :func:`variant_file`), export its ONNX graphs beside it
+    (the board runtime; a previous model's export there would otherwise be refused as stale)
+    and write its card: ``MODEL_CARD.md`` for the default model, ``<model stem>.md`` for a
+    variant, so a variant never replaces the default model or its card. ``suite_reports``:
+    suites flown with the run's model outside its eval stage, each a section of the card."""
     run, out = Path(run), Path(out)
+    name = variant_file(variant)
     metrics_path = run / "metrics.json"
     if not metrics_path.exists():
         raise FileNotFoundError(f"{metrics_path}: run the pipeline's eval stage first")
     metrics = json.loads(metrics_path.read_text())
     src = run / "checkpoints" / "vision.pt"
     policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
+    # a report of another model is refused before anything in ``out`` is replaced
+    extra_sections = "".join(_extra_suite_section(Path(p), src) for p in suite_reports)
     out.mkdir(parents=True, exist_ok=True)
     dst = out / name
     shutil.copyfile(src, dst)
@@ -195,7 +280,11 @@ def ship(run: str | Path, out: str | Path = "models", name: str = SHIPPED_MODEL.
         else f"the initial states of `{_run_scenario(run)}`"
     )
     suite_section = _suite_section(metrics, dst.name)
-    card = f"""# visland vision landing policy — model card
+    suite_section += extra_sections
+    ship_cmd = f"visland ship --run {run}" + (f" --name {variant}" if variant else "")
+    ship_cmd += "".join(f" --suite-report {p}" for p in suite_reports)
+    title = "" if variant is None else f" `{dst.name}`"
+    card = f"""# visland vision landing policy{title} — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): CNN pad-bearing regressor + {estimator} + LSTM controller
@@ -205,7 +294,7 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
 ## How it was made
 
     visland pipeline --profile {prof["name"]} --out {run}
-    visland ship --run {run}
+    {ship_cmd}
 
 - commit: `{metrics.get("git_commit", "unknown")}`
 - data: {prof["collect_episodes"]} expert (MPC) flights, seed {prof["collect_seed"]}
@@ -247,5 +336,5 @@ rows are its Table 3 (§5.4): landing error only.
 
 {_limits(bool(worlds))}
 """
-    (out / "MODEL_CARD.md").write_text(card)
+    (out / ("MODEL_CARD.md" if variant is None else f"{dst.stem}.md")).write_text(card)
     return dst
