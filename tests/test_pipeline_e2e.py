@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import torch
 from helpers import visland
 
 from companion.files import sha256_file
@@ -42,6 +43,20 @@ TINY = dataclasses.replace(
     workers=2,
     rollouts="inprocess",
 )
+
+
+def _weights(checkpoint) -> dict:
+    """A checkpoint's tensors by their path in it (its metadata — run folder, time — left out)."""
+
+    def walk(obj, key=""):
+        if isinstance(obj, torch.Tensor):
+            yield key, obj
+        elif isinstance(obj, dict):
+            for k, v in obj.items():
+                if k != "metadata":
+                    yield from walk(v, f"{key}.{k}")
+
+    return dict(walk(torch.load(checkpoint, weights_only=False)))
 
 
 def test_every_stage_runs_and_the_card_is_written_from_the_run(tmp_path, low_scenario):
@@ -120,3 +135,13 @@ def test_every_stage_runs_and_the_card_is_written_from_the_run(tmp_path, low_sce
     proc = visland(*ship_args[:-1], "other", "--suite-report", str(tmp_path / "other.json"))
     assert proc.returncode == 2 and "is not the model being shipped" in proc.stderr
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+    # one machine, the same profile and seeds: a second run trains the same weights, stage by
+    # stage (the card's "Determinism" line says so); only metadata (folder, time) differs
+    again = tmp_path / "again"
+    run_pipeline(again, TINY, low_scenario, stages=tuple(records)[:-1], progress=False)
+    for name in ("bc", "dagger_r1", "perception", "vision_bc", "vision_r0", "vision"):
+        first = _weights(run / "checkpoints" / f"{name}.pt")
+        second = _weights(again / "checkpoints" / f"{name}.pt")
+        assert first.keys() == second.keys() and first, name
+        assert all(torch.equal(first[k], second[k]) for k in first), name

@@ -33,12 +33,21 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from training.exec.backend import Backend
 from training.profiles import PROFILES, PipelineError, Profile
 from training.run_folder import Run
 from training.stage_records import STAGES, StageRecord
 from training.stages import bc, collect, dagger, perception, teach, vision
 from training.stages import eval as eval_stage
+
+STAGE_THREADS = torch.get_num_threads()
+"""Torch's threads for every stage: the process's default, taken when the pipeline is imported.
+A stage that flies a policy in this process (the eval stage's timing, an in-process rollout)
+sets one thread and would leave it set; a later stage then trains with another reduction order
+and rounds differently, so a run resumed in a new process, or run twice in one, would not train
+the same weights. Each stage starts from this count instead."""
 
 __all__ = ["STAGES", "PipelineError", "Profile", "run_pipeline"]
 
@@ -123,6 +132,7 @@ def run_pipeline(
                 run.say(f"stage {stage}: already done")
             else:
                 s0 = time.perf_counter()
+                torch.set_num_threads(STAGE_THREADS)
                 run.say(f"stage {stage}: running")
                 rec = runners[stage](run)
                 seconds[stage] = time.perf_counter() - s0
