@@ -314,6 +314,10 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   over {len(session_times)} completed session(s); an interrupted session is not recorded, and
   every stage run again counts (a finished run that takes new estimator settings flies vision
   and eval again), so this is more than one end-to-end run.
+- determinism: on one machine, the same commit, profile and seeds train the same weights, stage
+  by stage (`tests/test_pipeline_e2e.py` runs a tiny profile twice and compares every tensor);
+  another machine's BLAS and thread count may round differently, and flights over MAVLink in
+  real time are not lockstep-exact.
 
 {suite_section}## Results in the paper's world ({metrics["episodes"]} evaluation episodes,
 seed {metrics["eval_seed"]}, disjoint from training)
