@@ -30,7 +30,6 @@ configs/pads/helipad_1m.toml > configs/suites/helipad_1m.toml``; a test holds it
 from __future__ import annotations
 
 import json
-import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +47,7 @@ from sitl_sim.render.pads import (
 )
 from sitl_sim.scenario import SECTIONS, Scenario
 from training.profiles import PipelineError, Profile
-from training.provenance import REPO
+from training.provenance import MODEL_NAME, REPO
 from training.record import Record
 from training.seeds import EVAL_SEED
 from training.stage_records import PerceptionRecord, VisionRecord
@@ -84,8 +83,6 @@ PAD_VALIDATION_SUCCESS = 0.98
 the ``vision`` stage flies the profile's vision DAgger rounds."""
 
 STANDARD_SUITE = REPO / "configs" / "suites" / "standard.toml"
-
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
 @dataclass(frozen=True)
@@ -173,7 +170,7 @@ def teach_pad(spec: str | Path, camera: CameraConfig | None = None) -> PadTeach:
     shipped = builtin_pad_paths()
     path = shipped[text] if text in shipped and not Path(text).exists() else Path(text)
     design = load_pad(path)
-    if not _NAME.match(design.name):
+    if not MODEL_NAME.match(design.name):
         raise ConfigError(
             f"{path}: name = {design.name!r}; a taught pad names its model file "
             "(visland_vision_<name>.pt): expected letters, digits, '_', '-' or '.'"

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["REPO", "SHIPPED_MODEL", "git_commit"]
+__all__ = ["MODEL_NAME", "REPO", "SHIPPED_MODEL", "git_commit"]
 
 REPO = Path(__file__).resolve().parent.parent
 """The checkout (or installed tree) holding this code: relative config, model and suite paths
@@ -14,6 +15,9 @@ resolve against it, and child processes start in it."""
 SHIPPED_MODEL = REPO / "models" / "visland_vision.pt"
 """The shipped vision policy (README, ``models/MODEL_CARD.md``): the default model of ``visland
 demo``, ``fly --companion-mode landing-target`` and the benchmarks; the one name for it."""
+MODEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+"""What may follow ``visland_vision_`` in a shipped model's file name (a taught pad's name,
+``visland ship --name``): a plain file-name word, no path."""
 
 
 def _git(repo: Path, *args: str) -> str:

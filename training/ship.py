@@ -7,7 +7,6 @@ typed by hand — and the card names the command, commit, data and time that pro
 from __future__ import annotations
 
 import json
-import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,7 @@ from typing import Any
 from companion.files import sha256_file
 from companion.policy_net import load_policy
 from training.paper import PAPER_RUNTIME_S
-from training.provenance import SHIPPED_MODEL
+from training.provenance import MODEL_NAME, SHIPPED_MODEL
 from training.report.markdown import rollouts_text, table3
 from training.report.metrics import load_metrics
 from training.report.targets import fmt, value_text
@@ -31,7 +30,7 @@ def variant_file(variant: str | None) -> str:
     file-name word is refused."""
     if variant is None:
         return SHIPPED_MODEL.name
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", variant):
+    if not MODEL_NAME.match(variant):
         raise ValueError(
             f"--name {variant!r}: expected letters, digits, '_', '-' or '.' (it names "
             "models/visland_vision_<name>.pt)"
@@ -44,14 +43,13 @@ def _extra_suite_section(path: Path, model: Path) -> str:
     --suite FILE --policy ... --json``), as a card section. A report of another model (its
     policy file's sha256 differs from the shipped file's) is refused."""
     report = SuiteReport.load(path)
-    sha = report.policy_sha256
+    sha, expected = report.policy_sha256, sha256_file(model)
     if sha is None and Path(report.policy).is_file():
         sha = sha256_file(report.policy)
-    if sha != sha256_file(model):
+    if sha != expected:
         raise ValueError(
             f"{path}: policy {report.policy} (sha256 {str(sha)[:16]}…) is not the model "
-            f"being shipped, {model} (sha256 {sha256_file(model)[:16]}…); fly the suite with "
-            "that file"
+            f"being shipped, {model} (sha256 {expected[:16]}…); fly the suite with that file"
         )
     rows = [
         "| condition | success | mean | max | touchdown | off pad | aborts |",
@@ -152,8 +150,8 @@ def _which_model(report: SuiteReport, baseline: SuiteReport, shipped: str, base_
         where = "; ".join(better) if better else "no condition of this suite"
         return (
             f"### Which model\n\n`{base_name}` stays the default. `{shipped}` is a variant "
-            "for the sites its tables below show it better on (a pad carried by a rover or a "
-            f"deck, rough ground); on this suite the default model is better in: {where}.\n\n"
+            "for the conditions its own tables below show it better on; on this suite the "
+            f"default model is better in: {where}.\n\n"
         )
     if not better:
         return (
