@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
-from tools.cli_args import json_command, print_result
+from tools.cli_args import config_from_args, json_command, print_result
 
 __all__ = ["pad_check", "register_pad"]
 
@@ -165,20 +165,14 @@ def _cmd_pad_acquire(args: argparse.Namespace) -> int:
     width, _, height = args.camera.partition("x")
     if not (width.isdigit() and height.isdigit()):
         raise SystemExit(f"visland pad acquire: --camera {args.camera!r}; expected WIDTHxHEIGHT")
-    cfg = AcquireConfig(
-        pad=args.pad,
-        checkpoint=args.checkpoint,
+    cfg = config_from_args(
+        AcquireConfig,
+        args,
         width_px=int(width),
         height_px=int(height),
         hfov_deg=args.camera_hfov_deg,
         altitudes_m=tuple(args.altitudes),
-        frames=args.frames,
         grounds=tuple(args.grounds),
-        span_px=args.span_px,
-        tile_px=args.tile_px,
-        seed=args.seed,
-        flights=args.flights,
-        scenario=args.scenario,
     )
     print_result(acquire(cfg), args.json, format_acquire)
     return 0
@@ -187,14 +181,11 @@ def _cmd_pad_acquire(args: argparse.Namespace) -> int:
 def _cmd_pad_error(args: argparse.Namespace) -> int:
     from tools.cnn_error import ErrorConfig, cnn_error, format_error
 
-    cfg = ErrorConfig(
-        checkpoint=args.checkpoint,
+    cfg = config_from_args(
+        ErrorConfig,
+        args,
         scenarios=tuple(args.scenario) if args.scenario else ErrorConfig().scenarios,
         bands_m=tuple(args.band) if args.band else ErrorConfig().bands_m,
-        frames=args.frames,
-        seed=args.seed,
-        chunk=args.chunk,
-        workers=args.workers,
     )
     print_result(cnn_error(cfg), args.json, format_error)
     return 0
