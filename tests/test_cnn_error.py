@@ -48,6 +48,9 @@ def test_pad_error_end_to_end(capsys):
     # the shipped CNN on the paper's pad, still, at 20-40 m: seen, and placed within 0.4 m
     (band,) = nominal["bands"]
     assert band["seen"] > 0.8 and band["error_m_median"] < 0.4 and band["error_px_median"] < 2.5
+    # ... and finds no pad in the bare ground 40-300 m from it (the rover's: its own ground)
+    assert band["false_seen"] <= band["false_acquired"] <= 0.1
+    assert 0.0 <= rover["bands"][0]["false_seen"] <= 1.0
     # the same figures come back on a rerun (rendering and the CNN are seeded)
     assert (
         main(["pad", "error", "--band", "20-40", "--frames", "64", "--chunk", "16", "--json"]) == 0

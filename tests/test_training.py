@@ -403,6 +403,34 @@ def test_pose_sampled_frames_show_the_pad_where_the_labels_say(tmp_path):
     assert np.array_equal(again, images)
 
 
+def test_far_off_samples_are_bare_ground_and_leave_the_rest_as_they_were():
+    """``away_fraction``: that share of the poses 40-300 m from the pad, none with it in view
+    (label 0, and no pad pixels); with 0 the draws, and a cache's key, are as before it
+    existed."""
+    from sitl_sim.config import load_sim
+    from training.perception_data import PoseSampling, render_pose_frames, sample_poses
+
+    cam = load_sim().camera
+    plain = PoseSampling(altitude_m=(15.0, 40.0))
+    before = sample_poses(200, 3, cam.fov_deg, plain)
+    again = sample_poses(200, 3, cam.fov_deg, dataclasses.replace(plain, away_m=(10.0, 20.0)))
+    assert all(np.array_equal(a, b) for a, b in zip(before, again, strict=True))
+    assert "away_fraction" not in plain.key()
+    # (the other samples look at least 0.1 down their ray: <= 398 m off at 40 m up)
+    mixed = dataclasses.replace(plain, away_fraction=0.25, away_m=(400.0, 500.0))
+    pos, quat = sample_poses(800, 3, cam.fov_deg, mixed)
+    far = np.hypot(pos[:, 0], pos[:, 1]) >= 400.0
+    assert 0.2 < far.mean() < 0.3 and np.all(np.hypot(pos[far, 0], pos[far, 1]) <= 500.0)
+    pos, quat = sample_poses(400, 4, cam.fov_deg, dataclasses.replace(plain, away_fraction=1.0))
+    off = np.hypot(pos[:, 0], pos[:, 1])
+    assert np.all((off >= 40.0) & (off <= 300.0))
+    assert not bearing_labels(pos, quat, cam.fov_deg)[:, 2].any()
+    bare = dataclasses.replace(plain, away_fraction=1.0)
+    images, _, _ = render_pose_frames(16, 3, cam, sampling=bare)
+    assert (images > 130).sum(axis=(1, 2)).max() < 10  # the pad's bright cross is nowhere
+    assert mixed.key()["away_fraction"] == 0.25
+
+
 def test_estimator_gates_a_wild_fix_and_reacquires_after_repeated_ones():
     from companion.policy_net import PadEstimator
 

@@ -12,7 +12,10 @@ camera (:func:`training.perception_data.render_pose_frames`, one drawn look, pad
 - the error of the predicted bearing turned into metres at the frame's height, its median and
   90th percentile, and in pixels of the net's image;
 - its median along the pad's own axes (``forward``: the carrier's nose on a rover or a deck,
-  north for a still pad on flat ground; ``right``): a constant offset there is a bias, not noise.
+  north for a still pad on flat ground; ``right``): a constant offset there is a bias, not noise;
+- ``false_seen`` / ``false_acquired``: the same shares on as many frames of the scenario's ground
+  with no pad in them (the camera 40–300 m from it, ``PoseSampling.away_fraction``): a CNN that
+  finds pads in bare ground sends the vehicle down onto it.
 
 Seed 500 is the validation seed; a CNN's training frames are drawn from the run's seed + 7.
 """
@@ -66,6 +69,15 @@ def parse_band(text: str) -> tuple[float, float]:
     return band
 
 
+def _probability(cnn: Any, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The CNN's outputs (N, 3) and its visibility probability (N,) on ``images``."""
+    import torch
+
+    with torch.no_grad():
+        out = cnn(torch.as_tensor(images)).numpy().astype(float)
+    return out, 1.0 / (1.0 + np.exp(-out[:, 2]))
+
+
 def _band_row(
     cnn: Any,
     images: np.ndarray,
@@ -77,14 +89,10 @@ def _band_row(
 ) -> dict[str, Any]:
     """One band's figures from its frames, poses (relative to the pad) and each frame's
     R_pad_to_ned."""
-    import torch
-
     from sitl_sim.physics.dynamics import quat_to_rotation
     from training.train import bearing_labels
 
-    with torch.no_grad():
-        out = cnn(torch.as_tensor(images)).numpy().astype(float)
-    prob = 1.0 / (1.0 + np.exp(-out[:, 2]))
+    out, prob = _probability(cnn, images)
     labels = bearing_labels(pos, quat, fov_deg)
     inside = labels[:, 2] >= 0.5
     height = -pos[:, 2]
@@ -177,6 +185,20 @@ def cnn_error(cfg: ErrorConfig) -> dict[str, Any]:
                 chunk=cfg.chunk,
             )
             row = _band_row(cnn, images, pos, quat, frames_of, camera.fov_deg, thresholds)
+            bare, _, _ = render_pose_frames(
+                cfg.frames,
+                cfg.seed + 1,
+                camera,
+                workers=cfg.workers,
+                sampling=replace(level, altitude_m=(lo, hi), away_fraction=1.0),
+                visuals=(sc.visual,),
+                pads=(sc.pad,),
+                terrains=(sc.terrain,),
+                chunk=cfg.chunk,
+            )
+            prob = _probability(cnn, bare)[1]
+            row["false_seen"] = float(np.mean(prob >= thresholds[0]))
+            row["false_acquired"] = float(np.mean(prob >= thresholds[1]))
             bands.append({"band_m": [lo, hi], **row})
         scenarios.append({"scenario": str(path), "bands": bands})
     return {
@@ -194,12 +216,13 @@ def format_error(res: dict[str, Any], out: TextIO) -> None:
     print(
         f"CNN of {res['checkpoint']}: seed {res['seed']}, {res['frames_per_band']} level frames "
         f"per band; seen = p >= {th['seen']:.2f}, acquired = p >= {th['acquired']:.2f}; "
-        "error in metres at the frame's height, forward/right along the pad's axes",
+        "error in metres at the frame's height, forward/right along the pad's axes; false: the "
+        "same shares on frames of the ground with no pad in them",
         file=out,
     )
     head = (
         f"  {'band (m)':>10} {'seen':>6} {'acq':>6} {'|e| med':>8} {'|e| p90':>8} "
-        f"{'px med':>7} {'fwd med':>8} {'right med':>9}"
+        f"{'px med':>7} {'fwd med':>8} {'right med':>9} {'false seen':>10} {'false acq':>9}"
     )
     for sc in res["scenarios"]:
         print(f"\n{sc['scenario']}", file=out)
@@ -210,6 +233,7 @@ def format_error(res: dict[str, Any], out: TextIO) -> None:
                 f"  {f'{lo:g}-{hi:g}':>10} {b['seen']:>6.0%} {b['acquired']:>6.0%} "
                 f"{b['error_m_median']:>8.2f} {b['error_m_p90']:>8.2f} "
                 f"{b['error_px_median']:>7.1f} {b['forward_m_median']:>+8.2f} "
-                f"{b['right_m_median']:>+9.2f}",
+                f"{b['right_m_median']:>+9.2f} {b['false_seen']:>10.0%} "
+                f"{b['false_acquired']:>9.0%}",
                 file=out,
             )

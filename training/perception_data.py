@@ -80,6 +80,23 @@ class PoseSampling:
     level_tilt_deg: float = 8.0
     max_tilt_deg: float = 35.0
     """The other samples: roll and pitch uniform in ± this (a recovering learner tilts a lot)."""
+    away_fraction: float = 0.0
+    """Share of samples with the pad far off (label 0): the camera ``away_m`` from the pad
+    horizontally, at a drawn altitude and attitude, over ground with no pad in it — what a
+    vehicle that has not found the pad, or has been blown off it, looks at. The out-of-view
+    samples above keep the pad just outside the frame; without these a CNN never learns that
+    bare ground is not a pad, and one trained on cabs, hulls and rocks beside pads finds pads in
+    it."""
+    away_m: tuple[float, float] = (40.0, 300.0)
+    """Horizontal distance of the camera from the pad in the far-off samples (uniform)."""
+
+    def key(self) -> dict:
+        """The fields for a frame cache's key; without far-off samples, as before they
+        existed (the caches made then stay valid)."""
+        out = asdict(self)
+        if self.away_fraction == 0.0:
+            del out["away_fraction"], out["away_m"]
+        return out
 
 
 def sample_poses(
@@ -93,6 +110,7 @@ def sample_poses(
     quat = np.zeros((n, 4))
     i = 0
     while i < n:
+        away = rng.random() < sampling.away_fraction if sampling.away_fraction > 0 else False
         tilt = (
             sampling.level_tilt_deg
             if rng.random() < sampling.level_fraction
@@ -101,6 +119,13 @@ def sample_poses(
         roll, pitch = np.radians(rng.uniform(-tilt, tilt, 2))
         yaw = rng.uniform(-math.pi, math.pi)
         q = quat_from_euler(roll, pitch, yaw)
+        if away:
+            far = _away_pose(rng, q, half, lo, hi, sampling.away_m)
+            if far is None:
+                continue
+            pos[i], quat[i] = far, q
+            i += 1
+            continue
         if rng.random() < sampling.in_view_fraction:
             tan = rng.uniform(-half, half, 2)
         else:
@@ -116,6 +141,26 @@ def sample_poses(
         quat[i] = q
         i += 1
     return pos, quat
+
+
+def _away_pose(
+    rng: np.random.Generator,
+    q: np.ndarray,
+    half: float,
+    log_lo: float,
+    log_hi: float,
+    away_m: tuple[float, float],
+) -> np.ndarray | None:
+    """A far-off sample's position relative to the pad (attitude ``q``), or None where the pad
+    would be in view after all (a high camera, a tilt towards it)."""
+    alt = math.exp(rng.uniform(log_lo, log_hi))
+    dist = rng.uniform(*away_m)
+    bearing = rng.uniform(-math.pi, math.pi)
+    pos = np.array([dist * math.cos(bearing), dist * math.sin(bearing), -alt])
+    body = quat_to_rotation(q).T @ (-pos)
+    if body[2] > 1e-6 and abs(body[0] / body[2]) < half and abs(body[1] / body[2]) < half:
+        return None
+    return pos
 
 
 _WORKER: dict = {}
@@ -280,7 +325,7 @@ def render_pose_frames(
     pos, quat = sample_poses(n, seed, camera.fov_deg, sampling)
     key = {
         "camera": asdict(camera),
-        "sampling": asdict(sampling),
+        "sampling": sampling.key(),
         "visuals": [None if v is None else v.to_dict() for v in visuals],
         "weights": list(weights),
     }

@@ -113,7 +113,8 @@ def run(r: Run) -> PerceptionRecord:
     eps = episodes(r, expert_pairs(r), images=True)
     extra = None
     if p.perception_pose_frames > 0:
-        extra = pose_frames(r, p.perception_pose_frames)
+        sampling = PoseSampling(away_fraction=p.perception_away_fraction)
+        extra = pose_frames(r, p.perception_pose_frames, sampling)
     n_train = sum(len(range(0, len(e), p.perception_frame_stride)) for e in eps)
     n_train += p.perception_pose_frames
     steps = p.perception_epochs * max(1, int(n_train * 0.9) // 64)
