@@ -269,6 +269,32 @@ def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path,
         assert f"| {name} |" in card
 
 
+@pytest.mark.slow
+def test_pad_vision_rounds_stop_when_validation_stops_improving(tmp_path, monkeypatch):
+    """``pad_vision_patience`` 1: the rounds go on while each beats the best validation score
+    before it and stop after the first that does not; every round flown is validated once."""
+    import training.stages.teach as teach_stage
+
+    monkeypatch.setattr(teach_stage, "PAD_VALIDATION_SUCCESS", 1.01)  # the rounds always fly
+    prof = replace(TINY, vision_rounds=3, vision_rollouts=2, vision_steps=20, pad_vision_patience=1)
+    out = tmp_path / "helipad"
+    start, stages = str(SHIPPED), ("perception", "vision")
+    run_pipeline(out, prof, pad=str(HELIPAD), start_from=start, stages=stages, progress=False)
+    rec = json.loads((out / "stages" / "vision.json").read_text())
+    names = [Path(v["checkpoint"]).stem for v in rec["validation"]]
+    flown = len(names) - 1
+    assert names == ["vision_prior", *(f"vision_r{k}" for k in range(flown))]
+    assert 1 <= flown <= 3 and len(rec["fits"]) == flown
+    scores = [v["score"] for v in rec["validation"]]
+    for k in range(flown):
+        better = scores[k + 1] < min(scores[: k + 1])
+        if k < flown - 1:
+            assert better  # an improving round: the next one flies
+        elif flown < 3:
+            assert not better  # the round that stopped them
+    assert not (out / "checkpoints" / f"vision_r{flown}.pt").exists()
+
+
 # --------------------------------------------------------------------------- bad input
 
 

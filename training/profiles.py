@@ -201,6 +201,10 @@ class Profile(Record):
     """... the epochs over them (the CNN starts from the ``--from`` model's weights)."""
     pad_perception_lr: float = field(default=1e-3, metadata=ADDED)
     """... and the learning rate (cosine schedule, as for ``perception``)."""
+    pad_vision_patience: int | None = field(default=1, metadata=ADDED)
+    """... and its vision DAgger rounds stop after this many in a row that do not beat the best
+    validation score before them (None: every round of ``vision_rounds`` flies). The helipad_1m
+    run's three rounds flew 39 of its 57 minutes and none beat the controller it started from."""
 
     def net_options(self) -> dict[str, bool | float | None]:
         """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
@@ -219,6 +223,11 @@ class Profile(Record):
             raise PipelineError(
                 f"profile {self.name!r}: perception_site_share = {share}; expected None or "
                 "0 < share < 1"
+            )
+        if self.pad_vision_patience is not None and self.pad_vision_patience < 1:
+            raise PipelineError(
+                f"profile {self.name!r}: pad_vision_patience = {self.pad_vision_patience}; "
+                "expected None or >= 1 rounds"
             )
         if not 0.0 <= self.perception_away_fraction < 0.5:
             raise PipelineError(

@@ -105,7 +105,9 @@ def vision(r: Run) -> VisionRecord:
     horizontal fix scaled with the pad like every altitude (``checkpoints/vision_prior.pt``),
     flown on the validation seeds in the run's worlds. Only
     when it lands fewer than :data:`PAD_VALIDATION_SUCCESS` of them do the profile's vision
-    DAgger rounds fly (from it, on the learner's flights alone); validation picks among them."""
+    DAgger rounds fly (from it, on the learner's flights alone), stopping after
+    ``pad_vision_patience`` rounds in a row that do not beat validation's best; validation picks
+    among them."""
     p = r.profile
     pad, _ = _teach(r)
     cfg, control, cnn, _ = load_networks(r.need("perception", PerceptionRecord).checkpoint)
@@ -135,7 +137,9 @@ def vision(r: Run) -> VisionRecord:
         ctrl = type(control)(cfg)
         ctrl.load_state_dict(control.state_dict())
         buf = ReplayBuffer(p.buffer_capacity, p.segment_steps, seed=p.seed + 51)
-        candidates += vision_rounds(r, cfg, ctrl, cnn, prior, buf, [], fits)
+        candidates += vision_rounds(
+            r, cfg, ctrl, cnn, prior, buf, [], fits, known, patience=p.pad_vision_patience
+        )
     elif p.vision_rounds:
         r.say("vision: the controller flies the taught CNN as it is (no DAgger round needed)")
     else:

@@ -74,14 +74,29 @@ def vision_rounds(
     buf: ReplayBuffer,
     names: list[str],
     fits: list[FitRecord],
+    known: dict[str, ValidationScore] | None = None,
+    patience: int | None = None,
 ) -> list[str]:
     """The profile's vision DAgger rounds: round ``k`` flies the latest checkpoint (``ckpt``
     first) with the camera, relabels its flights, adds their CNN + estimator episodes to ``buf``
     (their names to ``names``) and fine-tunes ``control`` (its fit to ``fits``); returns each
-    round's checkpoint ``checkpoints/vision_r<k>.pt``."""
+    round's checkpoint ``checkpoints/vision_r<k>.pt``.
+
+    ``patience`` (with ``known``, the scores validated so far): each round is validated as it
+    ends (its score into ``known``, so selection does not fly it again), and the rounds stop
+    after ``patience`` rounds in a row that did not beat the best score before them — a round
+    that does not improve on validation says the next one, from it, is not likely to either, and
+    each costs a round of rollouts (as an early stop on no improvement does)."""
     p = r.profile
     out = []
+    misses = 0
     for k in range(p.vision_rounds):
+        if patience is not None and known is not None and misses >= patience:
+            r.say(
+                f"vision: {misses} round(s) in a row without a better validation score: "
+                f"stopping after {k} of {p.vision_rounds} rounds"
+            )
+            break
         name = f"vision_r{k}"
         logs = fly(r, str(ckpt), p.vision_seed + k, p.vision_rollouts, name, camera=True)
         pairs = relabel(r, logs, name)
@@ -109,6 +124,10 @@ def vision_rounds(
             r.metadata(name, {"episodes": list(names), "fit": fits[-1].to_dict()}),
         )
         out.append(str(ckpt))
+        if patience is not None and known is not None:
+            best = min((v.score for v in known.values()), default=float("inf"))
+            known[str(ckpt)] = validate(r, str(ckpt), camera=True)
+            misses = 0 if known[str(ckpt)].score < best else misses + 1
     return out
 
 
