@@ -177,7 +177,10 @@ class Run:
             return self._teach_from(other)
         src = Path(other)
         if any(self.record_path(s).exists() for s in STAGES):
-            raise PipelineError(f"{self.root}: --from needs a new run folder (it has stages)")
+            raise PipelineError(
+                f"{self.root}: --from needs a new run folder (it has stages); to resume this "
+                "run, leave out --from"
+            )
         try:
             theirs = json.loads((src / "profile.json").read_text())
         except (OSError, ValueError) as exc:
@@ -246,7 +249,10 @@ class Run:
                 )
             return []
         if any(self.record_path(s).exists() for s in STAGES):
-            raise PipelineError(f"{self.root}: --from needs a new run folder (it has stages)")
+            raise PipelineError(
+                f"{self.root}: --from needs a new run folder (it has stages); to resume this "
+                "run, leave out --from"
+            )
         check_source(checkpoint, self.net_config("vision"))
         record = SourceRecord(checkpoint=str(checkpoint), sha256=sha, run=run, commit=self.commit)
         path = self.root / "profile.json"
