@@ -384,3 +384,12 @@ PROFILES["robust_sites_clear"] = replace(
     perception_away_fraction=0.1,
     vision_rounds=1,
 )
+
+# ... with 3 % of the pose frames bare ground: robust_sites_clear's 10 % took the false fixes on
+# bare nominal ground to 0 (no pad in view: 50 aborts, 0 off the pad) but cost the hard light
+# (low sun over every ground 86 %, Mars + wind + faults + low sun 66 %; its CNN sees the pad at
+# 40-100 m in 55 % of level frames where robust_sites_cnn's saw 82 %). `visland pipeline
+# --profile robust_sites_clear3 --from runs/robust_sites --out runs/robust_sites_clear3`.
+PROFILES["robust_sites_clear3"] = replace(
+    PROFILES["robust_sites_clear"], name="robust_sites_clear3", perception_away_fraction=0.03
+)
