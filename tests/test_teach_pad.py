@@ -269,7 +269,6 @@ def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path,
         assert f"| {name} |" in card
 
 
-@pytest.mark.slow
 def test_pad_vision_rounds_stop_when_validation_stops_improving(tmp_path, monkeypatch):
     """``pad_vision_patience`` 1: the rounds go on while each beats the best validation score
     before it and stop after the first that does not; every round flown is validated once."""
