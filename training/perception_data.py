@@ -110,7 +110,7 @@ def sample_poses(
     quat = np.zeros((n, 4))
     i = 0
     while i < n:
-        away = rng.random() < sampling.away_fraction if sampling.away_fraction > 0 else False
+        away = sampling.away_fraction > 0 and rng.random() < sampling.away_fraction
         tilt = (
             sampling.level_tilt_deg
             if rng.random() < sampling.level_fraction

@@ -156,6 +156,14 @@ class Run:
                 self.say(f"stage {stage}: record removed (estimator settings changed)")
         path.write_text(json.dumps(theirs, indent=2))
 
+    def _check_new_folder(self) -> None:
+        """``--from`` starts a run folder: one with stages is resumed without it."""
+        if any(self.record_path(s).exists() for s in STAGES):
+            raise PipelineError(
+                f"{self.root}: --from needs a new run folder (it has stages); to resume this "
+                "run, leave out --from"
+            )
+
     def start_from(self, other: str | Path) -> list[str]:
         """Begin this (empty) run from ``other``'s trained stages, for an estimator, a vision
         or a perception ablation: the two profiles may differ only in estimator settings
@@ -176,11 +184,7 @@ class Run:
         if self.pad is not None:
             return self._teach_from(other)
         src = Path(other)
-        if any(self.record_path(s).exists() for s in STAGES):
-            raise PipelineError(
-                f"{self.root}: --from needs a new run folder (it has stages); to resume this "
-                "run, leave out --from"
-            )
+        self._check_new_folder()
         try:
             theirs = json.loads((src / "profile.json").read_text())
         except (OSError, ValueError) as exc:
@@ -248,11 +252,7 @@ class Run:
                     f"{before.sha256[:12]}), not {checkpoint} ({sha[:12]}); use a new --out folder"
                 )
             return []
-        if any(self.record_path(s).exists() for s in STAGES):
-            raise PipelineError(
-                f"{self.root}: --from needs a new run folder (it has stages); to resume this "
-                "run, leave out --from"
-            )
+        self._check_new_folder()
         check_source(checkpoint, self.net_config("vision"))
         record = SourceRecord(checkpoint=str(checkpoint), sha256=sha, run=run, commit=self.commit)
         path = self.root / "profile.json"
