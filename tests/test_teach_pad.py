@@ -322,6 +322,23 @@ def test_pad_needs_a_matching_model_to_start_from(tmp_path):
         teach_pad(tmp_path / "none.toml")
 
 
+def test_the_teach_darkens_frames_as_a_low_sun_does_within_checked_bounds():
+    from training.profiles import Profile
+    from training.train import train_perception
+
+    # a low sun (5-12 deg) leaves about 0.4 of the nominal grey levels; the robust profile's
+    # teach draws gains down to 0.3, every other profile keeps the CNN stage's 0.8
+    assert PROFILES["robust"].pad_perception_min_gain == 0.3
+    assert PROFILES["quick"].pad_perception_min_gain == 0.8
+    for bad in (0.0, 1.5):
+        with pytest.raises(PipelineError, match=f"pad_perception_min_gain = {bad}"):
+            Profile(**{**PROFILES["quick"].to_dict(), "pad_perception_min_gain": bad})
+    cnn = load_networks(SHIPPED)[2]
+    frames = (np.zeros((4, 128, 128), np.uint8), np.zeros((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1)))
+    with pytest.raises(ValueError, match=r"gain = \(1\.3, 1\.2\)"):
+        train_perception(cnn, [], 1, extra=frames, gain=(1.3, 1.2))
+
+
 def test_a_pad_run_is_resumed_only_as_one(tmp_path):
     out = tmp_path / "run"
     with pytest.raises(PipelineError, match="--pad needs --from"):

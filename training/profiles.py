@@ -201,6 +201,10 @@ class Profile(Record):
     """... the epochs over them (the CNN starts from the ``--from`` model's weights)."""
     pad_perception_lr: float = field(default=1e-3, metadata=ADDED)
     """... and the learning rate (cosine schedule, as for ``perception``)."""
+    pad_perception_min_gain: float = field(default=0.8, metadata=ADDED)
+    """... and the lowest grey-level gain of its augmentation (uniform up to 1.2): a low sun
+    darkens the whole frame (sun 5-12 deg: about 0.4 of the nominal grey levels), which the
+    worlds' uniform sun elevations seldom show the CNN."""
     pad_vision_patience: int | None = field(default=1, metadata=ADDED)
     """... and its vision DAgger rounds stop after this many in a row that do not beat the best
     validation score before them (None: every round of ``vision_rounds`` flies). The helipad_1m
@@ -228,6 +232,11 @@ class Profile(Record):
             raise PipelineError(
                 f"profile {self.name!r}: pad_vision_patience = {self.pad_vision_patience}; "
                 "expected None or >= 1 rounds"
+            )
+        if not 0.0 < self.pad_perception_min_gain <= 1.2:
+            raise PipelineError(
+                f"profile {self.name!r}: pad_perception_min_gain = "
+                f"{self.pad_perception_min_gain}; expected 0 < gain <= 1.2"
             )
         if not 0.0 <= self.perception_away_fraction < 0.5:
             raise PipelineError(
@@ -324,6 +333,9 @@ PROFILES: dict[str, Profile] = {
         hover_input=True,
         accel_bias_states=True,
         latency_compensation=True,
+        pad_pose_frames=120000,
+        pad_perception_epochs=4,
+        pad_perception_min_gain=0.3,
     ),
 }
 

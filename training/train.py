@@ -348,14 +348,16 @@ def train_perception(
     log: Logger = _no_log,
     progress: Callable[[int], None] | None = None,
     extra: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    gain: tuple[float, float] = (0.8, 1.2),
 ) -> PerceptionFit:
     """Regress the pad bearing (+ visibility) from expert-flight frames, split 90/10 by episode.
 
     Loss: Huber on the bearing in pixels (only where the pad centre is in view) + binary
-    cross-entropy on visibility. Augmentation: random gain/offset of the grey levels and random
-    image translations of up to ``max_shift_px`` (the bearing label moves by exactly
-    ``shift / focal``): the expert keeps the pad near the image centre, and without shifts the
-    CNN learns to answer "centre" whatever it sees.
+    cross-entropy on visibility. Augmentation: a random gain (uniform in ``gain``) and offset of
+    the grey levels (a camera's exposure: a low sun darkens the whole frame) and random image
+    translations of up to ``max_shift_px`` (the bearing label moves by exactly ``shift /
+    focal``): the expert keeps the pad near the image centre, and without shifts the CNN learns
+    to answer "centre" whatever it sees.
 
     ``extra``: more frames ``(images, pos_ned_m, quat_wxyz)`` (e.g. the pose-sampled renders of
     :mod:`training.perception_data`), labelled the same way and split 90/10 by index; their
@@ -364,6 +366,8 @@ def train_perception(
     """
     if any(e.images is None for e in episodes):
         raise ValueError("perception training needs episodes with camera frames")
+    if not 0.0 < gain[0] <= gain[1]:
+        raise ValueError(f"gain = {gain}; expected (lo, hi) with 0 < lo <= hi")
     if not episodes and (extra is None or not len(extra[0])):
         raise ValueError("perception training needs episodes with camera frames or extra frames")
     torch.manual_seed(seed)
@@ -413,9 +417,9 @@ def train_perception(
         for b in range(max(1, n // batch)):
             sel = order[b * batch : (b + 1) * batch]
             img = torch.from_numpy(x_tr[sel]).float()
-            gain = torch.from_numpy(rng.uniform(0.8, 1.2, (len(sel), 1, 1)).astype(np.float32))
+            g = torch.from_numpy(rng.uniform(*gain, (len(sel), 1, 1)).astype(np.float32))
             offset = torch.from_numpy(rng.uniform(-20, 20, (len(sel), 1, 1)).astype(np.float32))
-            img = (img * gain + offset).clamp(0, 255)
+            img = (img * g + offset).clamp(0, 255)
             y = torch.from_numpy(y_tr[sel].copy())
             if max_shift_px > 0:
                 img, y = _shift(img, y, rng, max_shift_px, focal, half_fov)

@@ -84,6 +84,7 @@ def perception(r: Run) -> PerceptionRecord:
         f"teach perception ({pad.design.name})",
         extra,
         lr=p.pad_perception_lr,
+        gain=(p.pad_perception_min_gain, 1.2),
     )
     r.say(
         f"perception: validation frames' bearing error median "
