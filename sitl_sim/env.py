@@ -204,6 +204,12 @@ class LandingEnv(gym.Env):
         return self._sim.episode_vehicle
 
     @property
+    def drawn(self) -> dict[str, Any]:
+        """What the current episode's world drew (:meth:`sitl_sim.world.EpisodeWorld.record`:
+        ``airframe``, ``visual``, ``pad``, ``site``; empty for the nominal world)."""
+        return self._drawn
+
+    @property
     def airframe(self) -> AirframeScales | None:
         """The current episode's airframe factors (None: no ``[vehicle]`` section)."""
         return self._airframe

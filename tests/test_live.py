@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,3 +249,33 @@ def test_log_scene_setting_auto_follows_foxglove_on_needs_it_off_never(monkeypat
     assert not _log_scene("off")
     with pytest.raises(CompanionError, match="log_scene"):
         CompanionConfig(log_scene="sometimes")
+
+
+def test_a_taught_pads_log_draws_the_pad_at_its_own_size(tmp_path, capsys):
+    """A flight over the 1 m helipad, kept by ``visland eval --keep-logs``: its log carries the
+    pad drawn, and the scene built from it (``log replay``/``log frame``, the live view) draws a
+    1 m pad, not the paper's 4 m one."""
+    from companion.flightlog import read_log
+    from companion.live.frame import pad_extent_m
+    from companion.live.messages import decoded, scene_update
+    from companion.live.replay import REPLAY_TOPICS, logged_frames
+    from tools.cli import main
+
+    assert pad_extent_m(None) == (4.0, 4.0)
+    assert pad_extent_m({"design": "x", "size_m": [2.0, 1.0]}) == (1.0, 2.0)  # (forward, across)
+    scenario = tmp_path / "helipad.toml"
+    scenario.write_text(
+        Path("configs/scenario.toml").read_text().replace("[75.0, 100.0]", "[18.75, 25.0]")
+        + '\n[pad]\ndesign = ["helipad_1m"]\n'
+    )
+    logs = tmp_path / "logs"
+    argv = ["eval", "--policy", "models/visland_vision_helipad_1m.pt", "--scenario", str(scenario)]
+    code = main([*argv, "--episodes", "1", "--keep-logs", str(logs), "--keep", "all", "--json"])
+    assert code == 0
+    (path,) = logs.glob("*.mcap")
+    log = read_log(path, REPLAY_TOPICS)
+    assert log.metadata["episode"]["pad"]["size_m"] == [1.0, 1.0]
+    frames = [f for f in logged_frames(log) if isinstance(f, LiveFrame)]
+    assert frames and all(f.pad_size_m == (1.0, 1.0) for f in frames)
+    pad = next(e for e in decoded(scene_update(frames[0], [])).entities if e.id == "pad")
+    assert (pad.cubes[0].size.x, pad.cubes[0].size.y) == (1.0, 1.0)

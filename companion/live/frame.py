@@ -4,6 +4,7 @@ and ``--live``'s argument (:func:`parse_live`)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,7 +14,14 @@ from companion.contract import Command, GroundTruth, Observation
 from companion.contract.messages import quat_from_euler
 from companion.contract.records import PolicyEstimateRecord
 
-__all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "live_frame", "parse_live", "with_truth"]
+__all__ = [
+    "DEFAULT_LIVE_PORT",
+    "LiveFrame",
+    "live_frame",
+    "pad_extent_m",
+    "parse_live",
+    "with_truth",
+]
 
 DEFAULT_LIVE_PORT = 8765
 """Foxglove's default WebSocket port."""
@@ -75,6 +83,16 @@ class LiveFrame:
     state: str | None = None
     link: dict[str, int] = field(default_factory=dict)
     stamp_ns: int | None = None
+
+
+def pad_extent_m(drawn_pad: Mapping[str, Any] | None) -> tuple[float, float]:
+    """A :class:`LiveFrame`'s ``pad_size_m`` (along the pad's forward axis, across it) from the
+    pad an episode drew (its world record's ``pad``: ``size_m`` = [width, height] as the pad's
+    image lies, north up); the paper's 4 m pad where none was drawn."""
+    if not drawn_pad or "size_m" not in drawn_pad:
+        return (4.0, 4.0)
+    width, height = (float(v) for v in drawn_pad["size_m"])
+    return (height, width)
 
 
 def live_frame(

@@ -43,7 +43,7 @@ from companion.contract.topics import (
     TOPIC_POLICY_ESTIMATE,
 )
 from companion.flightlog import FlightLog
-from companion.live.frame import LiveFrame, live_frame, with_truth
+from companion.live.frame import LiveFrame, live_frame, pad_extent_m, with_truth
 from companion.policy_net.guard import PadNotFound
 
 __all__ = ["REPLAY_TOPICS", "LoggedEvent", "logged_frames", "policy_of"]
@@ -95,6 +95,7 @@ def logged_frames(log: FlightLog, policy: Any = None) -> Iterator[LiveFrame | Lo
         ),
         key=lambda item: (item[0], rank[item[1]]),
     )
+    pad_size = pad_extent_m((log.metadata.get("episode") or {}).get("pad"))
     truth: GroundTruth | None = None
     obs_rec: Any = None
     command = None
@@ -127,6 +128,7 @@ def logged_frames(log: FlightLog, policy: Any = None) -> Iterator[LiveFrame | Lo
                     frame = live_frame(obs, truth, state, None)
                     frame.command = command
                     frame.time_s = t
+            frame.pad_size_m = pad_size
             frame.stamp_ns = rec.timestamp.sec * 1_000_000_000 + rec.timestamp.nsec
             yield frame
 

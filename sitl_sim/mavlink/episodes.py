@@ -51,6 +51,8 @@ class Episode:
     initial: InitialState
     seed_key: tuple[int, int]  # (config seed, episode index): a fresh SeedSequence per reset
     start_tick: int
+    drawn: dict = field(default_factory=dict)
+    """What its world drew (:meth:`sitl_sim.world.EpisodeWorld.record`)."""
 
 
 @dataclass
@@ -143,7 +145,7 @@ class Episodes:
                     "episode": {"index": index, "seed": cfg.seed, **drawn},
                 },
             )
-        self.current = Episode(index, initial, seed_key, self.clock.tick)
+        self.current = Episode(index, initial, seed_key, self.clock.tick, drawn)
         self.flight_log.write_record(
             TOPIC_SCENARIO,
             EpisodeScenarioRecord(

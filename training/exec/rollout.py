@@ -175,6 +175,8 @@ def fly_episode(
         tmp = log_path.with_suffix(".mcap.part")
         # config.vehicle is the vehicle file; the drawn factors, if any, go with the episode
         airframe = {} if env.airframe is None else {"airframe": env.airframe.to_dict()}
+        if "pad" in env.drawn:  # the pad design drawn (its size: what a log's scene draws)
+            airframe["pad"] = env.drawn["pad"]
         meta = {
             "config": {
                 "vehicle": env.vehicle.to_dict(),
