@@ -35,7 +35,22 @@ It costs nothing without a client: each part is built only when its channel has 
 client and drops the oldest for a slow one (a slow viewer loses frames, never setpoints).
 """
 
-from companion.live.frame import DEFAULT_LIVE_PORT, LiveFrame, live_frame, parse_live, with_truth
+from companion.live.frame import (
+    DEFAULT_LIVE_PORT,
+    LiveFrame,
+    live_frame,
+    pad_extent_m,
+    parse_live,
+    with_truth,
+)
 from companion.live.view import LiveView
 
-__all__ = ["DEFAULT_LIVE_PORT", "LiveFrame", "LiveView", "live_frame", "parse_live", "with_truth"]
+__all__ = [
+    "DEFAULT_LIVE_PORT",
+    "LiveFrame",
+    "LiveView",
+    "live_frame",
+    "pad_extent_m",
+    "parse_live",
+    "with_truth",
+]

@@ -20,6 +20,7 @@ import numpy as np
 
 from companion.contract.records import ABSENT, EpisodeResultRecord, EpisodeScenarioRecord, EventKind
 from companion.contract.topics import TOPIC_SCENARIO
+from companion.live.frame import pad_extent_m
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.world import EpisodeWorld, episode_world
@@ -51,8 +52,8 @@ class Episode:
     initial: InitialState
     seed_key: tuple[int, int]  # (config seed, episode index): a fresh SeedSequence per reset
     start_tick: int
-    drawn: dict = field(default_factory=dict)
-    """What its world drew (:meth:`sitl_sim.world.EpisodeWorld.record`)."""
+    pad_size_m: tuple[float, float] = (4.0, 4.0)
+    """The pad its world drew, as the live view draws it (:func:`companion.live.pad_extent_m`)."""
 
 
 @dataclass
@@ -145,7 +146,9 @@ class Episodes:
                     "episode": {"index": index, "seed": cfg.seed, **drawn},
                 },
             )
-        self.current = Episode(index, initial, seed_key, self.clock.tick, drawn)
+        self.current = Episode(
+            index, initial, seed_key, self.clock.tick, pad_extent_m(drawn.get("pad"))
+        )
         self.flight_log.write_record(
             TOPIC_SCENARIO,
             EpisodeScenarioRecord(

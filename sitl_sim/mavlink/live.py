@@ -23,10 +23,9 @@ __all__ = ["SitlLive"]
 class SitlLive:
     """The SITL's part that serves the live view (``address``: ``[HOST:]PORT``)."""
 
-    def __init__(self, address: str, pad_size_m: tuple[float, float] = (4.0, 4.0)) -> None:
+    def __init__(self, address: str) -> None:
         host, port = parse_live(address)
         self.view = LiveView(host, port, name="visland sitl")
-        self.pad_size_m = pad_size_m
         self._mode: str | None = None
         self.command: tuple[float, float, float, float] | None = None
 
@@ -38,8 +37,16 @@ class SitlLive:
             else (command.thrust_norm, *(float(v) for v in command.rate_frd_rad_s))
         )
 
-    def frame(self, frame: CameraFrame, truth: GroundTruth, mode: str, range_m: float) -> None:
-        """One camera frame (only built while a client watches)."""
+    def frame(
+        self,
+        frame: CameraFrame,
+        truth: GroundTruth,
+        mode: str,
+        range_m: float,
+        pad_size_m: tuple[float, float],
+    ) -> None:
+        """One camera frame (only built while a client watches); ``pad_size_m``: the episode's
+        pad (:func:`companion.live.pad_extent_m`)."""
         if mode != self._mode:
             self.view.event(truth.time_s, f"mode {mode}")
             self._mode = mode
@@ -49,7 +56,7 @@ class SitlLive:
             time_s=frame.exposure_time_s,
             image=frame.image,
             quat_wxyz=np.asarray(truth.quat_wxyz, float),
-            pad_size_m=self.pad_size_m,
+            pad_size_m=pad_size_m,
             command=self.command,
             range_m=range_m,
             state=mode,

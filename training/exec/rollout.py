@@ -173,17 +173,16 @@ def fly_episode(
     tmp = None
     if log_path is not None:
         tmp = log_path.with_suffix(".mcap.part")
-        # config.vehicle is the vehicle file; the drawn factors, if any, go with the episode
-        airframe = {} if env.airframe is None else {"airframe": env.airframe.to_dict()}
-        if "pad" in env.drawn:  # the pad design drawn (its size: what a log's scene draws)
-            airframe["pad"] = env.drawn["pad"]
+        # config.vehicle is the vehicle file; the drawn factors, if any, go with the episode,
+        # and so does the pad design drawn (its size: what a log's scene draws)
+        drawn = {k: env.drawn[k] for k in ("airframe", "pad") if k in env.drawn}
         meta = {
             "config": {
                 "vehicle": env.vehicle.to_dict(),
                 "sim": env.sim_config.to_dict(),
                 "scenario": env.scenario.to_dict(),
             },
-            "episode": {"seed": seed, "episode_index": index, "source": source, **airframe},
+            "episode": {"seed": seed, "episode_index": index, "source": source, **drawn},
             **(metadata or {}),
         }
         log = FlightLogWriter(tmp, meta, reproducible=True)
