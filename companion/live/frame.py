@@ -26,6 +26,9 @@ __all__ = [
 DEFAULT_LIVE_PORT = 8765
 """Foxglove's default WebSocket port."""
 
+PAPER_PAD_EXTENT_M = (4.0, 4.0)
+"""The paper's pad (along its forward axis, across it): the extent where no other was drawn."""
+
 
 def parse_live(text: str) -> tuple[str, int]:
     """``[HOST:]PORT`` -> ``(host, port)``; the host defaults to 127.0.0.1 (this machine only).
@@ -72,7 +75,7 @@ class LiveFrame:
     quat_wxyz: np.ndarray | None = None
     pad_pos_ned_m: np.ndarray | None = None
     pad_quat_wxyz: np.ndarray | None = None
-    pad_size_m: tuple[float, float] = (4.0, 4.0)
+    pad_size_m: tuple[float, float] = PAPER_PAD_EXTENT_M
     perception: tuple[float, float, float] | None = None
     estimate_rel_ned_m: np.ndarray | None = None
     estimate_sigma_m: np.ndarray | None = None
@@ -90,7 +93,7 @@ def pad_extent_m(drawn_pad: Mapping[str, Any] | None) -> tuple[float, float]:
     pad an episode drew (its world record's ``pad``: ``size_m`` = [width, height] as the pad's
     image lies, north up); the paper's 4 m pad where none was drawn."""
     if not drawn_pad or "size_m" not in drawn_pad:
-        return (4.0, 4.0)
+        return PAPER_PAD_EXTENT_M
     width, height = (float(v) for v in drawn_pad["size_m"])
     return (height, width)
 

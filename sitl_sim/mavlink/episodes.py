@@ -20,7 +20,7 @@ import numpy as np
 
 from companion.contract.records import ABSENT, EpisodeResultRecord, EpisodeScenarioRecord, EventKind
 from companion.contract.topics import TOPIC_SCENARIO
-from companion.live.frame import pad_extent_m
+from companion.live.frame import PAPER_PAD_EXTENT_M, pad_extent_m
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.metrics import EpisodeResult
 from sitl_sim.world import EpisodeWorld, episode_world
@@ -52,7 +52,7 @@ class Episode:
     initial: InitialState
     seed_key: tuple[int, int]  # (config seed, episode index): a fresh SeedSequence per reset
     start_tick: int
-    pad_size_m: tuple[float, float] = (4.0, 4.0)
+    pad_size_m: tuple[float, float] = PAPER_PAD_EXTENT_M
     """The pad its world drew, as the live view draws it (:func:`companion.live.pad_extent_m`)."""
 
 

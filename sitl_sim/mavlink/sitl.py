@@ -67,6 +67,7 @@ from companion.contract import Command
 from companion.contract.camera_packet import encode_frame
 from companion.contract.perf import PERF_LINE_PREFIX, LoopPerf, pin_to_cpus
 from companion.contract.records import EventKind
+from companion.live.frame import PAPER_PAD_EXTENT_M
 from sitl_sim.autopilot.ardupilot import new_autopilot
 from sitl_sim.autopilot.land_controller import CascadeLandController
 from sitl_sim.autopilot.px4 import FlightMode, LandController
@@ -488,7 +489,7 @@ class MavlinkSitl:
             if self.live is not None:
                 rng = self.sim.radar.true_range(gt.pos_ned_m, gt.quat_wxyz, gt.time_s)  # no draw
                 episode = self.episodes.current
-                pad = episode.pad_size_m if episode is not None else (4.0, 4.0)
+                pad = episode.pad_size_m if episode is not None else PAPER_PAD_EXTENT_M
                 self.live.frame(frame, gt, self.autopilot.mode_label, rng, pad)
         else:
             self.camera_frames_dropped += 1
