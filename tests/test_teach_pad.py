@@ -194,6 +194,28 @@ def test_pad_worlds_scale_altitudes_keep_files_and_seeds(tmp_path):
     assert default.worlds[0].scenario.altitude_m == pytest.approx((18.75, 25.0))
 
 
+def test_pad_worlds_keep_the_carrier_of_a_carried_pad(tmp_path):
+    """A rover's or a deck's pad, taught, is still carried: only the design changes (the paper's
+    pad taught in the sites' worlds, profile ``robust_sites_teach``, trains on rovers and
+    decks); the teach's bare-ground frames lie at distances scaled with the pad."""
+    from training.stages.teach import pose_sampling
+
+    teach = teach_pad(HELIPAD)
+    for site in ("rover_fast", "deck_moderate"):
+        source = single_world(str(REPO / "configs" / "sites" / f"{site}.toml"))
+        (w,) = pad_worlds(source, teach, tmp_path / site).worlds
+        before = source.worlds[0].scenario.pad
+        assert [d.name for d in w.scenario.pad.designs] == ["helipad_1m"]
+        assert w.scenario.pad.motion == before.motion != "static"
+        for key in ("height_m", "speed_m_s", "turn_rate_deg_s", "heave_m", "roll_deg"):
+            assert getattr(w.scenario.pad, key) == getattr(before, key), key
+    sampling = pose_sampling(teach, 0.05)
+    assert sampling.away_fraction == 0.05
+    assert sampling.away_m == pytest.approx((10.0, 75.0))  # 40-300 m x 0.25
+    assert "away_m" not in pose_sampling(teach).key()  # no bare ground: the cache key as before
+    assert PROFILES["robust_sites_teach"].perception_away_fraction == 0.05
+
+
 # --------------------------------------------------------------------------- end to end
 
 
@@ -267,6 +289,20 @@ def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path,
     assert "--pad configs/pads/helipad_1m.toml --from" in card
     for name in ("nominal", "low_sun", "unseen_terrain", "wind_moderate_gusts"):
         assert f"| {name} |" in card
+    # under a variant's name (a run that taught the paper's pad in other worlds), with a suite
+    # flown by the run's model; a report of another model is refused before anything is written
+    other = tmp_path / "variant"
+    args = ("ship", "--run", str(taught), "--out", str(other), "--name", "sites")
+    code, _, err = run(capsys, *args, "--suite-report", m.baseline)
+    assert code == 2 and "is not the model being shipped" in err and not other.exists()
+    code, out, err = run(capsys, *args, "--suite-report", m.report)
+    assert code == 0, err
+    model = other / "visland_vision_sites.pt"
+    card = (other / "visland_vision_sites.md").read_text()
+    assert sha256_file(model) == sha256_file(taught / "checkpoints" / "vision.pt")
+    assert sorted(p.name for p in other.glob("*.md")) == ["visland_vision_sites.md"]
+    assert f"visland ship --run {taught} --name sites" in card
+    assert f"## Results on `{SuiteReport.load(m.report).suite}`" in card
 
 
 def test_pad_vision_rounds_stop_when_validation_stops_improving(tmp_path, monkeypatch):

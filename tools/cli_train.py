@@ -103,27 +103,21 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
+    from training.ship import ship
     from training.ship_pad import is_pad_run, ship_pad
 
-    if is_pad_run(args.run):
-        if args.name or args.suite_report:
-            print(
-                f"visland ship: {args.run} taught a pad; it ships as "
-                "models/visland_vision_<pad>.pt by the pad's name (--name and --suite-report "
-                "are for runs of the paper's pad)",
-                file=sys.stderr,
-            )
-            return 2
-        dst = ship_pad(args.run, args.out)
-        print(f"shipped {dst} with {dst.with_suffix('.md')}")
-        return 0
-    from training.ship import ship
-
+    pad_run = is_pad_run(args.run)
     try:
-        dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
+        if pad_run:
+            dst = ship_pad(args.run, args.out, args.name, tuple(args.suite_report))
+        else:
+            dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
     except ValueError as exc:
         print(f"visland ship: {exc}", file=sys.stderr)
         return 2
+    if pad_run:
+        print(f"shipped {dst} with {dst.with_suffix('.md')}")
+        return 0
     card = dst.parent / ("MODEL_CARD.md" if args.name is None else dst.with_suffix(".md").name)
     print(f"shipped {dst} with {card}")
     return 0
@@ -236,7 +230,8 @@ def register_training(sub: argparse._SubParsersAction) -> None:
         "--name",
         default=None,
         help="ship a variant beside the default model: models/visland_vision_NAME.pt with its "
-        "own card models/visland_vision_NAME.md (the default model and MODEL_CARD.md stay)",
+        "own card models/visland_vision_NAME.md (the default model and MODEL_CARD.md stay); "
+        "a run that taught a pad ships by the pad's name unless this is given",
     )
     sh.add_argument(
         "--suite-report",

@@ -203,9 +203,9 @@ def file_text(path: Path) -> str:
 
 
 def pad_scenario_table(scenario: Scenario, teach: PadTeach) -> dict[str, Any]:
-    """``scenario`` as a scenario table with ``[pad] design`` the taught pad and its altitudes
-    scaled by ``teach.scale``; the files it names (ground pictures) by paths that resolve from
-    anywhere (:func:`file_text`)."""
+    """``scenario`` as a scenario table with ``[pad] design`` the taught pad (a rover's or a
+    deck's pad keeps its motion) and its altitudes scaled by ``teach.scale``; the files it
+    names (ground pictures) by paths that resolve from anywhere (:func:`file_text`)."""
     table: dict[str, Any] = {"initial_state": section_dict(scenario)}
     lo, hi = scenario.altitude_m
     table["initial_state"]["altitude_m"] = [lo * teach.scale, hi * teach.scale]
@@ -217,7 +217,11 @@ def pad_scenario_table(scenario: Scenario, teach: PadTeach) -> dict[str, Any]:
     visual = scenario.visual
     if visual is not None and visual.ground_paths:
         table["visual"]["ground_image"] = [file_text(p) for p in visual.ground_paths]
-    table["pad"] = {"design": [teach.design_text]}
+    # a carried pad keeps its carrier (a rover, a deck): only the design changes
+    pad = scenario.pad
+    keep = {} if pad is None or pad.still_on_ground else section_dict(pad, drop_none=True)
+    keep.pop("design", None)
+    table["pad"] = {"design": [teach.design_text], **keep}
     return table
 
 

@@ -405,3 +405,19 @@ PROFILES["robust_sites_clear"] = replace(
 PROFILES["robust_sites_clear3"] = replace(
     PROFILES["robust_sites_clear"], name="robust_sites_clear3", perception_away_fraction=0.03
 )
+
+# Teach the shipped model the sites (issue 32): a pad run (`visland pipeline --profile
+# robust_sites_teach --pad configs/pads/paper.toml --from models/visland_vision.pt --out
+# runs/sites_teach`) keeps the shipped controller and fine-tunes its CNN — which knows bare
+# ground (2 % false fixes where robust_sites_cnn's, trained from scratch on the sites, had 53 %)
+# — on frames of the robust_sites worlds, 55 % of them with a site and 5 % over bare ground, at
+# the robust teach's low-sun gains; no vision round (the controller is the shipped one).
+PROFILES["robust_sites_teach"] = replace(
+    PROFILES["robust"],
+    name="robust_sites_teach",
+    worlds="configs/train/robust_sites.toml",
+    perception_site_share=0.55,
+    perception_away_fraction=0.05,
+    vision_rounds=0,
+    eval_suite_baseline=None,
+)

@@ -20,7 +20,7 @@ from training.report.metrics import load_metrics
 from training.report.targets import fmt, value_text
 from training.reports import SuiteReport
 
-__all__ = ["ship", "variant_file"]
+__all__ = ["extra_suite_section", "ship", "variant_file"]
 
 
 def variant_file(variant: str | None) -> str:
@@ -38,7 +38,7 @@ def variant_file(variant: str | None) -> str:
     return f"{SHIPPED_MODEL.stem}_{variant}{SHIPPED_MODEL.suffix}"
 
 
-def _extra_suite_section(path: Path, model: Path) -> str:
+def extra_suite_section(path: Path, model: Path) -> str:
     """A suite report flown with this run's model outside its eval stage (``visland eval
     --suite FILE --policy ... --json``), as a card section. A report of another model (its
     policy file's sha256 differs from the shipped file's) is refused."""
@@ -210,7 +210,7 @@ def ship(
     src = run / "checkpoints" / "vision.pt"
     policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
     # a report of another model is refused before anything in ``out`` is replaced
-    extra_sections = "".join(_extra_suite_section(Path(p), src) for p in suite_reports)
+    extra_sections = "".join(extra_suite_section(Path(p), src) for p in suite_reports)
     out.mkdir(parents=True, exist_ok=True)
     dst = out / name
     shutil.copyfile(src, dst)

@@ -19,6 +19,7 @@ from companion.files import sha256_file
 from companion.policy_net import load_policy
 from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, file_text
 from training.reports import EvalReport, SuiteReport
+from training.ship import extra_suite_section, variant_file
 
 __all__ = ["TARGET_MEAN_ERROR_M", "TARGET_SUCCESS", "is_pad_run", "ship_pad"]
 
@@ -101,22 +102,34 @@ def _stage_times(run: Path) -> tuple[str, float]:
     return "; ".join(parts) or "not recorded", total
 
 
-def ship_pad(run: str | Path, out: str | Path = "models") -> Path:
-    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/visland_vision_<pad>.pt``, export its
-    ONNX graphs beside it and write ``<out>/visland_vision_<pad>.md``; returns the model file.
+def ship_pad(
+    run: str | Path,
+    out: str | Path = "models",
+    variant: str | None = None,
+    suite_reports: tuple[str | Path, ...] = (),
+) -> Path:
+    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/visland_vision_<pad>.pt`` (a
+    ``variant``: ``visland_vision_<variant>.pt`` — a run that taught the paper's pad in other
+    worlds must not take the paper-world model's name), export its ONNX graphs beside it and
+    write its card (``.md`` beside it); ``suite_reports``: suites flown with the run's model
+    outside its eval stage, each a section of the card. Returns the model file.
 
     Raises:
         FileNotFoundError: the run's eval stage has not finished.
+        ValueError: a bad variant name, or a suite report of another model (before anything
+            in ``out`` is replaced).
     """
     run, out = Path(run), Path(out)
     metrics_path = run / "pad_metrics.json"
     if not metrics_path.exists():
         raise FileNotFoundError(f"{metrics_path}: run the pad run's eval stage first")
     m = PadMetrics.from_dict(json.loads(metrics_path.read_text()), str(metrics_path))
+    name = variant_file(variant) if variant else f"visland_vision_{m.pad.name}.pt"
     src = run / "checkpoints" / "vision.pt"
     policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
+    extra_sections = "".join(extra_suite_section(Path(p), src) for p in suite_reports)
     out.mkdir(parents=True, exist_ok=True)
-    dst = out / f"visland_vision_{m.pad.name}.pt"
+    dst = out / name
     shutil.copyfile(src, dst)
     from companion.onnx_export import export_onnx
 
@@ -160,7 +173,7 @@ the pad's envelope (`visland pad info --pad {m.pad.name}`).
 ## How it was made
 
     visland pipeline --profile {m.profile.name} --pad {pad_file} {from_text} --out {run}
-    visland ship --run {run}
+    visland ship --run {run}{f" --name {variant}" if variant else ""}
 
 - commit: `{m.git_commit}`; started at `{m.source.commit}`.
 - worlds: the profile's (`{m.profile.worlds or "configs/scenario.toml"}`) with `[pad] design`
@@ -191,7 +204,7 @@ Each cell: success (episodes), mean and max landing error, mean touchdown speed.
 
 {target_table}
 
-## Runtime (one thread, batch 1)
+{extra_sections}## Runtime (one thread, batch 1)
 
 This policy: median {_num(timing.get("median_ms"), 3, " ms")} per step, p99
 {_num(timing.get("p99_ms"), 3, " ms")}.
@@ -203,5 +216,5 @@ true size, matte), over procedural grounds, Earth and Mars. A real camera, real 
 real pad need a check before flight: `visland pad check` on a photo of the laid-out pad, then
 the companion's shadow mode (`docs/deploy.md`).
 """
-    (out / f"visland_vision_{m.pad.name}.md").write_text(card)
+    dst.with_suffix(".md").write_text(card)
     return dst

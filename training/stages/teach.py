@@ -57,11 +57,17 @@ def _teach(r: Run) -> tuple[PadTeach, SourceRecord]:
     return r.pad, src
 
 
-def pose_sampling(pad: PadTeach) -> PoseSampling:
+def pose_sampling(pad: PadTeach, away_fraction: float = 0.0) -> PoseSampling:
     """The pose distribution of perception frames, its altitudes scaled to the pad's envelope
-    (the paper pad's 1-110 m become 0.25-27.5 m for a 1 m pad)."""
-    lo, hi = PoseSampling().altitude_m
-    return PoseSampling(altitude_m=(lo * pad.scale, hi * pad.scale))
+    (the paper pad's 1-110 m become 0.25-27.5 m for a 1 m pad), ``away_fraction`` of them over
+    bare ground at distances scaled the same way (the profile's ``perception_away_fraction``)."""
+    plain = PoseSampling()
+    (lo, hi), (near, far) = plain.altitude_m, plain.away_m
+    return PoseSampling(
+        altitude_m=(lo * pad.scale, hi * pad.scale),
+        away_fraction=away_fraction,
+        away_m=(near * pad.scale, far * pad.scale),
+    )
 
 
 def perception(r: Run) -> PerceptionRecord:
@@ -73,7 +79,12 @@ def perception(r: Run) -> PerceptionRecord:
     cfg, control, cnn, _ = load_networks(src.checkpoint)
     assert cnn is not None  # checked when the run started (check_source)
     torch.manual_seed(p.seed)
-    extra = pose_frames(r, p.pad_pose_frames, pose_sampling(pad), f" with pad {pad.design.name}")
+    extra = pose_frames(
+        r,
+        p.pad_pose_frames,
+        pose_sampling(pad, p.perception_away_fraction),
+        f" with pad {pad.design.name}",
+    )
     steps = p.pad_perception_epochs * max(1, (p.pad_pose_frames - round(0.1 * len(extra[0]))) // 64)
     fit = fit_cnn(
         r,
