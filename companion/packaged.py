@@ -3,7 +3,8 @@
 
 ``companion/assets/`` holds the hardware config template (``companion.toml``: the companion's
 defaults, what ``visland companion`` loads when no ``--config`` is given) and the shipped model
-beside it (``visland_vision.pt`` with its ``visland export-onnx`` graphs). In a source tree the
+beside it (``visland_vision.pt`` with its ``visland export-onnx`` graphs, and the sites
+variant ``visland_vision_sites.pt`` with its own). In a source tree the
 model files are links to ``models/`` (what ``visland ship`` writes); the wheel holds copies
 (``pyproject.toml``, ``[tool.setuptools.package-data]``; ``make wheel``).
 """
@@ -28,9 +29,14 @@ MODEL_FILES = (
     "visland_vision.pt",
     "visland_vision.perception.onnx",
     "visland_vision.control.onnx",
+    "visland_vision_sites.pt",
+    "visland_vision_sites.perception.onnx",
+    "visland_vision_sites.control.onnx",
 )
-"""The shipped model in ``companion/assets/``: the checkpoint, then its two ONNX graphs (they
-stay together: the graphs carry the checkpoint's sha256)."""
+"""The shipped models in ``companion/assets/``: the default model's checkpoint (first: the
+config template's ``policy``), its two ONNX graphs (they stay together: the graphs carry the
+checkpoint's sha256), then the variant for a pad carried by a rover or a deck
+(``visland ship --name sites``; ``policy = "visland_vision_sites.pt"``) with its graphs."""
 
 
 class PackageDataError(FileNotFoundError):

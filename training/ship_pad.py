@@ -161,7 +161,9 @@ def ship_pad(
     timing = m.timing.get("policy", {}).get("shipped", {})
     pad_file = file_text(Path(m.pad.file))
     from_text = f"--from {m.source.run}" if m.source.run else f"--from {m.source.checkpoint}"
-    card = f"""# visland vision landing policy for pad `{m.pad.name}` — model card
+    worlds = m.profile.worlds or "configs/scenario.toml"
+    title = f"pad `{m.pad.name}`" + (f" in the worlds of `{worlds}`" if variant else "")
+    card = f"""# visland vision landing policy `{dst.name}` for {title} — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): the controller and estimator of `{source.name}` (sha256
@@ -176,7 +178,7 @@ the pad's envelope (`visland pad info --pad {m.pad.name}`).
     visland ship --run {run}{f" --name {variant}" if variant else ""}
 
 - commit: `{m.git_commit}`; started at `{m.source.commit}`.
-- worlds: the profile's (`{m.profile.worlds or "configs/scenario.toml"}`) with `[pad] design`
+- worlds: the profile's (`{worlds}`) with `[pad] design`
   set and every start altitude × {m.pad.altitude_scale:g} (`{run}/worlds/`).
 - perception: {pr.pose_images} frames rendered at sampled poses with the pad (altitudes
   × {m.pad.altitude_scale:g}), {pr.epochs} epoch(s) from `{source.name}`'s CNN
