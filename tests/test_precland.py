@@ -439,6 +439,33 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
         assert not flight.topic("/mavlink/in/SET_ATTITUDE_TARGET")
 
 
+def test_card_the_sites_variant_hands_a_slow_rover_to_auto_precland(tmp_path):
+    """The installed sites variant (``policy = "visland_vision_sites.pt"``: the package's copy)
+    through the companion in landing-target mode, the SITL's precision land in moving mode
+    following its fixes onto a rover's roof (configs/sites/rover_slow.toml), 3 episodes of the
+    evaluation seed (20 of 20: mean 0.21 m, max 0.79 m; docs/deploy.md "A pad that moves")."""
+    from companion.packaged import asset_path
+
+    report = fly(
+        FlyConfig(
+            policy=str(asset_path("visland_vision_sites.pt")),
+            companion_mode="landing-target",
+            scenario="configs/sites/rover_slow.toml",
+            episodes=3,
+            out=str(tmp_path / "run"),
+            progress=False,
+            companion_args=("--max-age-ms", "3000"),
+            sitl_args=("--lockstep-timeout-s", "5"),
+        )
+    )
+    assert report.summary.success_rate == 1.0, report.per_episode
+    assert all(row.touched_pad for row in report.per_episode), report.per_episode
+    assert report.summary.landing_error_m.max <= 0.8, report.summary.landing_error_m
+    for row in report.per_episode:
+        flight = read_log(row.log)
+        assert flight.topic("/episode/result")[-1]["landing_target"]["accepted"] > 200
+
+
 def _landing_target_pair(procs, tmp_path, companion_extra=(), sitl_extra=()):
     """A companion in landing-target mode (the shipped model) and a SITL on loopback, both
     ending within 120 s of wall time; returns (companion, sitl, the SITL's log folder)."""
