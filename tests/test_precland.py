@@ -410,13 +410,14 @@ def test_moving_mode_lands_on_a_fast_turning_rover_from_true_targets(tmp_path, e
     assert r.success and r.touched_pad and r.landing_error_m < 0.8, r
 
 
-def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precland(tmp_path):
-    """The shipped vision model's camera estimator only; the SITL's precision land flies on its
-    own GPS-less estimate. Lockstep, 3 nominal episodes of the evaluation seed."""
-    report = fly(
+def _fly_landing_target(tmp_path, policy: str, scenario: str | None = None):
+    """``visland fly --companion-mode landing-target``, 3 episodes of the evaluation seed in
+    lockstep: the companion's camera estimator only, the SITL's precision land flying."""
+    return fly(
         FlyConfig(
-            policy=DEFAULT_VISION_POLICY,
+            policy=policy,
             companion_mode="landing-target",
+            scenario=scenario,
             episodes=3,
             out=str(tmp_path / "run"),
             progress=False,
@@ -424,6 +425,12 @@ def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precla
             sitl_args=("--lockstep-timeout-s", "5"),
         )
     )
+
+
+def test_card_landing_target_mode_lands_the_nominal_scenario_through_auto_precland(tmp_path):
+    """The shipped vision model's camera estimator only; the SITL's precision land flies on its
+    own GPS-less estimate. Lockstep, 3 nominal episodes of the evaluation seed."""
+    report = _fly_landing_target(tmp_path, DEFAULT_VISION_POLICY)
     assert report.companion_mode == "landing-target" and report.episodes == 3
     assert report.summary.success_rate == 1.0, report.per_episode
     assert report.summary.landing_error_m.mean <= 0.5, report.summary.landing_error_m
@@ -446,18 +453,8 @@ def test_card_the_sites_variant_hands_a_slow_rover_to_auto_precland(tmp_path):
     evaluation seed (20 of 20: mean 0.21 m, max 0.79 m; docs/deploy.md "A pad that moves")."""
     from companion.packaged import asset_path
 
-    report = fly(
-        FlyConfig(
-            policy=str(asset_path("visland_vision_sites.pt")),
-            companion_mode="landing-target",
-            scenario="configs/sites/rover_slow.toml",
-            episodes=3,
-            out=str(tmp_path / "run"),
-            progress=False,
-            companion_args=("--max-age-ms", "3000"),
-            sitl_args=("--lockstep-timeout-s", "5"),
-        )
-    )
+    policy = str(asset_path("visland_vision_sites.pt"))
+    report = _fly_landing_target(tmp_path, policy, "configs/sites/rover_slow.toml")
     assert report.summary.success_rate == 1.0, report.per_episode
     assert all(row.touched_pad for row in report.per_episode), report.per_episode
     assert report.summary.landing_error_m.max <= 0.8, report.summary.landing_error_m

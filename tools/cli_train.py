@@ -115,10 +115,7 @@ def _cmd_ship(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"visland ship: {exc}", file=sys.stderr)
         return 2
-    if pad_run:
-        print(f"shipped {dst} with {dst.with_suffix('.md')}")
-        return 0
-    card = dst.parent / ("MODEL_CARD.md" if args.name is None else dst.with_suffix(".md").name)
+    card = dst.with_suffix(".md") if pad_run or args.name else dst.parent / "MODEL_CARD.md"
     print(f"shipped {dst} with {card}")
     return 0
 
