@@ -90,26 +90,15 @@ def _keep_logs(
         if src.exists() and (cfg.keep == "all" or not row.success):
             dst = out_dir / f"{cfg.condition}_s{cfg.seed}_ep{row.episode:04d}.mcap"
             src.replace(dst)
-            _with_scene(dst)
             path = str(dst)
         kept.append(replace(row, log=path))
     shutil.rmtree(staging, ignore_errors=True)
+    if any(row.log for row in kept):
+        # a kept log opens in Foxglove as a live flight does (companion.live.scene_log)
+        from companion.live.scene_log import add_scenes
+
+        add_scenes([(Path(str(row.log)), None) for row in kept if row.log], "visland eval")
     return tuple(kept)
-
-
-def _with_scene(path: Path) -> None:
-    """A kept log with the live view's picture in it (:mod:`companion.live.scene_log`), so it
-    opens in Foxglove as a live flight does; as it was where foxglove-sdk is not installed or
-    it has no camera frames (``--no-camera``)."""
-    from companion.flightlog import FlightLogError
-    from companion.live.scene_log import add_scene
-
-    try:
-        add_scene(path)
-    except ImportError:
-        return
-    except FlightLogError as exc:
-        print(f"visland eval: {path} kept without its scene: {exc}", file=sys.stderr)
 
 
 def _fly(

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +78,38 @@ Off pad: touchdowns more than 2 m from the pad (the unsafe failures); aborts: fl
 in the air for want of a pad. On a site the error and touchdown speed are in the pad's frame.
 
 """
+
+
+@dataclass(frozen=True)
+class InstalledModel:
+    """What :func:`install_model` put in place, for the card written beside it."""
+
+    policy: Any
+    path: Path
+    extra_sections: str
+    n_params: int
+
+
+def install_model(
+    run: Path, out: Path, name: str, suite_reports: Sequence[str | Path]
+) -> InstalledModel:
+    """Copy ``run``'s vision checkpoint to ``out/name`` with its ONNX export. The checkpoint
+    is loaded first (a corrupt or foreign file is refused) and each suite report is checked
+    against it (a report of another model is refused) before anything in ``out`` is replaced;
+    returns the loaded policy, the installed path and the reports' card sections."""
+    src = run / "checkpoints" / "vision.pt"
+    policy = load_policy(src)
+    extra_sections = "".join(extra_suite_section(Path(p), src) for p in suite_reports)
+    out.mkdir(parents=True, exist_ok=True)
+    dst = out / name
+    shutil.copyfile(src, dst)
+    from companion.onnx_export import export_onnx
+
+    export_onnx(dst)
+    n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
+        p.numel() for p in policy.perception.parameters()
+    )
+    return InstalledModel(policy, dst, extra_sections, n_params)
 
 
 def _suite_section(metrics: dict[str, Any], shipped: str) -> str:
@@ -207,16 +241,8 @@ def ship(
     if not metrics_path.exists():
         raise FileNotFoundError(f"{metrics_path}: run the pipeline's eval stage first")
     metrics = json.loads(metrics_path.read_text())
-    src = run / "checkpoints" / "vision.pt"
-    policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
-    # a report of another model is refused before anything in ``out`` is replaced
-    extra_sections = "".join(extra_suite_section(Path(p), src) for p in suite_reports)
-    out.mkdir(parents=True, exist_ok=True)
-    dst = out / name
-    shutil.copyfile(src, dst)
-    from companion.onnx_export import export_onnx
-
-    export_onnx(dst)
+    shipped = install_model(run, out, name, suite_reports)
+    policy, dst, extra_sections = shipped.policy, shipped.path, shipped.extra_sections
     prof = metrics["profile"]
     stages = metrics.get("stages", {})
     timing = metrics.get("timing", {})
@@ -227,9 +253,7 @@ def ship(
         session_times = json.loads(tpath.read_text()).get("sessions", [])
     total_s = sum(s["seconds"] for s in session_times)
     perception = stages.get("perception") or {}
-    n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
-        p.numel() for p in policy.perception.parameters()
-    )
+    n_params = shipped.n_params
     paper_mpc_ms = 1000 * PAPER_RUNTIME_S["mpc_mean"]
     paper_pol_ms = 1000 * PAPER_RUNTIME_S["policy_mean"]
     cfg = policy.config

@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from pathlib import Path
 from typing import Any
 
 from companion.files import sha256_file
-from companion.policy_net import load_policy
 from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, file_text
 from training.reports import EvalReport, SuiteReport
-from training.ship import extra_suite_section, variant_file
+from training.ship import install_model, variant_file
 
 __all__ = ["TARGET_MEAN_ERROR_M", "TARGET_SUCCESS", "is_pad_run", "ship_pad"]
 
@@ -125,23 +123,14 @@ def ship_pad(
         raise FileNotFoundError(f"{metrics_path}: run the pad run's eval stage first")
     m = PadMetrics.from_dict(json.loads(metrics_path.read_text()), str(metrics_path))
     name = variant_file(variant) if variant else f"visland_vision_{m.pad.name}.pt"
-    src = run / "checkpoints" / "vision.pt"
-    policy = load_policy(src)  # refuses a corrupt or foreign file before it is shipped
-    extra_sections = "".join(extra_suite_section(Path(p), src) for p in suite_reports)
-    out.mkdir(parents=True, exist_ok=True)
-    dst = out / name
-    shutil.copyfile(src, dst)
-    from companion.onnx_export import export_onnx
-
-    export_onnx(dst)
+    shipped = install_model(run, out, name, suite_reports)
+    policy, dst, extra_sections = shipped.policy, shipped.path, shipped.extra_sections
     report, baseline = SuiteReport.load(m.report), SuiteReport.load(m.baseline)
     source = Path(m.source.checkpoint)
     table = suite_table(report, baseline, (dst.name, source.name))
     target_table, met, total = targets(report)
     times, total_s = _stage_times(run)
-    n_params = sum(p.numel() for p in policy.control.parameters()) + sum(
-        p.numel() for p in policy.perception.parameters()
-    )
+    n_params = shipped.n_params
     pr, vr = m.perception, m.vision
     lo, hi = m.pad.start_altitude_m
     prior = next((v for v in vr.validation if v.checkpoint == vr.selected), None)

@@ -45,7 +45,7 @@ from companion.live.messages import (
 )
 from companion.live.replay import REPLAY_TOPICS, LoggedEvent, logged_frames, policy_of
 
-__all__ = ["SCENE_TOPICS", "SceneChannel", "SceneReport", "SceneStream", "add_scene"]
+__all__ = ["SCENE_TOPICS", "SceneChannel", "SceneReport", "SceneStream", "add_scene", "add_scenes"]
 
 SCENE_TOPICS = (
     "/camera/calibration",
@@ -181,6 +181,27 @@ class SceneStream:
         return self._encoded(
             "/log", Log(timestamp=stamp_ns(ns), level=level, message=text, name="visland")
         )
+
+
+def add_scenes(logs: list[tuple[Path, str | None]], who: str) -> int:
+    """:func:`add_scene` on each ``(log, policy)`` where it can be drawn, for a command that
+    keeps logs (``visland eval --keep-logs``, ``visland fly --scene``): a log that cannot be
+    drawn stays as it was and ``who`` says so on stderr; without foxglove-sdk every log stays as
+    it was, said once. Returns how many logs got their scene."""
+    import sys
+
+    done = 0
+    for path, policy in logs:
+        try:
+            add_scene(path, policy=policy)
+        except ImportError as exc:
+            print(f"{who}: the scene needs foxglove-sdk ({exc}): logs as they are", file=sys.stderr)
+            return done
+        except FlightLogError as exc:
+            print(f"{who}: {path} left without its scene: {exc}", file=sys.stderr)
+        else:
+            done += 1
+    return done
 
 
 def _scene_messages(log: Any, policy: Any) -> list[tuple[int, str, SceneChannel, bytes]]:

@@ -29,7 +29,7 @@ from typing import Any
 
 from companion.contract.records import ABSENT, EpisodeResultRecord
 from companion.contract.topics import TOPIC_RESULT
-from companion.flightlog import FlightLogError, read_log
+from companion.flightlog import read_log
 from companion.record import latency_stats
 from sitl_sim.config import load_sim
 from sitl_sim.metrics import EpisodeResult
@@ -374,17 +374,10 @@ def fly(cfg: FlyConfig) -> FlyReport:
 def _with_scenes(cfg: FlyConfig, sitl_logs: list[Path], companion_logs: list[Path]) -> None:
     """:attr:`FlyConfig.scene`: each log with the live view's picture in it (as it was where
     foxglove-sdk is missing or a log cannot be drawn: said on stderr)."""
-    from companion.live.scene_log import add_scene
+    from companion.live.scene_log import add_scenes
 
     vision = cfg.policy if Path(cfg.policy).is_file() else None
-    for path, policy in [(p, vision) for p in sitl_logs] + [(p, None) for p in companion_logs]:
-        try:
-            add_scene(path, policy=policy)
-        except ImportError as exc:
-            print(f"fly: --scene needs foxglove-sdk ({exc}): logs as they are", file=sys.stderr)
-            return
-        except FlightLogError as exc:
-            print(f"fly: {path} left without its scene: {exc}", file=sys.stderr)
+    add_scenes([(p, vision) for p in sitl_logs] + [(p, None) for p in companion_logs], "fly")
 
 
 def fly_report(
