@@ -172,7 +172,7 @@ def test_the_sites_variant_takes_no_bare_ground_for_a_pad(tmp_path):
     """The variant for carried pads (``models/visland_vision_sites.pt``: its CNN has seen cabs,
     hulls and rocks beside pads, and bare ground with none) ends a flight with no pad in view
     in the air, as the default model does: a CNN trained on the sites without bare ground
-    landed 47 of 50 such flights off the pad (docs/DESIGN.md, "Moving pads, measured")."""
+    landed 47 of 50 such flights off the pad (docs/DESIGN.md, decisions log: a carried pad)."""
     sites = _eval(tmp_path, policy="models/visland_vision_sites.pt")
     assert sites["aborts"] == 2 and sites["off_pad"] == 0, sites
     assert all(row["failsafe"] == "pad_not_found" for row in sites["per_episode"])
