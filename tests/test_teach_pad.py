@@ -216,6 +216,23 @@ def test_pad_worlds_keep_the_carrier_of_a_carried_pad(tmp_path):
     assert PROFILES["robust_sites_teach"].perception_away_fraction == 0.05
 
 
+def test_the_robust_teach_shows_bare_ground_and_older_runs_keep_theirs():
+    """``visland pipeline --profile robust --pad`` draws 5 % of its frames over bare ground
+    (helipad_1m without them found the pad in unseen ground's texture and landed 31.6 m off on
+    the validation seed; with them 60 of 60); a run saved before ``pad_away_fraction`` (None)
+    keeps the CNN stage's share, and a share out of range is refused by name."""
+    from training.profiles import Profile
+
+    robust = PROFILES["robust"]
+    assert robust.pad_away_fraction == 0.05 and robust.teach_away_fraction == 0.05
+    assert robust.perception_away_fraction == 0.0  # the full pipeline's CNN stage as before
+    older = Profile(**{**robust.to_dict(), "pad_away_fraction": None})
+    assert older.teach_away_fraction == robust.perception_away_fraction
+    assert PROFILES["robust_sites_teach"].teach_away_fraction == 0.05
+    with pytest.raises(PipelineError, match=r"pad_away_fraction = 0\.6; expected 0 <= share"):
+        Profile(**{**robust.to_dict(), "pad_away_fraction": 0.6})
+
+
 # --------------------------------------------------------------------------- end to end
 
 

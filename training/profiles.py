@@ -201,6 +201,10 @@ class Profile(Record):
     """... the epochs over them (the CNN starts from the ``--from`` model's weights)."""
     pad_perception_lr: float = field(default=1e-3, metadata=ADDED)
     """... and the learning rate (cosine schedule, as for ``perception``)."""
+    pad_away_fraction: float | None = field(default=None, metadata=ADDED)
+    """... and the share of them over bare ground with no pad (distances scaled with the pad);
+    None: ``perception_away_fraction``. A small pad over unseen ground or under a low sun is
+    otherwise now and then found in the ground's texture, and the flight lands there."""
     pad_perception_min_gain: float = field(default=0.8, metadata=ADDED)
     """... and the lowest grey-level gain of its augmentation (uniform up to 1.2): a low sun
     darkens the whole frame (sun 5-12 deg: about 0.4 of the nominal grey levels), which the
@@ -209,6 +213,13 @@ class Profile(Record):
     """... and its vision DAgger rounds stop after this many in a row that do not beat the best
     validation score before them (None: every round of ``vision_rounds`` flies). The helipad_1m
     run's three rounds flew 39 of its 57 minutes and none beat the controller it started from."""
+
+    @property
+    def teach_away_fraction(self) -> float:
+        """The share of a pad teach's pose frames over bare ground (``pad_away_fraction``,
+        else ``perception_away_fraction``)."""
+        share = self.pad_away_fraction
+        return self.perception_away_fraction if share is None else share
 
     def net_options(self) -> dict[str, bool | float | None]:
         """The :class:`companion.policy_net.NetConfig` fields this profile sets (its
@@ -238,11 +249,12 @@ class Profile(Record):
                 f"profile {self.name!r}: pad_perception_min_gain = "
                 f"{self.pad_perception_min_gain}; expected 0 < gain <= 1.2"
             )
-        if not 0.0 <= self.perception_away_fraction < 0.5:
-            raise PipelineError(
-                f"profile {self.name!r}: perception_away_fraction = "
-                f"{self.perception_away_fraction}; expected 0 <= share < 0.5"
-            )
+        for key in ("perception_away_fraction", "pad_away_fraction"):
+            share = getattr(self, key)
+            if share is not None and not 0.0 <= share < 0.5:
+                raise PipelineError(
+                    f"profile {self.name!r}: {key} = {share}; expected 0 <= share < 0.5"
+                )
         if self.rollouts not in ROLLOUT_TRANSPORTS:
             raise PipelineError(
                 f"profile {self.name!r}: rollouts = {self.rollouts!r}; expected one of "
@@ -336,6 +348,7 @@ PROFILES: dict[str, Profile] = {
         pad_pose_frames=120000,
         pad_perception_epochs=4,
         pad_perception_min_gain=0.3,
+        pad_away_fraction=0.05,
     ),
 }
 

@@ -60,7 +60,7 @@ def _teach(r: Run) -> tuple[PadTeach, SourceRecord]:
 def pose_sampling(pad: PadTeach, away_fraction: float = 0.0) -> PoseSampling:
     """The pose distribution of perception frames, its altitudes scaled to the pad's envelope
     (the paper pad's 1-110 m become 0.25-27.5 m for a 1 m pad), ``away_fraction`` of them over
-    bare ground at distances scaled the same way (the profile's ``perception_away_fraction``)."""
+    bare ground at distances scaled the same way (``Profile.teach_away_fraction``)."""
     plain = PoseSampling()
     (lo, hi), (near, far) = plain.altitude_m, plain.away_m
     return PoseSampling(
@@ -82,7 +82,7 @@ def perception(r: Run) -> PerceptionRecord:
     extra = pose_frames(
         r,
         p.pad_pose_frames,
-        pose_sampling(pad, p.perception_away_fraction),
+        pose_sampling(pad, p.teach_away_fraction),
         f" with pad {pad.design.name}",
     )
     steps = p.pad_perception_epochs * max(1, (p.pad_pose_frames - round(0.1 * len(extra[0]))) // 64)
