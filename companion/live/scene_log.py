@@ -20,6 +20,7 @@ import contextlib
 import json
 import os
 import struct
+import sys
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -188,8 +189,6 @@ def add_scenes(logs: list[tuple[Path, str | None]], who: str) -> int:
     keeps logs (``visland eval --keep-logs``, ``visland fly --scene``): a log that cannot be
     drawn stays as it was and ``who`` says so on stderr; without foxglove-sdk every log stays as
     it was, said once. Returns how many logs got their scene."""
-    import sys
-
     done = 0
     for path, policy in logs:
         try:
