@@ -83,21 +83,23 @@ def _keep_logs(
     """Move the flights ``cfg.keep`` asks for from ``staging`` into ``cfg.keep_logs`` under
     their condition, seed and episode; drop the rest; each row's ``log`` is its kept file."""
     out_dir = Path(str(cfg.keep_logs))
-    kept = []
+    kept: list[EpisodeRow] = []
+    moved: list[tuple[Path, str | None]] = []  # (kept log, policy to draw it with)
     for row in rows:
         src = staging / log_name(cfg.seed, row.episode)
         path = None
         if src.exists() and (cfg.keep == "all" or not row.success):
             dst = out_dir / f"{cfg.condition}_s{cfg.seed}_ep{row.episode:04d}.mcap"
             src.replace(dst)
+            moved.append((dst, None))
             path = str(dst)
         kept.append(replace(row, log=path))
     shutil.rmtree(staging, ignore_errors=True)
-    if any(row.log for row in kept):
+    if moved:
         # a kept log opens in Foxglove as a live flight does (companion.live.scene_log)
         from companion.live.scene_log import add_scenes
 
-        add_scenes([(Path(str(row.log)), None) for row in kept if row.log], "visland eval")
+        add_scenes(moved, "visland eval")
     return tuple(kept)
 
 
