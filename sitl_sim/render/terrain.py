@@ -22,6 +22,13 @@ image, pad included. Families:
 ``gravel``      grey-brown gravel: dense small stones
 ``water``       the sea: dark blue-grey, wind waves and swell catching the light, flecks of foam
                 (a ship's deck, ``[pad] motion = "deck"``, floats on it)
+
+Any family but water can carry **painted markings** (``terrain_map(..., markings=True)``;
+``[visual] markings``): what people paint on the ground near a landing site — rows of parking
+bays, dashed and solid lane lines, outlined rectangles — white or yellow, worn, flat (lit like the
+ground under them), drawn from the texture seed on a stream of their own, wrapping around the
+tile like every other feature. They are the straight bright edges a CNN that has only seen
+natural ground can take for a pad.
 """
 
 from __future__ import annotations
@@ -30,14 +37,16 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from sitl_sim.render.ground import GroundMap
 
-__all__ = ["FAMILIES", "TEXEL_M", "TILE_PX", "Sun", "terrain_map"]
+__all__ = ["FAMILIES", "MARKED_FAMILIES", "TEXEL_M", "TILE_PX", "Sun", "terrain_map"]
 
 TILE_PX = 1024
 TEXEL_M = 0.08
+MARKINGS_STREAM = 0x4D41_524B  # "MARK": the painted markings' entropy, apart from the ground's
 TERRAIN_STREAM = 0x5445_5252  # "TERR": the terrain generator's entropy, apart from every other
 AMBIENT = 0.45
 """Share of the light that does not come from the sun's direction (sky, scattered dust)."""
@@ -231,6 +240,77 @@ FAMILIES: dict[str, Callable[[np.random.Generator, int], tuple[np.ndarray, np.nd
 }
 """The named ground families of ``[visual] terrain``."""
 
+MARKED_FAMILIES = tuple(f for f in FAMILIES if f != "water")
+"""The families that can carry painted markings (no paint on the sea)."""
+
+_PAINTS = (np.array([228.0, 228.0, 222.0]), np.array([222.0, 184.0, 58.0]))  # white, yellow
+
+
+def _segments(rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """One marking's line segments (start, end in metres, line width in metres) about the
+    origin: a row of parking bays, a dashed lane line, a solid (or double) line or an outlined
+    rectangle, at a random heading."""
+    kind = int(rng.integers(4))
+    w = float(rng.uniform(0.10, 0.20))
+    segs: list[tuple[np.ndarray, np.ndarray]] = []
+    if kind == 0:  # a row of bays: a line along the row, a stall line every 2.3-3.2 m
+        bays, width, depth = int(rng.integers(3, 16)), rng.uniform(2.3, 3.2), rng.uniform(4.5, 5.5)
+        length = bays * width
+        segs.append((np.array([0.0, 0.0]), np.array([length, 0.0])))
+        for k in range(bays + 1):
+            segs.append((np.array([k * width, 0.0]), np.array([k * width, depth])))
+    elif kind == 1:  # a dashed lane line
+        dash, gap = rng.uniform(1.5, 3.5), rng.uniform(2.0, 6.0)
+        for k in range(int(rng.integers(4, 12))):
+            a = k * (dash + gap)
+            segs.append((np.array([a, 0.0]), np.array([a + dash, 0.0])))
+    elif kind == 2:  # a solid line, sometimes doubled
+        length = rng.uniform(10.0, 60.0)
+        segs.append((np.array([0.0, 0.0]), np.array([length, 0.0])))
+        if rng.random() < 0.4:
+            segs.append((np.array([0.0, 3 * w]), np.array([length, 3 * w])))
+    else:  # an outlined rectangle (a marked area, a loading box)
+        a, b = rng.uniform(2.0, 10.0, 2)
+        corners = [np.array(c) for c in ((0.0, 0.0), (a, 0.0), (a, b), (0.0, b))]
+        segs += [(corners[k], corners[(k + 1) % 4]) for k in range(4)]
+    heading = rng.uniform(0.0, 2 * math.pi)
+    c, s = math.cos(heading), math.sin(heading)
+    rot = np.array([[c, -s], [s, c]])
+    return [(rot @ p, rot @ q, w) for p, q in segs]
+
+
+def _markings(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(cover in [0, 1], paint premultiplied by its cover) over an ``n`` x ``n`` tile: 8-24
+    markings, each drawn at its place and at its copies one tile away so that it wraps; worn
+    (cover < 1, patchy). The marked albedo is ``albedo (1 - cover) + paint``."""
+    cover = np.zeros((n, n))
+    paint = np.zeros((n, n, 3))
+    shift = 4  # cv2's fixed-point sub-texel coordinates
+    for _ in range(int(rng.integers(8, 25))):
+        mark = np.zeros((n, n), np.float32)
+        at = rng.uniform(0.0, n * TEXEL_M, 2)
+        for p, q, w in _segments(rng):
+            thick = max(1, round(w / TEXEL_M))
+            for dr in (-n, 0, n):
+                for dc in (-n, 0, n):
+                    a = (p + at) / TEXEL_M + (dc, dr)
+                    b = (q + at) / TEXEL_M + (dc, dr)
+                    cv2.line(
+                        mark,
+                        tuple(int(v * 2**shift) for v in a),
+                        tuple(int(v * 2**shift) for v in b),
+                        1.0,
+                        thick,
+                        cv2.LINE_AA,
+                        shift,
+                    )
+        mark = np.clip(mark, 0.0, 1.0) * rng.uniform(0.55, 0.95)
+        colour = _PAINTS[int(rng.random() < 0.3)] * rng.uniform(0.85, 1.05)
+        paint += (mark * (1.0 - cover))[..., None] * colour  # earlier paint stays on top
+        cover += mark * (1.0 - cover)
+    wear = np.clip(1.0 - 0.5 * np.clip(_spectral(rng, n, 2.6), 0.0, None), 0.3, 1.0)
+    return cover * wear, paint * wear[..., None]
+
 
 # --------------------------------------------------------------------------- lighting
 
@@ -271,21 +351,32 @@ def _cast_shadow(height: np.ndarray, sun: Sun) -> np.ndarray:
 
 # --------------------------------------------------------------------------- maps
 
-_RELIEF_CACHE: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
+_RELIEF_CACHE: OrderedDict[tuple[str, int, bool], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
     OrderedDict()
 )
 _CACHE_SIZE = 8
 
 
-def _relief(family: str, texture_seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(albedo, height, tile offset) of a family and seed, memoised (LRU) per process."""
-    key = (family, int(texture_seed))
+def _relief(
+    family: str, texture_seed: int, markings: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(albedo, height, tile offset) of a family and seed, painted when ``markings``, memoised
+    (LRU) per process."""
+    key = (family, int(texture_seed), bool(markings))
     if key in _RELIEF_CACHE:
         _RELIEF_CACHE.move_to_end(key)
         return _RELIEF_CACHE[key]
-    rng = np.random.default_rng([int(texture_seed), TERRAIN_STREAM, _family_index(family)])
-    albedo, height = FAMILIES[family](rng, TILE_PX)
-    offset = rng.uniform(0.0, TILE_PX * TEXEL_M, 2)
+    if markings:
+        if family not in MARKED_FAMILIES:
+            raise ValueError(f"markings on {family!r}; expected one of {list(MARKED_FAMILIES)}")
+        albedo, height, offset = _relief(family, texture_seed)
+        rng = np.random.default_rng([int(texture_seed), MARKINGS_STREAM, _family_index(family)])
+        cover, paint = _markings(rng, TILE_PX)
+        albedo = albedo * (1.0 - cover)[..., None] + paint
+    else:
+        rng = np.random.default_rng([int(texture_seed), TERRAIN_STREAM, _family_index(family)])
+        albedo, height = FAMILIES[family](rng, TILE_PX)
+        offset = rng.uniform(0.0, TILE_PX * TEXEL_M, 2)
     _RELIEF_CACHE[key] = (albedo, height, offset)
     if len(_RELIEF_CACHE) > _CACHE_SIZE:
         _RELIEF_CACHE.popitem(last=False)
@@ -298,13 +389,14 @@ def _family_index(family: str) -> int:
     return sorted(FAMILIES).index(family)
 
 
-def terrain_map(family: str, texture_seed: int, sun: Sun) -> GroundMap:
-    """The periodic ground of ``family`` drawn from ``texture_seed``, lit by ``sun``.
+def terrain_map(family: str, texture_seed: int, sun: Sun, markings: bool = False) -> GroundMap:
+    """The periodic ground of ``family`` drawn from ``texture_seed``, lit by ``sun``; with
+    ``markings``, the same ground with paint on it (:data:`MARKED_FAMILIES`).
 
     Texel columns run north, rows run west (pybullet's uv directions); texel (0, 0)'s corner
     sits at the seed's tile offset.
     """
-    albedo, height, (n0, e0) = _relief(family, texture_seed)
+    albedo, height, (n0, e0) = _relief(family, texture_seed, markings)
     rgb = np.rint(_lit(albedo, height, sun)).astype(np.uint8)
     s = TEXEL_M
     # texel centre (col, row) -> north = n0 + (col + 0.5) s, east = e0 - (row + 0.5) s
@@ -313,6 +405,6 @@ def terrain_map(family: str, texture_seed: int, sun: Sun) -> GroundMap:
         rgb=rgb,
         texel_to_ne=texel_to_ne,
         periodic=True,
-        name=f"{family}#{int(texture_seed)}",
+        name=f"{family}#{int(texture_seed)}{'+markings' if markings else ''}",
         tile_m=TILE_PX * s,
     )

@@ -27,6 +27,10 @@ uniformly per episode; the generated table: ``docs/config_keys.md``):
                           a random point of it under the pad, a random rotation; lit by the sun's
                           light level, and every camera effect applies
 ``ground_m_per_px``       the picture's metres per pixel, drawn per episode (default 0.05)
+``markings``              the chance that an episode's terrain carries painted markings (parking
+                          bays, lane lines, outlined boxes: :func:`sitl_sim.render.terrain.
+                          terrain_map`), in [0, 1] (default 0); any family but water and the
+                          nominal ground; a ground picture shows only its own paint
 
 The pad's design comes from the ``[pad]`` section (:mod:`sitl_sim.render.pad_section`);
 ``pad_scale`` and ``pad_colour_jitter`` apply to any design.
@@ -52,7 +56,7 @@ from sitl_sim.errors import ConfigError
 from sitl_sim.render.ground import GroundMap, PadGeometry, PadLook, nominal_ground
 from sitl_sim.render.ground_image import check_ground_image, ground_image_map
 from sitl_sim.render.pads import PadDesign, find_file
-from sitl_sim.render.terrain import FAMILIES, Sun, terrain_map
+from sitl_sim.render.terrain import FAMILIES, MARKED_FAMILIES, Sun, terrain_map
 
 __all__ = [
     "VISUAL_STREAM",
@@ -131,6 +135,14 @@ class VisualConfig(Section):
         hi=10.0,
         doc="metres per pixel of the ground picture",
     )
+    markings: float = number(
+        0.0,
+        unit="1",
+        lo=0.0,
+        hi=1.0,
+        doc="chance of painted markings (parking bays, lane lines, boxes) on an episode's "
+        "terrain (not water, the nominal ground or a picture)",
+    )
     ground_paths: tuple[Path, ...] = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -177,17 +189,20 @@ class VisualConfig(Section):
             lens_k1=u(self.lens_k1),
             frame_seed=(int(seed), int(index), VISUAL_STREAM + 1),
         )
-        if not self.ground_paths:
-            return sample
-        # drawn after everything else: a section without pictures draws what it always did
-        path = self.ground_paths[int(rng.integers(len(self.ground_paths)))]
-        return replace(
-            sample,
-            ground_image=str(path),
-            ground_m_per_px=u(self.ground_m_per_px),
-            ground_anchor=(float(rng.random()), float(rng.random())),
-            ground_rotation_deg=float(rng.uniform(0.0, 360.0)),
-        )
+        # drawn after everything else: a section without pictures or markings draws what it
+        # always did
+        if self.ground_paths:
+            path = self.ground_paths[int(rng.integers(len(self.ground_paths)))]
+            return replace(
+                sample,
+                ground_image=str(path),
+                ground_m_per_px=u(self.ground_m_per_px),
+                ground_anchor=(float(rng.random()), float(rng.random())),
+                ground_rotation_deg=float(rng.uniform(0.0, 360.0)),
+            )
+        if self.markings > 0.0 and rng.random() < self.markings:
+            return replace(sample, markings=terrain in MARKED_FAMILIES)
+        return sample
 
 
 @dataclass(frozen=True)
@@ -211,6 +226,7 @@ class VisualSample:
     ground_m_per_px: float = 0.0
     ground_anchor: tuple[float, float] = (0.0, 0.0)
     ground_rotation_deg: float = 0.0
+    markings: bool = False
     pad_design: PadDesign | None = None
 
     @property
@@ -234,7 +250,7 @@ class VisualSample:
             )
         if self.terrain == NOMINAL_TERRAIN:
             return nominal_ground()
-        return terrain_map(self.terrain, self.texture_seed, self.sun)
+        return terrain_map(self.terrain, self.texture_seed, self.sun, self.markings)
 
     def pad(self, base: PadGeometry | None = None) -> PadLook:
         """The pad the renderers draw: ``[pad]``'s design (or ``base``, else the paper's pad)
@@ -244,8 +260,8 @@ class VisualSample:
         return (base or PadGeometry()).scaled(self.pad_scale).recoloured(self.pad_colour_gain)
 
     def to_dict(self) -> dict[str, Any]:
-        """The record of the draw (the ground picture's and the pad's keys only when set, so
-        the records of scenarios without them are unchanged)."""
+        """The record of the draw (the ground picture's, the markings' and the pad's keys only
+        when set, so the records of scenarios without them are unchanged)."""
         d = asdict(replace(self, pad_design=None))
         d["pad_colour_gain"] = list(self.pad_colour_gain)
         d["frame_seed"] = list(self.frame_seed)
@@ -253,6 +269,8 @@ class VisualSample:
         if not self.ground_image:
             for key in ("ground_image", "ground_m_per_px", "ground_anchor", "ground_rotation_deg"):
                 del d[key]
+        if not self.markings:
+            del d["markings"]
         del d["pad_design"]
         if self.pad_design is not None:
             d["pad"] = self.pad_design.name
