@@ -24,11 +24,11 @@ image, pad included. Families:
                 (a ship's deck, ``[pad] motion = "deck"``, floats on it)
 
 Any family but water can carry **painted markings** (``terrain_map(..., markings=True)``;
-``[visual] markings``): what people paint on the ground near a landing site — rows of parking
-bays, dashed and solid lane lines, outlined rectangles — white or yellow, worn, flat (lit like the
-ground under them), drawn from the texture seed on a stream of their own, wrapping around the
-tile like every other feature. They are the straight bright edges a CNN that has only seen
-natural ground can take for a pad.
+``[visual] markings``): what people paint on the ground near a landing site — rows and lots of
+parking bays, dashed and solid lane lines, outlined rectangles — white or yellow, worn, flat (lit
+like the ground under them), drawn from the texture seed on a stream of their own, wrapping
+around the tile like every other feature. They are the straight bright edges
+a CNN that has only seen natural ground can take for a pad.
 """
 
 from __future__ import annotations
@@ -246,19 +246,32 @@ MARKED_FAMILIES = tuple(f for f in FAMILIES if f != "water")
 _PAINTS = (np.array([228.0, 228.0, 222.0]), np.array([222.0, 184.0, 58.0]))  # white, yellow
 
 
+def _bays(bays: int, width: float, depth: float, at: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A row of ``bays`` parking bays ``width`` wide along x at ``y = at``: the line along the
+    row and the stall lines ``depth`` long (negative: the other way)."""
+    segs = [(np.array([0.0, at]), np.array([bays * width, at]))]
+    segs += [
+        (np.array([k * width, at]), np.array([k * width, at + depth])) for k in range(bays + 1)
+    ]
+    return segs
+
+
 def _segments(rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """One marking's line segments (start, end in metres, line width in metres) about the
-    origin: a row of parking bays, a dashed lane line, a solid (or double) line or an outlined
-    rectangle, at a random heading."""
-    kind = int(rng.integers(4))
+    origin: a row of parking bays, a lot (double rows of them), a dashed lane line, a solid (or
+    double) line or an outlined rectangle, at a random heading."""
+    kind = int(rng.choice(5, p=(0.25, 0.25, 0.2, 0.15, 0.15)))
     w = float(rng.uniform(0.10, 0.20))
     segs: list[tuple[np.ndarray, np.ndarray]] = []
     if kind == 0:  # a row of bays: a line along the row, a stall line every 2.3-3.2 m
         bays, width, depth = int(rng.integers(3, 16)), rng.uniform(2.3, 3.2), rng.uniform(4.5, 5.5)
-        length = bays * width
-        segs.append((np.array([0.0, 0.0]), np.array([length, 0.0])))
-        for k in range(bays + 1):
-            segs.append((np.array([k * width, 0.0]), np.array([k * width, depth])))
+        segs += _bays(bays, width, depth, 0.0)
+    elif kind == 4:  # a lot: double rows of bays back to back, 6-8 m aisles between them
+        bays, width, depth = int(rng.integers(6, 14)), rng.uniform(2.3, 3.2), rng.uniform(4.5, 5.5)
+        aisle = rng.uniform(6.0, 8.0)
+        for k in range(int(rng.integers(2, 5))):
+            base = k * (2 * depth + aisle)
+            segs += _bays(bays, width, depth, base) + _bays(bays, width, -depth, base + 2 * depth)
     elif kind == 1:  # a dashed lane line
         dash, gap = rng.uniform(1.5, 3.5), rng.uniform(2.0, 6.0)
         for k in range(int(rng.integers(4, 12))):
@@ -280,13 +293,13 @@ def _segments(rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, fl
 
 
 def _markings(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(cover in [0, 1], paint premultiplied by its cover) over an ``n`` x ``n`` tile: 8-24
+    """(cover in [0, 1], paint premultiplied by its cover) over an ``n`` x ``n`` tile: 6-18
     markings, each drawn at its place and at its copies one tile away so that it wraps; worn
     (cover < 1, patchy). The marked albedo is ``albedo (1 - cover) + paint``."""
     cover = np.zeros((n, n))
     paint = np.zeros((n, n, 3))
     shift = 4  # cv2's fixed-point sub-texel coordinates
-    for _ in range(int(rng.integers(8, 25))):
+    for _ in range(int(rng.integers(6, 19))):
         mark = np.zeros((n, n), np.float32)
         at = rng.uniform(0.0, n * TEXEL_M, 2)
         for p, q, w in _segments(rng):
