@@ -349,6 +349,7 @@ def train_perception(
     progress: Callable[[int], None] | None = None,
     extra: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     gain: tuple[float, float] = (0.8, 1.2),
+    held: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PerceptionFit:
     """Regress the pad bearing (+ visibility) from expert-flight frames, split 90/10 by episode.
 
@@ -363,6 +364,9 @@ def train_perception(
     :mod:`training.perception_data`), labelled the same way and split 90/10 by index; their
     validation figures are reported separately (``pose_val_*``). With ``extra``, ``episodes`` may
     be empty (a CNN taught a new pad from rendered frames alone: ``val_*`` are then NaN).
+
+    ``held``: training frames with given labels ``(images, (N, 3) tan_right, tan_forward,
+    pad probability)``, e.g. a source CNN's own outputs that a fine-tune must keep.
     """
     if any(e.images is None for e in episodes):
         raise ValueError("perception training needs episodes with camera frames")
@@ -402,6 +406,9 @@ def train_perception(
         x_tr = np.concatenate([x_tr, images[pt]])
         y_tr = np.concatenate([y_tr, labels[pt]])
         x_pv, y_pv, alt_pv = images[pv], labels[pv], -pos[pv, 2]
+    if held is not None and len(held[0]):
+        x_tr = np.concatenate([x_tr, held[0]])
+        y_tr = np.concatenate([y_tr, np.asarray(held[1], np.float32)])
     opt = torch.optim.Adam(cnn.parameters(), lr=lr)
     n = x_tr.shape[0]
     steps_total = epochs * max(1, n // batch)

@@ -10,11 +10,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from companion.files import sha256_file
 from companion.flightlog import jsonable
-from companion.policy_net import ESTIMATOR_FIELDS, load_networks, save_checkpoint
+from companion.policy_net import ESTIMATOR_FIELDS, PerceptionCNN, load_networks, save_checkpoint
 from training.pad_teach import (
     PAD_SUITE_EPISODES,
     PAD_VALIDATION_SUCCESS,
@@ -70,6 +71,28 @@ def pose_sampling(pad: PadTeach, away_fraction: float = 0.0) -> PoseSampling:
     )
 
 
+CLOSE_ALTITUDE_M = (0.3, 1.5)
+"""The close frames' altitudes over the paper pad (``Profile.pad_close_fraction``), scaled
+with the pad: below the pose frames' 1 m, up to the lowest horizontal fix."""
+
+
+def close_frames(r: Run, pad: PadTeach, cnn: PerceptionCNN) -> tuple[np.ndarray, np.ndarray]:
+    """``pad_close_fraction`` x ``pad_pose_frames`` frames over the pad from
+    :data:`CLOSE_ALTITUDE_M` (scaled), each labelled with ``cnn``'s own outputs (bearing,
+    pad probability): what the ``--from`` CNN answered there, for the fine-tune to keep."""
+    p = r.profile
+    n = round(p.pad_close_fraction * p.pad_pose_frames)
+    lo, hi = CLOSE_ALTITUDE_M
+    close = PoseSampling(altitude_m=(lo * pad.scale, hi * pad.scale), in_view_fraction=1.0)
+    images, _, _ = pose_frames(r, n, close, f" from {lo * pad.scale:g}-{hi * pad.scale:g} m")
+    cnn.eval()
+    with torch.no_grad():
+        out = torch.cat([cnn(torch.from_numpy(b).float()) for b in np.array_split(images, 64)])
+    labels = out.numpy().astype(np.float32)
+    labels[:, 2] = 1.0 / (1.0 + np.exp(-labels[:, 2]))
+    return images, labels
+
+
 def perception(r: Run) -> PerceptionRecord:
     """Frames at sampled poses in the run's worlds (each with the pad), the ``--from`` model's
     CNN fine-tuned on them alone (90/10 split by frame): ``checkpoints/perception.pt`` carries
@@ -85,7 +108,9 @@ def perception(r: Run) -> PerceptionRecord:
         pose_sampling(pad, p.teach_away_fraction),
         f" with pad {pad.design.name}",
     )
-    steps = p.pad_perception_epochs * max(1, (p.pad_pose_frames - round(0.1 * len(extra[0]))) // 64)
+    held = close_frames(r, pad, cnn) if p.pad_close_fraction > 0.0 else None
+    n_train = p.pad_pose_frames - round(0.1 * len(extra[0])) + (len(held[0]) if held else 0)
+    steps = p.pad_perception_epochs * max(1, n_train // 64)
     fit = fit_cnn(
         r,
         cnn,
@@ -96,6 +121,7 @@ def perception(r: Run) -> PerceptionRecord:
         extra,
         lr=p.pad_perception_lr,
         gain=(p.pad_perception_min_gain, 1.2),
+        held=held,
     )
     r.say(
         f"perception: validation frames' bearing error median "
