@@ -40,7 +40,8 @@ SHIPPED = REPO / "models" / "visland_vision.pt"
 HELIPAD = REPO / "configs" / "pads" / "helipad_1m.toml"
 
 # the robust profile (the shipped model's network) on a budget a test can fly: 512 pose frames,
-# one epoch, one validation flight per world, two episodes per suite condition, no DAgger round
+# one epoch, one validation flight per world, two episodes per suite condition, no DAgger round,
+# 128 close frames labelled by the shipped CNN
 TINY = replace(
     PROFILES["robust"],
     pad_pose_frames=512,
@@ -49,6 +50,7 @@ TINY = replace(
     eval_episodes=2,
     vision_rounds=0,
     workers=1,
+    pad_close_fraction=0.25,
 )
 
 
@@ -274,6 +276,13 @@ def test_pad_run_retrains_the_cnn_on_frames_with_the_pad(taught):
     for k, v in ctrl0.state_dict().items():
         assert torch.equal(v, ctrl1.state_dict()[k]), k
     assert any(not torch.equal(v, cnn1.state_dict()[k]) for k, v in cnn0.state_dict().items())
+    # the close frames: 0.3-1.5 m scaled with the pad, the pad in view, the shipped CNN's answers
+    n_close = round(TINY.pad_close_fraction * TINY.pad_pose_frames)
+    with np.load(taught / "cache" / f"poses_s{TINY.seed + 7}_n{n_close}.npz") as z:
+        close_alt, close_images = -z["pos"][:, 2], z["images"]
+        close_labels = bearing_labels(z["pos"], z["quat"], load_sim().camera.fov_deg)
+    assert close_alt.min() >= 0.3 * 0.25 and close_alt.max() <= 1.5 * 0.25
+    assert close_labels[:, 2].all() and len(close_images) == n_close == 128
 
 
 def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path, capsys):
