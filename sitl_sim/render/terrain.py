@@ -27,8 +27,8 @@ Any family but water can carry **painted markings** (``terrain_map(..., markings
 ``[visual] markings``): what people paint on the ground near a landing site — rows and lots of
 parking bays, dashed and solid lane lines, outlined rectangles — white or yellow, worn, flat (lit
 like the ground under them), drawn from the texture seed on a stream of their own, wrapping
-around the tile like every other feature. They are the straight bright edges
-a CNN that has only seen natural ground can take for a pad.
+around the tile like every other feature. They are the straight bright edges a CNN that has
+only seen natural ground can take for a pad.
 """
 
 from __future__ import annotations

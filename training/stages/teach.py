@@ -88,9 +88,8 @@ def close_frames(r: Run, pad: PadTeach, cnn: PerceptionCNN) -> tuple[np.ndarray,
     cnn.eval()
     with torch.no_grad():
         out = torch.cat([cnn(torch.from_numpy(b).float()) for b in np.array_split(images, 64)])
-    labels = out.numpy().astype(np.float32)
-    labels[:, 2] = 1.0 / (1.0 + np.exp(-labels[:, 2]))
-    return images, labels
+    out[:, 2] = torch.sigmoid(out[:, 2])  # the visibility logit as the probability it stands for
+    return images, out.numpy()
 
 
 def perception(r: Run) -> PerceptionRecord:
