@@ -163,6 +163,17 @@ def rates(pc, vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c
 
 
 @_kernel
+def _rates_at(pc, x, h, k, c1, c2, c3, c4, wn, we, wd):
+    """:func:`rates` at the stage ``x + h k`` (the position rows do not enter it)."""
+    _, _, _, vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4 = x
+    return rates(
+        pc, vn + h * k[0], ve + h * k[1], vd + h * k[2], qw + h * k[3], qx + h * k[4],
+        qy + h * k[5], qz + h * k[6], p + h * k[7], q + h * k[8], r + h * k[9], t1 + h * k[10],
+        t2 + h * k[11], t3 + h * k[12], t4 + h * k[13], c1, c2, c3, c4, wn, we, wd,
+    )  # fmt: skip
+
+
+@_kernel
 def rk4(pc, x, c1, c2, c3, c4, dt, wn, we, wd):
     """One classic RK4 step of :func:`rates` (no ground, no renormalisation); the commanded rotor
     thrusts and the wind are held over the step (zero-order hold)."""
@@ -171,24 +182,12 @@ def rk4(pc, x, c1, c2, c3, c4, dt, wn, we, wd):
     # k1 at x; k2 at x + h k1; k3 at x + h k2; k4 at x + dt k3 (the position rows' k is the
     # stage's velocity)
     e = rates(pc, vn, ve, vd, qw, qx, qy, qz, p, q, r, t1, t2, t3, t4, c1, c2, c3, c4, wn, we, wd)
+    b = _rates_at(pc, x, h, e, c1, c2, c3, c4, wn, we, wd)
+    c = _rates_at(pc, x, h, b, c1, c2, c3, c4, wn, we, wd)
+    d = _rates_at(pc, x, dt, c, c1, c2, c3, c4, wn, we, wd)
     vn2, ve2, vd2 = vn + h * e[0], ve + h * e[1], vd + h * e[2]
-    b = rates(
-        pc, vn2, ve2, vd2, qw + h * e[3], qx + h * e[4], qy + h * e[5], qz + h * e[6],
-        p + h * e[7], q + h * e[8], r + h * e[9], t1 + h * e[10], t2 + h * e[11],
-        t3 + h * e[12], t4 + h * e[13], c1, c2, c3, c4, wn, we, wd,
-    )  # fmt: skip
     vn3, ve3, vd3 = vn + h * b[0], ve + h * b[1], vd + h * b[2]
-    c = rates(
-        pc, vn3, ve3, vd3, qw + h * b[3], qx + h * b[4], qy + h * b[5], qz + h * b[6],
-        p + h * b[7], q + h * b[8], r + h * b[9], t1 + h * b[10], t2 + h * b[11],
-        t3 + h * b[12], t4 + h * b[13], c1, c2, c3, c4, wn, we, wd,
-    )  # fmt: skip
     vn4, ve4, vd4 = vn + dt * c[0], ve + dt * c[1], vd + dt * c[2]
-    d = rates(
-        pc, vn4, ve4, vd4, qw + dt * c[3], qx + dt * c[4], qy + dt * c[5], qz + dt * c[6],
-        p + dt * c[7], q + dt * c[8], r + dt * c[9], t1 + dt * c[10], t2 + dt * c[11],
-        t3 + dt * c[12], t4 + dt * c[13], c1, c2, c3, c4, wn, we, wd,
-    )  # fmt: skip
     s = dt / 6.0  # x + dt/6 (k1 + 2 k2 + 2 k3 + k4), row by row
     return (
         pn + s * (vn + 2.0 * vn2 + 2.0 * vn3 + vn4),
