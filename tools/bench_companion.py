@@ -269,21 +269,30 @@ def format_bench(res: dict[str, Any]) -> str:
     if plain:
         ratio = res["scene_vs_off"]
         lines.append(
-            f"the same flights with --log-scene off: median {plain['median_ms']:.2f} ms, p99 "
-            f"{plain['p99_ms']:.2f} ms, {plain['log_bytes_per_flight'] / 1e6:.2f} MB a log "
-            f"(with the scene: x{ratio['median_ms']:.2f} median, x{ratio['p99_ms']:.2f} p99, "
+            f"the same flights with --log-scene off: {_latency(plain)}, "
+            f"{plain['log_bytes_per_flight'] / 1e6:.2f} MB a log (with the scene: "
+            f"{_times(ratio['median_ms'], ratio['p99_ms'])}, "
             f"x{ratio['log_bytes_per_flight']:.2f} log size)"
         )
     watched = res.get("live")
     if watched:
         ratio = res["live_vs_off"]
         lines.append(
-            f"the same flights with the live view and a client subscribed to every channel: "
-            f"median {watched['median_ms']:.2f} ms, p99 {watched['p99_ms']:.2f} ms "
-            f"(x{ratio['median']:.2f} median, x{ratio['p99']:.2f} p99 of the flights without; "
-            f"the client received {sum(watched['received'].values())} messages)"
+            "the same flights with the live view and a client subscribed to every channel: "
+            f"{_latency(watched)} ({_times(ratio['median'], ratio['p99'])} of the flights "
+            f"without; the client received {sum(watched['received'].values())} messages)"
         )
     return "\n".join(lines)
+
+
+def _latency(stats: dict[str, Any]) -> str:
+    """``median … ms, p99 … ms`` of a :func:`latency_stats` result."""
+    return f"median {stats['median_ms']:.2f} ms, p99 {stats['p99_ms']:.2f} ms"
+
+
+def _times(median: float, p99: float) -> str:
+    """A run's median and p99 as multiples of another's."""
+    return f"x{median:.2f} median, x{p99:.2f} p99"
 
 
 def print_bench(res: dict[str, Any], as_json: bool, prog: str) -> int:
