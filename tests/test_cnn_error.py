@@ -14,22 +14,9 @@ from training.perception_data import chunk_pad_frame
 
 
 def test_pad_error_end_to_end(capsys):
+    scenarios = "--scenario configs/scenario.toml --scenario configs/sites/rover_slow.toml"
     code = main(
-        [
-            "pad",
-            "error",
-            "--scenario",
-            "configs/scenario.toml",
-            "--scenario",
-            "configs/sites/rover_slow.toml",
-            "--band",
-            "20-40",
-            "--frames",
-            "64",
-            "--chunk",
-            "16",
-            "--json",
-        ]
+        ["pad", "error", *scenarios.split(), *"--band 20-40 --frames 64 --chunk 16 --json".split()]
     )
     out = capsys.readouterr()
     assert code == 0, out.err

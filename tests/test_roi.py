@@ -333,23 +333,8 @@ def test_camera_roi_is_a_landing_target_setting_too():
 
 
 def test_pad_acquire_end_to_end(capsys):
-    code = main(
-        [
-            "pad",
-            "acquire",
-            "--pad",
-            "helipad_1m",
-            "--altitudes",
-            "15",
-            "45",
-            "--frames",
-            "3",
-            "--grounds",
-            "nominal",
-            "grass",
-            "--json",
-        ]
-    )
+    args = "pad acquire --pad helipad_1m --altitudes 15 45 --frames 3 --grounds nominal grass"
+    code = main([*args.split(), "--json"])
     out = capsys.readouterr()
     assert code == 0, out.err
     res = json.loads(out.out)
