@@ -1,20 +1,22 @@
 """Small stand-ins the unit tests share: decoded MAVLink messages without a link, one step of
 a logged episode as the observation the companion built in flight, the CLI run as a user runs
-it, the scenarios of the rendering, site and config tests (a high start, a rocky site) and
-camera frames (a short flight, one frame from a hovering camera)."""
+it, the scenarios of the rendering, site and config tests (a high start, a rocky site), the
+shipped config files edited for the bad-config tests, and camera frames (a short flight, one
+frame from a hovering camera)."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from companion.contract import Command, Observation
-from sitl_sim.config import load_sim, load_vehicle
+from sitl_sim.config import CONFIG_DIR, load_sim, load_vehicle
 from sitl_sim.scenario import InitialState, Scenario, scenario_from_dict
 from sitl_sim.simulator import Simulator
 from sitl_sim.site.site import Site
@@ -26,6 +28,8 @@ __all__ = [
     "NO_RETURN_CM",
     "FakeMsg",
     "attitude_msg",
+    "config_plus",
+    "edited_config",
     "episode_observation",
     "flight_frames",
     "hover_frame",
@@ -49,6 +53,24 @@ def visland(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
         timeout=timeout,
         cwd=REPO,
     )
+
+
+def edited_config(tmp_path: Path, name: str, old: str, new: str) -> Path:
+    """The shipped ``configs/<name>`` with ``old`` (which must be in it) replaced by ``new``,
+    written as ``tmp_path/<name>``."""
+    text = (CONFIG_DIR / name).read_text()
+    assert old in text
+    out = tmp_path / name
+    out.write_text(text.replace(old, new))
+    return out
+
+
+def config_plus(tmp_path: Path, extra: str, base: Path = CONFIG_DIR / "scenario.toml") -> Path:
+    """``base`` (the shipped scenario) with ``extra`` appended, written as
+    ``tmp_path/scenario.toml``."""
+    out = tmp_path / "scenario.toml"
+    out.write_text(base.read_text() + extra)
+    return out
 
 
 class FakeMsg(SimpleNamespace):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from flights import sitl_with_client
+from helpers import edited_config
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.contract import Command
@@ -158,16 +159,8 @@ def test_an_airframe_that_cannot_hover_is_refused_naming_the_keys(tmp_path, nomi
         LandingEnv(scenario=path, render_camera=False)
 
 
-def _vehicle_file(tmp_path: Path, old: str, new: str) -> Path:
-    text = (CONFIG_DIR / "vehicle.toml").read_text()
-    assert old in text
-    path = tmp_path / "vehicle.toml"
-    path.write_text(text.replace(old, new))
-    return path
-
-
 def test_flying_a_planet_without_its_t_max_names_the_file_and_planet(tmp_path):
-    path = _vehicle_file(tmp_path, "mars = 25.0", "")
+    path = edited_config(tmp_path, "vehicle.toml", "mars = 25.0", "")
     vehicle = load_vehicle(path)
     assert vehicle.max_total_thrust_n(EARTH) == 25.0
     with pytest.raises(
@@ -208,7 +201,7 @@ def test_flying_a_planet_without_its_t_max_names_the_file_and_planet(tmp_path):
 )
 def test_bad_t_max_tables_name_file_and_key(tmp_path, old, new, match):
     with pytest.raises(ConfigError, match=match):
-        load_vehicle(_vehicle_file(tmp_path, old, new))
+        load_vehicle(edited_config(tmp_path, "vehicle.toml", old, new))
 
 
 # --------------------------------------------------------------------------- determinism

@@ -5,23 +5,15 @@ from __future__ import annotations
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import config_plus, edited_config
 from scipy.stats import qmc
 
 from sitl_sim.config import CONFIG_DIR, load_sim, load_vehicle, planet
 from sitl_sim.errors import ConfigError
 from sitl_sim.scenario import InitialStateSampler, load_scenario
-
-
-def _edit(tmp_path: Path, name: str, old: str, new: str) -> Path:
-    text = (CONFIG_DIR / name).read_text()
-    assert old in text
-    out = tmp_path / name
-    out.write_text(text.replace(old, new))
-    return out
 
 
 def test_default_configs_match_table_1():
@@ -74,14 +66,14 @@ def test_default_configs_match_table_1():
 )
 def test_bad_vehicle_values_name_file_and_field(tmp_path, old, new, match):
     with pytest.raises(ConfigError, match=match) as info:
-        load_vehicle(_edit(tmp_path, "vehicle.toml", old, new))
+        load_vehicle(edited_config(tmp_path, "vehicle.toml", old, new))
     assert str(tmp_path / "vehicle.toml") in str(info.value)
 
 
 def test_a_vehicle_needs_its_own_mass_and_thrust(tmp_path):
     """A vehicle's physics has no nominal value: a missing mass or T_max is refused, never
     silently a 1 kg quad; the rate controller's gains default to the shipped tuning."""
-    path = _edit(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "# no mass ")
+    path = edited_config(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "# no mass ")
     with pytest.raises(ConfigError, match=r"\[vehicle\] missing key 'mass_kg'; expected a number"):
         load_vehicle(path)
     text = (CONFIG_DIR / "vehicle.toml").read_text()
@@ -112,26 +104,27 @@ def test_keys_left_out_take_their_nominal_values(tmp_path):
 
 
 def test_unknown_key_is_reported(tmp_path):
-    path = _edit(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "mass_kg = 1.0\nmas_kg = 2.0 ")
+    path = edited_config(tmp_path, "vehicle.toml", "mass_kg = 1.0 ", "mass_kg = 1.0\nmas_kg = 2.0 ")
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['mas_kg'\]"):
         load_vehicle(path)
 
 
 def test_unknown_scenario_section_or_world_key_is_refused(tmp_path):
     """A misspelt section used to be ignored silently: the flight went on in the nominal world."""
-    path = tmp_path / "scenario.toml"
-    path.write_text((CONFIG_DIR / "scenario.toml").read_text() + "\n[wnd]\nspeed_m_s = [0, 5]\n")
+    path = config_plus(tmp_path, "\n[wnd]\nspeed_m_s = [0, 5]\n")
     with pytest.raises(
         ConfigError, match=r"scenario\.toml: unknown section\(s\) \['\[wnd\]'\]; expected"
     ):
         load_scenario(path)
-    path = _edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "earth"\nplanett = "x"')
+    path = edited_config(
+        tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "earth"\nplanett = "x"'
+    )
     with pytest.raises(ConfigError, match=r"\[world\] unknown key\(s\) \['planett'\]"):
         load_scenario(path)
 
 
 def test_rates_must_be_integer_multiples(tmp_path):
-    path = _edit(tmp_path, "sim.toml", "physics_rate_hz = 250", "physics_rate_hz = 255")
+    path = edited_config(tmp_path, "sim.toml", "physics_rate_hz = 250", "physics_rate_hz = 255")
     with pytest.raises(
         ConfigError, match=r"sim\.toml: \[sim\] physics_rate_hz = 255 .*integer multiple"
     ):
@@ -140,11 +133,13 @@ def test_rates_must_be_integer_multiples(tmp_path):
 
 def test_unknown_planet(tmp_path):
     with pytest.raises(ConfigError, match=r"planet = 'venus'; expected one of \['earth', 'mars'\]"):
-        load_sim(_edit(tmp_path, "sim.toml", 'planet = "earth"', 'planet = "venus"'))
+        load_sim(edited_config(tmp_path, "sim.toml", 'planet = "earth"', 'planet = "venus"'))
     with pytest.raises(ConfigError, match="unknown planet 'pluto'"):
         planet("pluto")
     with pytest.raises(ConfigError, match=r"\[world\] planet = 'venus'"):
-        load_scenario(_edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"'))
+        load_scenario(
+            edited_config(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"')
+        )
 
 
 def test_malformed_toml_names_the_file(tmp_path):
@@ -179,12 +174,12 @@ def test_malformed_toml_names_the_file(tmp_path):
 )
 def test_bad_scenarios(tmp_path, old, new, match):
     with pytest.raises(ConfigError, match=match):
-        load_scenario(_edit(tmp_path, "scenario.toml", old, new))
+        load_scenario(edited_config(tmp_path, "scenario.toml", old, new))
 
 
 def test_a_scalar_is_a_fixed_span(tmp_path):
     """``key = x`` means ``[x, x]`` for every span key (a fixed value every episode)."""
-    path = _edit(tmp_path, "scenario.toml", "altitude_m = [75.0, 100.0]", "altitude_m = 80")
+    path = edited_config(tmp_path, "scenario.toml", "altitude_m = [75.0, 100.0]", "altitude_m = 80")
     path.write_text(path.read_text() + "\n[wind]\nspeed_m_s = 5.0\ndirection_deg = 90\n")
     sc = load_scenario(path)
     assert sc.altitude_m == (80.0, 80.0) and sc.wind.speed_m_s == (5.0, 5.0)
@@ -235,7 +230,7 @@ def test_sobol_covers_the_space_more_evenly_than_uniform():
 
 
 def test_cli_reports_a_bad_scenario_in_one_line(tmp_path):
-    bad = _edit(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"')
+    bad = edited_config(tmp_path, "scenario.toml", 'planet = "earth"', 'planet = "venus"')
     proc = subprocess.run(
         [sys.executable, "-m", "tools.cli", "demo", "--scenario", str(bad)],
         capture_output=True,

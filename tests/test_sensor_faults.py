@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from flights import fly_cascade, sitl_with_client
+from helpers import config_plus
 
 from companion.contract import Command
 from companion.flightlog import read_log
@@ -41,14 +42,8 @@ NOMINAL_DIGEST = "254e46b21f42aa45e3a66ede98057358c399b93f815e6fe4d4ff3fcebffe4e
 ``[sensors]`` existed: the nominal observation sequence must never change."""
 
 
-def _scenario_file(tmp_path: Path, extra: str, base: Path = CONFIG_DIR / "scenario.toml") -> Path:
-    path = tmp_path / "scenario.toml"
-    path.write_text(base.read_text() + extra)
-    return path
-
-
 def _sensors(tmp_path: Path, extra: str, base: Path = CONFIG_DIR / "scenario.toml"):
-    return load_scenario(_scenario_file(tmp_path, extra, base))
+    return load_scenario(config_plus(tmp_path, extra, base))
 
 
 # --------------------------------------------------------------------------- config
@@ -372,7 +367,7 @@ def test_sitl_encodes_radar_faults_imu_bias_and_latency_on_the_wire(
     what the companion reads as invalid) or the 30 m spurious return, never the true ~5 m;
     HIGHRES_IMU's gyro averages to the drawn bias; camera frames carry the exposure time,
     60 ms before the 10 Hz frame boundary they are sent at."""
-    scenario = _scenario_file(
+    scenario = config_plus(
         tmp_path,
         "\n[sensors]\nradar_dropout_prob = 0.5\nradar_outlier_prob = 1.0\n"
         "radar_outlier_m = [30.0, 30.0]\ngyro_bias_rad_s = [0.02, 0.03]\n"
@@ -405,7 +400,7 @@ def test_lockstep_flight_with_latency_and_drops_answers_every_sent_frame(
     """A scripted privileged pilot answers each frame it receives with the frame's stamp (as the
     companion does): lockstep accepts the exposure-time stamp (no lockstep timeout), lost frames
     are not sent (their ids are skipped and logged as events), and the vehicle lands."""
-    scenario = _scenario_file(
+    scenario = config_plus(
         tmp_path,
         "\n[sensors]\ncamera_latency_ms = [100.0, 150.0]\nframe_drop_prob = 0.2\n",
         Path(low_scenario),

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from flights import fly_cascade, sitl_with_client
+from helpers import config_plus
 
 from companion.contract import Command
 from companion.flightlog import read_log
@@ -37,12 +38,6 @@ direction_deg = [0.0, 360.0]
 turbulence = "moderate"
 gust_m_s = [1.0, 3.0]
 """
-
-
-def _scenario_file(tmp_path: Path, wind: str) -> Path:
-    path = tmp_path / "scenario.toml"
-    path.write_text((CONFIG_DIR / "scenario.toml").read_text() + wind)
-    return path
 
 
 # --------------------------------------------------------------------------- config
@@ -127,7 +122,7 @@ def _scenario_file(tmp_path: Path, wind: str) -> Path:
 def test_bad_wind_sections_name_file_key_expected_and_got(tmp_path, old, new, match):
     assert old in WIND
     with pytest.raises(ConfigError, match=match):
-        load_scenario(_scenario_file(tmp_path, WIND.replace(old, new)))
+        load_scenario(config_plus(tmp_path, WIND.replace(old, new)))
 
 
 def test_wind_section_is_typed_and_still_air_scenarios_are_unchanged():
