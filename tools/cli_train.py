@@ -104,17 +104,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _cmd_ship(args: argparse.Namespace) -> int:
     from training.ship import ship
-    from training.ship_pad import is_pad_run, ship_pad
+    from training.ship_pad import is_pad_run
 
-    pad_run = is_pad_run(args.run)
     try:
-        if pad_run:
-            dst = ship_pad(args.run, args.out, args.name, tuple(args.suite_report))
-        else:
-            dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
+        dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
     except ValueError as exc:
         print(f"visland ship: {exc}", file=sys.stderr)
         return 2
+    pad_run = is_pad_run(args.run)
     card = dst.with_suffix(".md") if pad_run or args.name else dst.parent / "MODEL_CARD.md"
     print(f"shipped {dst} with {card}")
     return 0

@@ -21,6 +21,7 @@ from training.report.markdown import rollouts_text, table3
 from training.report.metrics import load_metrics
 from training.report.targets import fmt, value_text
 from training.reports import SuiteReport
+from training.ship_pad import is_pad_run, load_pad_metrics, pad_card, stage_times
 
 __all__ = ["extra_suite_section", "ship", "variant_file"]
 
@@ -233,9 +234,25 @@ def ship(
     ``visland_vision_<variant>.pt``, :func:`variant_file`), export its ONNX graphs beside it
     (the board runtime; a previous model's export there would otherwise be refused as stale)
     and write its card: ``MODEL_CARD.md`` for the default model, ``<model stem>.md`` for a
-    variant, so a variant never replaces the default model or its card. ``suite_reports``:
-    suites flown with the run's model outside its eval stage, each a section of the card."""
+    variant, so a variant never replaces the default model or its card. A run that taught a
+    pad (:func:`training.ship_pad.is_pad_run`) ships as ``visland_vision_<pad>.pt`` (a variant
+    still takes the variant's name: a run that taught the paper's pad in other worlds must not
+    take the paper-world model's) with its pad card (:func:`training.ship_pad.pad_card`)
+    beside it. ``suite_reports``: suites flown with the run's model outside its eval stage,
+    each a section of the card. Returns the model file.
+
+    Raises:
+        FileNotFoundError: the run's eval stage has not finished.
+        ValueError: a bad variant name, or a suite report of another model (before anything
+            in ``out`` is replaced).
+    """
     run, out = Path(run), Path(out)
+    if is_pad_run(run):
+        pad = load_pad_metrics(run)
+        name = variant_file(variant) if variant else f"visland_vision_{pad.pad.name}.pt"
+        shipped = install_model(run, out, name, suite_reports)
+        shipped.path.with_suffix(".md").write_text(pad_card(run, pad, shipped, variant))
+        return shipped.path
     name = variant_file(variant)
     metrics_path = run / "metrics.json"
     if not metrics_path.exists():
@@ -247,11 +264,7 @@ def ship(
     stages = metrics.get("stages", {})
     timing = metrics.get("timing", {})
     pol_t, mpc_t = timing.get("policy", {}), timing.get("mpc", {})
-    session_times = []
-    tpath = run / "pipeline_time.json"
-    if tpath.exists():
-        session_times = json.loads(tpath.read_text()).get("sessions", [])
-    total_s = sum(s["seconds"] for s in session_times)
+    _, total_s, sessions = stage_times(run)
     perception = stages.get("perception") or {}
     n_params = shipped.n_params
     paper_mpc_ms = 1000 * PAPER_RUNTIME_S["mpc_mean"]
@@ -333,7 +346,7 @@ rates), one per 10 Hz camera frame. It needs no ground truth: it can fly on hard
   {fmt(perception.get("val_bearing_error_px_median"), 2)} px, p95
   {fmt(perception.get("val_bearing_error_px_p95"), 2)} px.
 - pipeline wall time recorded in `pipeline_time.json` (2 CPU cores): {total_s / 60:.1f} min
-  over {len(session_times)} completed session(s); an interrupted session is not recorded, and
+  over {sessions} completed session(s); an interrupted session is not recorded, and
   every stage run again counts (a finished run that takes new estimator settings flies vision
   and eval again), so this is more than one end-to-end run.
 - determinism: on one machine, the same commit, profile and seeds train the same weights, stage

@@ -1,6 +1,7 @@
-"""Ship a run that taught a pad (``training.pad_teach``): ``models/visland_vision_<pad>.pt``, its
-ONNX graphs and its own card ``models/visland_vision_<pad>.md``, every number read from the run's
-``pad_metrics.json``, suite reports, stage records and ``pipeline_time.json``.
+"""The card of a run that taught a pad (``training.pad_teach``), which :func:`training.ship.ship`
+installs as ``models/visland_vision_<pad>.pt`` beside ``models/visland_vision_<pad>.md``: every
+number read from the run's ``pad_metrics.json``, suite reports, stage records and
+``pipeline_time.json``.
 
 The card's targets are issue 33's for a taught pad: on each condition of the pad's suite, at
 least :data:`TARGET_SUCCESS` of the landings and a mean landing error of at most
@@ -17,9 +18,15 @@ from typing import Any
 from companion.files import sha256_file
 from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, file_text
 from training.reports import EvalReport, SuiteReport
-from training.ship import install_model, variant_file
 
-__all__ = ["TARGET_MEAN_ERROR_M", "TARGET_SUCCESS", "is_pad_run", "ship_pad"]
+__all__ = [
+    "TARGET_MEAN_ERROR_M",
+    "TARGET_SUCCESS",
+    "is_pad_run",
+    "load_pad_metrics",
+    "pad_card",
+    "stage_times",
+]
 
 TARGET_SUCCESS = 0.98
 TARGET_MEAN_ERROR_M = 0.15
@@ -32,6 +39,18 @@ def is_pad_run(run: str | Path) -> bool:
         return bool(json.loads(path.read_text()).get("pad"))
     except (OSError, ValueError, AttributeError):
         return False
+
+
+def load_pad_metrics(run: Path) -> PadMetrics:
+    """``run``'s ``pad_metrics.json`` (its eval stage's record).
+
+    Raises:
+        FileNotFoundError: the run's eval stage has not finished.
+    """
+    path = run / "pad_metrics.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: run the pad run's eval stage first")
+    return PadMetrics.from_dict(json.loads(path.read_text()), str(path))
 
 
 def _num(value: float | None, digits: int = 3, unit: str = " m") -> str:
@@ -85,8 +104,9 @@ def targets(report: SuiteReport) -> tuple[str, int, int]:
     return table, met, len(rows)
 
 
-def _stage_times(run: Path) -> tuple[str, float]:
-    """The sessions of ``pipeline_time.json`` as text (per stage) and their total seconds."""
+def stage_times(run: Path) -> tuple[str, float, int]:
+    """The sessions of ``pipeline_time.json`` as text (per stage), their total seconds and
+    their number."""
     path = run / "pipeline_time.json"
     sessions: list[dict[str, Any]] = (
         json.loads(path.read_text()).get("sessions", []) if path.exists() else []
@@ -97,39 +117,17 @@ def _stage_times(run: Path) -> tuple[str, float]:
         per = s.get("stage_seconds") or {}
         detail = ", ".join(f"{n} {v / 60:.1f} min" for n, v in per.items()) or "nothing to run"
         parts.append(f"session {k}: {s['seconds'] / 60:.1f} min ({detail})")
-    return "; ".join(parts) or "not recorded", total
+    return "; ".join(parts) or "not recorded", total, len(sessions)
 
 
-def ship_pad(
-    run: str | Path,
-    out: str | Path = "models",
-    variant: str | None = None,
-    suite_reports: tuple[str | Path, ...] = (),
-) -> Path:
-    """Copy ``<run>/checkpoints/vision.pt`` to ``<out>/visland_vision_<pad>.pt`` (a
-    ``variant``: ``visland_vision_<variant>.pt`` — a run that taught the paper's pad in other
-    worlds must not take the paper-world model's name), export its ONNX graphs beside it and
-    write its card (``.md`` beside it); ``suite_reports``: suites flown with the run's model
-    outside its eval stage, each a section of the card. Returns the model file.
-
-    Raises:
-        FileNotFoundError: the run's eval stage has not finished.
-        ValueError: a bad variant name, or a suite report of another model (before anything
-            in ``out`` is replaced).
-    """
-    run, out = Path(run), Path(out)
-    metrics_path = run / "pad_metrics.json"
-    if not metrics_path.exists():
-        raise FileNotFoundError(f"{metrics_path}: run the pad run's eval stage first")
-    m = PadMetrics.from_dict(json.loads(metrics_path.read_text()), str(metrics_path))
-    name = variant_file(variant) if variant else f"visland_vision_{m.pad.name}.pt"
-    shipped = install_model(run, out, name, suite_reports)
+def pad_card(run: Path, m: PadMetrics, shipped: Any, variant: str | None) -> str:
+    """The card of ``run``'s model as ``shipped`` (a :class:`training.ship.InstalledModel`)."""
     policy, dst, extra_sections = shipped.policy, shipped.path, shipped.extra_sections
     report, baseline = SuiteReport.load(m.report), SuiteReport.load(m.baseline)
     source = Path(m.source.checkpoint)
     table = suite_table(report, baseline, (dst.name, source.name))
     target_table, met, total = targets(report)
-    times, total_s = _stage_times(run)
+    times, total_s, _ = stage_times(run)
     n_params = shipped.n_params
     pr, vr = m.perception, m.vision
     lo, hi = m.pad.start_altitude_m
@@ -152,7 +150,7 @@ def ship_pad(
     from_text = f"--from {m.source.run}" if m.source.run else f"--from {m.source.checkpoint}"
     worlds = m.profile.worlds or "configs/scenario.toml"
     title = f"pad `{m.pad.name}`" + (f" in the worlds of `{worlds}`" if variant else "")
-    card = f"""# visland vision landing policy `{dst.name}` for {title} — model card
+    return f"""# visland vision landing policy `{dst.name}` for {title} — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): the controller and estimator of `{source.name}` (sha256
@@ -207,5 +205,3 @@ true size, matte), over procedural grounds, Earth and Mars. A real camera, real 
 real pad need a check before flight: `visland pad check` on a photo of the laid-out pad, then
 the companion's shadow mode (`docs/deploy.md`).
 """
-    dst.with_suffix(".md").write_text(card)
-    return dst
