@@ -171,39 +171,6 @@ def test_flying_a_planet_without_its_t_max_names_the_file_and_planet(tmp_path):
         LandingEnv(vehicle=path, scenario=CONFIG_DIR / "scenario_mars.toml", render_camera=False)
 
 
-@pytest.mark.parametrize(
-    ("old", "new", "match"),
-    [
-        # the old single figure: thrust would silently be the same in any air
-        (
-            "[vehicle.max_total_thrust_n]",
-            "max_total_thrust_n = 25.0\n[vehicle.thrust_notes]",
-            r"\[vehicle\] max_total_thrust_n = 25\.0; expected a table "
-            r"\[vehicle\.max_total_thrust_n\] with T_max \(N\) per planet",
-        ),
-        (
-            "mars = 25.0",
-            "venus = 25.0",
-            r"\[vehicle\.max_total_thrust_n\] unknown key\(s\) \['venus'\]; expected "
-            r"\['earth', 'mars'\]",
-        ),
-        (
-            "mars = 25.0",
-            "mars = 0.0",
-            r"vehicle\.toml: \[vehicle\.max_total_thrust_n\] mars = 0\.0; expected a number > 0",
-        ),
-        (
-            "[vehicle.max_total_thrust_n]\n",
-            "[thrust_by_planet]\n",
-            r"unknown section\(s\) \['\[thrust_by_planet\]'\]",
-        ),
-    ],
-)
-def test_bad_t_max_tables_name_file_and_key(tmp_path, old, new, match):
-    with pytest.raises(ConfigError, match=match):
-        load_vehicle(edited_config(tmp_path, "vehicle.toml", old, new))
-
-
 # --------------------------------------------------------------------------- determinism
 
 

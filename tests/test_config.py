@@ -62,6 +62,29 @@ def test_default_configs_match_table_1():
         ("[vehicle]", "[vehicles]", r"unknown section\(s\) \['\[vehicles\]'\]"),
         ("earth = 25.0 ", "venus = 25.0 ", r"\[vehicle.max_total_thrust_n\] unknown key"),
         ("earth = 25.0 ", "earth = 0.0 ", r"\[vehicle.max_total_thrust_n\] earth = 0.0; expected"),
+        # the old single figure: thrust would silently be the same in any air
+        (
+            "[vehicle.max_total_thrust_n]",
+            "max_total_thrust_n = 25.0\n[vehicle.thrust_notes]",
+            r"\[vehicle\] max_total_thrust_n = 25\.0; expected a table "
+            r"\[vehicle\.max_total_thrust_n\] with T_max \(N\) per planet",
+        ),
+        (
+            "mars = 25.0",
+            "venus = 25.0",
+            r"\[vehicle\.max_total_thrust_n\] unknown key\(s\) \['venus'\]; expected "
+            r"\['earth', 'mars'\]",
+        ),
+        (
+            "mars = 25.0",
+            "mars = 0.0",
+            r"vehicle\.toml: \[vehicle\.max_total_thrust_n\] mars = 0\.0; expected a number > 0",
+        ),
+        (
+            "[vehicle.max_total_thrust_n]\n",
+            "[thrust_by_planet]\n",
+            r"unknown section\(s\) \['\[thrust_by_planet\]'\]",
+        ),
     ],
 )
 def test_bad_vehicle_values_name_file_and_field(tmp_path, old, new, match):
