@@ -184,18 +184,24 @@ def test_periodic_ground_wraps_without_a_seam():
     assert np.mean(here == there) > 0.995
 
 
+EVERY_EFFECT = {
+    "terrain": ["sand", "grass", "mars_rocks", "regolith", "asphalt"],
+    "texture_seed": [0, 99],
+    "sun_elevation_deg": [10.0, 80.0],
+    "brightness": [0.7, 1.3],
+    "contrast": [0.8, 1.2],
+    "pad_scale": [0.7, 1.3],
+    "pad_colour_jitter": 0.2,
+    "haze": [0.0, 0.4],
+    "exposure_noise": 0.1,
+    "motion_blur_ms": [20.0, 30.0],
+    "lens_k1": [-0.2, -0.1],
+}
+"""A ``[visual]`` section that draws every effect of the procedural ground."""
+
+
 def test_visual_draws_are_deterministic_and_leave_the_rest_alone():
-    sc = scenario_with(
-        visual={
-            "terrain": ["sand", "grass", "mars_rocks"],
-            "texture_seed": [0, 99],
-            "sun_elevation_deg": [10.0, 80.0],
-            "brightness": [0.7, 1.3],
-            "pad_scale": [0.7, 1.3],
-            "pad_colour_jitter": 0.2,
-            "haze": [0.0, 0.3],
-        }
-    )
+    sc = scenario_with(visual=EVERY_EFFECT)
     a, b = episode_world(sc, 11, 4).visual, episode_world(sc, 11, 4).visual
     assert a == b
     others = {episode_world(sc, 11, i).visual for i in range(12)}
@@ -207,18 +213,7 @@ def test_visual_draws_are_deterministic_and_leave_the_rest_alone():
 
 
 def test_same_seed_same_frames_bit_for_bit_with_every_effect():
-    sc = scenario_with(
-        visual={
-            "terrain": ["regolith", "asphalt"],
-            "texture_seed": [5, 9],
-            "sun_elevation_deg": [20.0, 40.0],
-            "contrast": [0.8, 1.2],
-            "haze": [0.2, 0.4],
-            "exposure_noise": 0.1,
-            "motion_blur_ms": [20.0, 30.0],
-            "lens_k1": [-0.2, -0.1],
-        }
-    )
+    sc = scenario_with(visual=EVERY_EFFECT)
     a, b = flight_frames(sc, "fast", 3, 2, n=5), flight_frames(sc, "fast", 3, 2, n=5)
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
     c = flight_frames(sc, "fast", 3, 5, n=5)

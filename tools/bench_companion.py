@@ -265,24 +265,31 @@ def format_bench(res: dict[str, Any]) -> str:
             f"commands vs the flown ones ({res['runtime']}): torch max |diff| "
             f"{t['max_abs_diff_vs_flown']:.2g}, onnx max |diff| {o['max_abs_diff_vs_flown']:.2g}"
         )
-    plain = res.get("scene_off")
-    if plain:
-        ratio = res["scene_vs_off"]
-        lines.append(
-            f"the same flights with --log-scene off: {_latency(plain)}, "
-            f"{plain['log_bytes_per_flight'] / 1e6:.2f} MB a log (with the scene: "
-            f"{_times(ratio['median_ms'], ratio['p99_ms'])}, "
-            f"x{ratio['log_bytes_per_flight']:.2f} log size)"
-        )
-    watched = res.get("live")
-    if watched:
-        ratio = res["live_vs_off"]
-        lines.append(
-            "the same flights with the live view and a client subscribed to every channel: "
-            f"{_latency(watched)} ({_times(ratio['median'], ratio['p99'])} of the flights "
-            f"without; the client received {sum(watched['received'].values())} messages)"
-        )
+    lines += [line(res) for key, line in _VERSUS if res.get(key)]
     return "\n".join(lines)
+
+
+def _scene_off_line(res: dict[str, Any]) -> str:
+    plain, ratio = res["scene_off"], res["scene_vs_off"]
+    return (
+        f"the same flights with --log-scene off: {_latency(plain)}, "
+        f"{plain['log_bytes_per_flight'] / 1e6:.2f} MB a log (with the scene: "
+        f"{_times(ratio['median_ms'], ratio['p99_ms'])}, x{ratio['log_bytes_per_flight']:.2f} "
+        "log size)"
+    )
+
+
+def _live_line(res: dict[str, Any]) -> str:
+    watched, ratio = res["live"], res["live_vs_off"]
+    return (
+        "the same flights with the live view and a client subscribed to every channel: "
+        f"{_latency(watched)} ({_times(ratio['median'], ratio['p99'])} of the flights without; "
+        f"the client received {sum(watched['received'].values())} messages)"
+    )
+
+
+_VERSUS = (("scene_off", _scene_off_line), ("live", _live_line))
+"""The comparison runs a result may hold (its key) and the line each prints."""
 
 
 def _latency(stats: dict[str, Any]) -> str:
