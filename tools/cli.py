@@ -5,13 +5,14 @@ codes.
 Each subcommand is a thin shell over a ``run(config)``-style function that the tests call
 directly, registered by the module of its job:
 
-- :mod:`tools.cli_sim`: ``demo``, ``readme``, ``sitl``, ``companion``, ``fly`` (the processes
-  over MAVLink; ``readme`` writes the README's demo block from a demo run);
+- :mod:`tools.cli_sim`: ``demo``, ``readme``, ``sitl``, ``companion``, ``fly``, ``soak`` (the
+  processes over MAVLink; ``readme`` writes the README's demo block from a demo run);
 - :mod:`tools.cli_eval`: ``eval``, ``collect``, ``relabel``, ``pictures`` (flights in process);
-- :mod:`tools.cli_log`: ``log info``, ``log plot``;
-- :mod:`tools.cli_bench`: ``bench sim|mpc|policy|companion|rollouts``;
+- :mod:`tools.cli_log`: ``log info|plot|frame|replay|scene``;
+- :mod:`tools.cli_bench`: ``bench sim|mpc|policy|companion|sitl|rollouts``;
 - :mod:`tools.cli_train`: ``pipeline``, ``train``, ``ship``, ``report``;
-- :mod:`tools.cli_pad`: ``pad info|print|check`` (make the landing pad);
+- :mod:`tools.cli_pad`: ``pad info|print|check|acquire|error`` (make the landing pad, measure
+  the CNN on it);
 - :mod:`tools.export_onnx`: ``export-onnx``.
 
 The flags and output several commands share are in :mod:`tools.cli_args`.

@@ -1,9 +1,9 @@
 """``visland eval`` and ``visland collect``: fly a policy over the scenario, report or record.
 
 The metrics are ``sitl_sim.metrics`` (one definition everywhere); the reports are
-:mod:`training.reports`' records, whose JSON has at least the keys DESIGN.md lists: episodes,
-transport, seed, landing_error_m {min, max, mean, std}, touchdown_speed_m_s {...}, success_rate
-and per_episode rows.
+:mod:`training.reports`' records (``EvalReport``, ``CollectReport``), whose fields are their JSON
+keys: episodes, transport, seed, landing_error_m {min, max, mean, std}, touchdown_speed_m_s
+{...}, success_rate and per_episode rows among them.
 """
 
 from __future__ import annotations
