@@ -18,6 +18,7 @@ from companion.policy_net import (
     GuardState,
     LandingGuard,
     NetConfig,
+    PadEstimator,
     PadNotFound,
 )
 from sitl_sim.metrics import OFF_PAD_M, EpisodeResult, summarize
@@ -90,9 +91,73 @@ def test_below_the_floor_without_a_confirmed_pad_it_climbs_level_then_gives_up()
     assert state.engaged == 2
 
 
+def test_outside_the_envelope_the_guard_recovers_level_then_hands_back():
+    guard = LandingGuard(NetConfig(envelope_sink_m_s=10.0, envelope_tilt_deg=90.0))
+    # off unless set: a dive is the network's
+    dive = _estimate(40.0, True, v_down=25.0)
+    cmd, state = _step(LandingGuard(NetConfig()), GuardState(), dive, 20)
+    assert cmd is NETWORK and not state.recovering and state.recoveries == 0
+    # a dive at 25 m/s, rolled 40 deg right, the pad confirmed: level and arrest the descent
+    cmd, state = _step(guard, GuardState(), dive, 20, attitude=(math.radians(40), 0.0, 0.0))
+    assert state.recovering and state.recoveries == 1 and not state.holding
+    assert cmd.thrust_norm > 0.4 and cmd.rate_frd_rad_s[0] < 0.0 and cmd.rate_frd_rad_s[2] == 0.0
+    # slower, but above half the limit: the same recovery goes on
+    cmd, state = _step(guard, state, _estimate(35.0, True, v_down=6.0), 20)
+    assert cmd is not NETWORK and state.recovering and state.recoveries == 1
+    # under half the limit and level: the hold, until ten more fixes confirm the pad
+    cmd, state = _step(guard, state, _estimate(33.0, True, v_down=4.0), 20)
+    assert state.holding and not state.recovering and state.recheck_from == 20
+    assert state.recoveries == 1 and cmd.thrust_norm > 0.4  # stops the sink towards 30 m
+    cmd, state = _step(guard, state, _estimate(33.0, True, v_down=1.0), 29)
+    assert state.holding
+    cmd, state = _step(guard, state, _estimate(33.0, True, v_down=1.0), 30)
+    assert cmd is NETWORK and not state.holding and state.recheck_from is None
+    # rolled past the vertical: thrust cut to its least (it would push down) while it rolls back
+    flipped = (math.radians(150), 0.0, 0.0)
+    cmd, state = _step(guard, state, _estimate(30.0, True, v_down=1.0), 20, attitude=flipped)
+    assert state.recovering and state.recoveries == 2
+    assert cmd.thrust_norm == pytest.approx(0.05) and cmd.rate_frd_rad_s[0] < 0.0
+    # no pad confirmed again in pad_timeout_s of hold after a recovery: the flight ends
+    quick = LandingGuard(NetConfig(envelope_sink_m_s=10.0, pad_timeout_s=1.0))
+    cmd, state = _step(quick, GuardState(), _estimate(50.0, True, v_down=12.0), 40)
+    assert state.recovering
+    with pytest.raises(PadNotFound, match="since the vehicle left its envelope"):
+        for _ in range(20):
+            cmd, state = _step(quick, state, _estimate(50.0, True, v_down=1.0), 45)
+    assert state.holding and not state.recovering
+
+
+def test_a_reacquired_estimate_confirms_the_pad_again():
+    """The estimate that jumped to another place (a parking bay taken for the pad) starts its
+    confirmation from nothing (``confirm_reset_on_reacquire``, on by default)."""
+    est = _estimate(40.0, True)
+    took = dataclasses.replace(est, took_horizontal=True)
+    jumped = dataclasses.replace(took, reacquired=True)
+    plain = LandingGuard(NetConfig(confirm_reset_on_reacquire=False))
+    resets = LandingGuard(NetConfig())
+    assert plain.count(12, took, 0.9) == 13 and resets.count(12, took, 0.9) == 13
+    assert plain.count(12, took, 0.5) == 12  # under confirm_threshold: not counted
+    assert plain.count(12, jumped, 0.9) == 13 and resets.count(12, jumped, 0.9) == 1
+    # the estimator says when a fix re-acquired: after gate_reset_steps refusals in a row
+    cfg = NetConfig(gate_reset_steps=3)
+    pe = PadEstimator(cfg)
+    state = pe.initial_state()
+    level, still = np.zeros(3), np.array([0.0, 0.0, -cfg.gravity_m_s2])
+    for _ in range(5):
+        state = pe.step(state, np.array([1.0, 1.0, -40.0]), True, level, still)
+        assert not state.reacquired
+    flags = []
+    for _ in range(3):  # 30 m away: refused twice, then the estimate restarts there
+        state = pe.step(state, np.array([31.0, 1.0, -40.0]), True, level, still)
+        flags.append(state.reacquired)
+    assert flags == [False, False, True] and state.x[0, 0] == pytest.approx(31.0)
+
+
 @pytest.mark.parametrize(
     "settings, message",
     [
+        ({"envelope_sink_m_s": 1.0}, "envelope_sink_m_s: expected in \\(2, 100\\]"),
+        ({"envelope_tilt_deg": 10.0}, "envelope_tilt_deg: expected in \\(30, 180\\]"),
         ({"land_floor_m": -1.0}, "land_floor_m: expected in \\(0, 200\\]"),
         ({"land_floor_m": 40.0, "search_altitude_m": 30.0}, "search_altitude_m: expected >="),
         ({"confirm_fixes": 0}, "confirm_fixes: expected an integer >= 1"),
@@ -166,6 +231,22 @@ def test_eval_without_the_pad_in_view_aborts_instead_of_landing_blind(tmp_path):
     assert blind["estimator"] == {"land_floor_m": None}
     assert blind["off_pad"] == 2 and blind["aborts"] == 0
     assert all(row["landing_error_m"] > 100 for row in blind["per_episode"])
+
+
+def test_a_parking_lot_flight_that_landed_off_the_pad_now_ends_in_the_air():
+    """The shipped model over the parking-lot photograph (validation seed, episode 0): the CNN
+    takes bays for the pad and the estimate jumps from bay to bay. Counting the fixes of the
+    whole flight, the pad was confirmed early and it landed 77 m off at 7 m/s; a re-acquired
+    estimate now confirms the pad again, so below the floor the guard holds and the flight ends
+    pad_not_found (``confirm_reset_on_reacquire``, on by default)."""
+    args = ("eval", "--policy", MODEL, "--scenario", "configs/scenario_ground_parking_lot.toml")
+    args += ("--episodes", "1", "--seed", "500", "--json")
+    now, before = visland(*args), visland(*args, "--estimator", "confirm_reset_on_reacquire=false")
+    assert now.returncode == 0 and before.returncode == 0, now.stderr + before.stderr
+    (row,) = json.loads(now.stdout)["per_episode"]
+    assert row["failsafe"] == "pad_not_found" and not row["landed"], row
+    (old,) = json.loads(before.stdout)["per_episode"]
+    assert old["landed"] and old["landing_error_m"] > OFF_PAD_M, old
 
 
 def test_the_sites_variant_takes_no_bare_ground_for_a_pad(tmp_path):

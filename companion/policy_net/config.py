@@ -43,6 +43,9 @@ ESTIMATOR_FIELDS = (
     "confirm_threshold",
     "search_altitude_m",
     "pad_timeout_s",
+    "confirm_reset_on_reacquire",
+    "envelope_sink_m_s",
+    "envelope_tilt_deg",
 )
 """The :class:`NetConfig` fields that shape only the pad estimator, the fix and the landing
 guard, not a network's weights: a trained network flies with any values of them."""
@@ -184,6 +187,21 @@ class NetConfig:
     """Where the guard climbs to, to widen the view, and holds."""
     pad_timeout_s: float = 30.0
     """Time in the guard without a confirmed pad after which the flight ends: pad not found."""
+    confirm_reset_on_reacquire: bool = True
+    """A re-acquisition (the estimate restarted from a fix the innovation gate had refused
+    ``gate_reset_steps`` times in a row) starts the pad's confirmation again: the fixes that
+    confirmed the old estimate were of another place (a parking bay taken for the pad). On by
+    default, old checkpoints included (docs/DESIGN.md, decisions: never land blind); False: the
+    fixes of the whole flight count, as before."""
+    envelope_sink_m_s: float | None = None
+    """The guard recovers the vehicle — levels it and arrests the descent — whenever the
+    estimator's descent speed is above this (m/s), then holds until the pad is confirmed again
+    (:mod:`companion.policy_net.guard`). None (the default): off — the recovery and the hold
+    trust the estimator's vertical velocity, and where that diverged (a radar reading a slope)
+    they climb away instead (docs/DESIGN.md, decisions)."""
+    envelope_tilt_deg: float | None = None
+    """Likewise for a tilt from level above this (degrees): a policy out of its training's
+    states can roll the vehicle over. None (the default): off."""
 
     def __post_init__(self) -> None:
         if self.kind not in ("vision", "privileged"):
@@ -244,6 +262,18 @@ class NetConfig:
         if not (isinstance(self.confirm_fixes, int) and self.confirm_fixes >= 1):
             raise CheckpointError(
                 f"net config confirm_fixes: expected an integer >= 1, got {self.confirm_fixes!r}"
+            )
+        sink, tilt_limit = self.envelope_sink_m_s, self.envelope_tilt_deg
+        if sink is not None and not (math.isfinite(sink) and 2.0 < sink <= 100.0):
+            raise CheckpointError(
+                f"net config envelope_sink_m_s: expected in (2, 100] m/s or None, got {sink}"
+            )
+        if tilt_limit is not None and not (
+            math.isfinite(tilt_limit) and 30.0 < tilt_limit <= 180.0
+        ):
+            raise CheckpointError(
+                "net config envelope_tilt_deg: expected in (30, 180] degrees or None, got "
+                f"{tilt_limit}"
             )
         if not (math.isfinite(self.pad_timeout_s) and self.pad_timeout_s > 0.0):
             raise CheckpointError(

@@ -61,8 +61,9 @@ class PolicyState:
     reading at hand is often the previous one again (DISTANCE_SENSOR late or lost), and a
     reading is measured once."""
     fixes: int = 0
-    """Horizontal fixes the estimator took this flight at a pad probability of at least
-    ``confirm_threshold`` (the landing guard's confirmation of the pad)."""
+    """Horizontal fixes the estimator took this flight (with ``confirm_reset_on_reacquire``:
+    since its last re-acquisition) at a pad probability of at least ``confirm_threshold`` (the
+    landing guard's confirmation of the pad)."""
     guard: GuardState | None = None
     """The landing guard's state (:mod:`companion.policy_net.guard`); None: no guard (a
     privileged policy, ``land_floor_m`` None)."""
@@ -171,8 +172,6 @@ class PolicyCore(ABC):
     def _init_core(self) -> None:
         self._estimator = PadEstimator(self.config)
         self._guard = LandingGuard(self.config)
-        threshold = self.config.confirm_threshold
-        self._confirm_at = 0.0 if threshold is None else threshold
 
     # the backend's networks -------------------------------------------------------------
 
@@ -427,7 +426,7 @@ class PolicyCore(ABC):
             state,
             estimator=est,
             last_perception=raw,
-            fixes=state.fixes + int(est.took_horizontal and vis >= self._confirm_at),
+            fixes=self._guard.count(state.fixes, est, vis),
         )
 
     def act(

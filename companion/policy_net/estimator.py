@@ -29,6 +29,9 @@ class EstimatorState:
     took_horizontal: bool = False
     """This step's horizontal fix (sure or unsure) was taken: it started or updated the
     estimate's position (the landing guard counts them to confirm the pad)."""
+    reacquired: bool = False
+    """This step's fix restarted the horizontal estimate after ``gate_reset_steps`` refusals in
+    a row (``NetConfig.confirm_reset_on_reacquire``: the pad is confirmed again)."""
 
 
 MAX_STEP_DT_S = 1.0
@@ -132,7 +135,7 @@ class PadEstimator:
             if init[axis]:
                 x[axis] = f @ x[axis] + b * acc[axis]
                 cov[axis] = f @ cov[axis] @ f.T + q
-        took = False
+        took = reacquired = False
         if fix_ned_m is not None and np.all(np.isfinite(fix_ned_m)):
             alt = max(-float(fix_ned_m[2]), 0.0)
             sigma_h = self.cfg.bearing_noise_floor_m + self.cfg.bearing_noise_rad * alt
@@ -194,6 +197,7 @@ class PadEstimator:
                     if rejected >= self.cfg.gate_reset_steps:
                         init[:2] = False  # re-acquire below from this fix
                         rejected = 0
+                        reacquired = True
                     else:
                         axes = axes[2:]
                 else:
@@ -225,4 +229,5 @@ class PadEstimator:
             rejected=rejected,
             rejected_altitude=rejected_alt,
             took_horizontal=took,
+            reacquired=reacquired,
         )

@@ -18,11 +18,23 @@ between the controller and the autopilot:
   a failure, never a touchdown); on the companion it is the failsafe of that name, and the
   autopilot's offboard-loss action applies (docs/deploy.md says which to set).
 
-A flight that confirms the pad above the floor never meets the guard: its commands are the
-network's, bit for bit. ``land_floor_m = None`` turns the guard off (training's expert-state
-features never run it; an ablation can). The guard's settings are :data:`ESTIMATOR_FIELDS`:
-no weight depends on them, so ``visland eval --estimator land_floor_m=15`` flies a checkpoint
-with another floor.
+**Never leave the envelope** (``envelope_sink_m_s``, ``envelope_tilt_deg``; off unless set): a
+network that has lost the pad can fly states no training flight held — a dive at tens of m/s
+after an estimate that jumped between false fixes, a roll past the vertical — and would end in
+the ground at that speed. Whenever the estimator's descent speed or the tilt from level is above
+its limit, at any altitude, the guard recovers: it levels the vehicle (with the thrust cut while
+it is nearly upside down) and arrests the descent, until the descent is under half its limit
+and the tilt under :data:`_RECOVERED_TILT_RAD`, or for :data:`_MAX_RECOVERY_S` at most. The
+estimate the network flew that on is not to be trusted: the hold flies next, at any altitude,
+until ``confirm_fixes`` more fixes confirm the pad (then the network again), and
+``pad_timeout_s`` in the hold ends the flight as above. The recovery itself does not count
+towards ``pad_timeout_s``.
+
+A flight that confirms the pad above the floor and stays in the envelope never meets the guard:
+its commands are the network's, bit for bit. ``land_floor_m = None`` turns the landing part off
+(training's expert-state features never run it; an ablation can). The guard's settings are
+:data:`ESTIMATOR_FIELDS`: no weight depends on them, so ``visland eval --estimator
+land_floor_m=15`` flies a checkpoint with another floor.
 
 The hold is a plain cascade on the estimator's state (no ground truth): vertical speed to a
 climb-rate target with an integral for the hover-thrust error (another planet, a heavier
@@ -34,7 +46,7 @@ with the air while it holds and searches.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,6 +74,16 @@ class GuardState:
     """Integral of the vertical-speed error (m/s^2): the hover thrust the report got wrong."""
     engaged: int = 0
     """How many times the guard took over in this flight."""
+    recovering: bool = False
+    """The guard recovers the vehicle into the envelope this step."""
+    recoveries: int = 0
+    """How many times the vehicle left the envelope in this flight."""
+    recovery_s: float = 0.0
+    """Time in the recovery under way."""
+    recheck_from: int | None = None
+    """After a recovery: the confirming fixes counted then. The network flew the vehicle out of
+    its envelope on an estimate it cannot be trusted with, so the guard holds (at any altitude)
+    until ``confirm_fixes`` more confirm the pad; None: no recovery to recheck."""
 
 
 _KV = 1.2
@@ -79,6 +101,15 @@ _KD_HORIZONTAL = 0.8
 _MAX_TILT_RAD = math.radians(10.0)
 _KP_ATTITUDE = 4.0
 """Roll/pitch rate per radian of attitude error, 1/s."""
+_RECOVERED_TILT_RAD = math.radians(15.0)
+"""A recovery ends below this tilt (and half the descent limit)."""
+_MAX_RECOVERY_S = 3.0
+"""A recovery ends after this long whatever the estimate says: its vertical law trusts the
+estimator's velocity, which may be what went wrong (a radar reading a slope); the hold, with
+its timeout, flies next."""
+_INVERTED_COS = 0.3
+"""Below this cosine of the tilt a recovery cuts the thrust to its least: thrust would push the
+vehicle down."""
 
 
 class LandingGuard:
@@ -86,6 +117,15 @@ class LandingGuard:
 
     def __init__(self, cfg: NetConfig) -> None:
         self.cfg = cfg
+
+    def count(self, fixes: int, est: EstimatorState, vis: float) -> int:
+        """The confirming fixes after an estimator step ``est`` on a bearing of pad probability
+        ``vis``: one more where the step took its fix at ``confirm_threshold`` or above; none
+        before it where the step re-acquired and ``confirm_reset_on_reacquire`` is set."""
+        if est.reacquired and self.cfg.confirm_reset_on_reacquire:
+            fixes = 0
+        threshold = self.cfg.confirm_threshold
+        return fixes + int(est.took_horizontal and vis >= (threshold or 0.0))
 
     def confirmed(self, est: EstimatorState, fixes: int) -> bool:
         """The estimator has a horizontal position from at least ``confirm_fixes`` fixes."""
@@ -103,38 +143,113 @@ class LandingGuard:
         """The command to fly: the network's ``command``, or the hold's below the floor without
         a confirmed pad. Raises :class:`PadNotFound` once the guard has held too long."""
         cfg = self.cfg
+        # a recovery goes on for _MAX_RECOVERY_S at most; a new one starts outside the hold
+        # that follows it (the hold is the careful law, and has its timeout)
+        may = state.recovery_s < _MAX_RECOVERY_S if state.recovering else state.recheck_from is None
+        if may and self._outside(state, est, attitude_rad):
+            recover, thrust_i = self._fly(
+                est, attitude_rad, hover_thrust_norm, state.thrust_i, 0.0, recovering=True
+            )
+            return recover, replace(
+                state,
+                holding=False,
+                recovering=True,
+                thrust_i=thrust_i,
+                recoveries=state.recoveries + (not state.recovering),
+                recovery_s=state.recovery_s + cfg.control_dt_s if state.recovering else 0.0,
+            )
+        if state.recovering:  # back in the envelope: the pad is to be confirmed again
+            state = replace(
+                state, recovering=False, thrust_i=0.0, recheck_from=fixes, recovery_s=0.0
+            )
         floor = cfg.land_floor_m
         if floor is None or not est.initialised[2]:
             return command, state  # no altitude yet: the first radar fix comes with step one
         altitude = -float(est.x[2, 0])
-        if not state.holding and (altitude >= floor or self.confirmed(est, fixes)):
+        since = state.recheck_from
+        counted = fixes - since if since is not None and fixes >= since else fixes
+        confirmed = self.confirmed(est, counted)
+        if not state.holding and since is None and (altitude >= floor or confirmed):
             return command, state
-        if self.confirmed(est, fixes):  # the pad came into view while holding: the network
-            return command, GuardState(held_s=state.held_s, engaged=state.engaged)
+        if confirmed:  # the pad came into view (again) while holding: the network
+            return command, GuardState(
+                held_s=state.held_s, engaged=state.engaged, recoveries=state.recoveries
+            )
         held = state.held_s + cfg.control_dt_s
         if held >= cfg.pad_timeout_s:
-            raise PadNotFound(
-                f"pad not found: no confirmed pad ({fixes} of {cfg.confirm_fixes} fixes) "
-                f"after {held:.1f} s below the {floor:g} m floor or climbing back above it"
+            where = (
+                "since the vehicle left its envelope"
+                if since is not None
+                else f"below the {floor:g} m floor or climbing back above it"
             )
-        hover = hover_thrust_norm
-        if not (math.isfinite(hover) and 0.0 < hover < 1.0):
-            hover = cfg.hover_thrust_norm
-        v_up = -float(est.x[2, 1])
+            raise PadNotFound(
+                f"pad not found: no confirmed pad ({counted} of {cfg.confirm_fixes} fixes) "
+                f"after {held:.1f} s {where}"
+            )
         target = float(
             np.clip(
                 _CLIMB_GAIN * (cfg.search_altitude_m - altitude), -_MAX_SINK_M_S, _MAX_CLIMB_M_S
             )
         )
-        err = target - v_up
-        thrust_i = float(np.clip(state.thrust_i + _KI * err * cfg.control_dt_s, -2.0, 2.0))
+        hold, thrust_i = self._fly(est, attitude_rad, hover_thrust_norm, state.thrust_i, target)
+        engaged = state.engaged + (not state.holding)
+        return hold, GuardState(
+            holding=True,
+            held_s=held,
+            thrust_i=thrust_i,
+            engaged=engaged,
+            recoveries=state.recoveries,
+            recheck_from=since,
+        )
+
+    def _outside(self, state: GuardState, est: EstimatorState, attitude_rad: np.ndarray) -> bool:
+        """The vehicle is outside the envelope (a recovery under way ends only once it is well
+        inside: below half the descent limit and :data:`_RECOVERED_TILT_RAD`)."""
+        cfg = self.cfg
+        sink_limit, tilt_limit = cfg.envelope_sink_m_s, cfg.envelope_tilt_deg
+        if sink_limit is None and tilt_limit is None:
+            return False
+        sink = float(est.x[2, 1]) if est.initialised[2] else 0.0
+        roll, pitch = float(attitude_rad[0]), float(attitude_rad[1])
+        tilt = math.acos(float(np.clip(math.cos(roll) * math.cos(pitch), -1.0, 1.0)))
+        if state.recovering:
+            return (sink_limit is not None and sink > 0.5 * sink_limit) or (
+                tilt_limit is not None and tilt > _RECOVERED_TILT_RAD
+            )
+        return (sink_limit is not None and sink > sink_limit) or (
+            tilt_limit is not None and tilt > math.radians(tilt_limit)
+        )
+
+    def _fly(
+        self,
+        est: EstimatorState,
+        attitude_rad: np.ndarray,
+        hover_thrust_norm: float,
+        thrust_i: float,
+        climb_m_s: float,
+        recovering: bool = False,
+    ) -> tuple[Command, float]:
+        """The cascade on the estimator's state: vertical speed to ``climb_m_s``; attitude
+        leaning against the estimated horizontal velocity where the estimator has one (the
+        hold), or level with the thrust cut while nearly upside down (``recovering``). Returns
+        the command and the new integral."""
+        cfg = self.cfg
+        hover = hover_thrust_norm
+        if not (math.isfinite(hover) and 0.0 < hover < 1.0):
+            hover = cfg.hover_thrust_norm
+        v_up = -float(est.x[2, 1]) if est.initialised[2] else 0.0
+        err = climb_m_s - v_up
+        thrust_i = float(np.clip(thrust_i + _KI * err * cfg.control_dt_s, -2.0, 2.0))
         a_up = float(np.clip(_KV * err + thrust_i, -_MAX_ACCEL_UP, _MAX_ACCEL_UP))
         roll, pitch, yaw = (float(a) for a in attitude_rad)
-        cos_tilt = max(math.cos(roll) * math.cos(pitch), 0.5)
-        thrust = float(np.clip(hover * (1.0 + a_up / cfg.gravity_m_s2) / cos_tilt, 0.05, 0.95))
-        # level, or lean against the estimated horizontal velocity
+        cos_tilt = math.cos(roll) * math.cos(pitch)
+        thrust = float(
+            np.clip(hover * (1.0 + a_up / cfg.gravity_m_s2) / max(cos_tilt, 0.5), 0.05, 0.95)
+        )
+        if recovering and cos_tilt < _INVERTED_COS:
+            thrust = 0.05
         a_fwd = a_right = 0.0
-        if np.all(est.initialised[:2]):
+        if not recovering and np.all(est.initialised[:2]):
             a_n, a_e = (-_KD_HORIZONTAL * float(est.x[i, 1]) for i in (0, 1))
             c, s = math.cos(yaw), math.sin(yaw)
             a_fwd, a_right = c * a_n + s * a_e, -s * a_n + c * a_e
@@ -147,7 +262,4 @@ class LandingGuard:
             -limits,
             limits,
         )
-        engaged = state.engaged + (not state.holding)
-        return Command(thrust_norm=thrust, rate_frd_rad_s=rates), GuardState(
-            holding=True, held_s=held, thrust_i=thrust_i, engaged=engaged
-        )
+        return Command(thrust_norm=thrust, rate_frd_rad_s=rates), thrust_i
