@@ -140,8 +140,10 @@ class LandingGuard:
         hover_thrust_norm: float,
         command: Command,
     ) -> tuple[Command, GuardState]:
-        """The command to fly: the network's ``command``, or the hold's below the floor without
-        a confirmed pad. Raises :class:`PadNotFound` once the guard has held too long."""
+        """The command to fly: the network's ``command``; the recovery's outside the envelope;
+        the hold's below the floor without a confirmed pad (after a recovery, at any altitude
+        until the pad is confirmed again). Raises :class:`PadNotFound` once the guard has held
+        too long."""
         cfg = self.cfg
         # a recovery goes on for _MAX_RECOVERY_S at most; a new one starts outside the hold
         # that follows it (the hold is the careful law, and has its timeout)
