@@ -129,12 +129,12 @@ def test_outside_the_envelope_the_guard_recovers_level_then_hands_back():
 
 def test_a_reacquired_estimate_confirms_the_pad_again():
     """The estimate that jumped to another place (a parking bay taken for the pad) starts its
-    confirmation from nothing (``confirm_reset_on_reacquire``, on by default)."""
+    confirmation from nothing with ``confirm_reset_on_reacquire`` (off by default)."""
     est = _estimate(40.0, True)
     took = dataclasses.replace(est, took_horizontal=True)
     jumped = dataclasses.replace(took, reacquired=True)
-    plain = LandingGuard(NetConfig(confirm_reset_on_reacquire=False))
-    resets = LandingGuard(NetConfig())
+    plain = LandingGuard(NetConfig())
+    resets = LandingGuard(NetConfig(confirm_reset_on_reacquire=True))
     assert plain.count(12, took, 0.9) == 13 and resets.count(12, took, 0.9) == 13
     assert plain.count(12, took, 0.5) == 12  # under confirm_threshold: not counted
     assert plain.count(12, jumped, 0.9) == 13 and resets.count(12, jumped, 0.9) == 1
@@ -233,15 +233,15 @@ def test_eval_without_the_pad_in_view_aborts_instead_of_landing_blind(tmp_path):
     assert all(row["landing_error_m"] > 100 for row in blind["per_episode"])
 
 
-def test_a_parking_lot_flight_that_landed_off_the_pad_now_ends_in_the_air():
+def test_a_reacquired_estimate_ends_a_parking_lot_flight_in_the_air():
     """The shipped model over the parking-lot photograph (validation seed, episode 0): the CNN
     takes bays for the pad and the estimate jumps from bay to bay. Counting the fixes of the
-    whole flight, the pad was confirmed early and it landed 77 m off at 7 m/s; a re-acquired
-    estimate now confirms the pad again, so below the floor the guard holds and the flight ends
-    pad_not_found (``confirm_reset_on_reacquire``, on by default)."""
+    whole flight (the default), the pad was confirmed early and it lands 77 m off at 7 m/s; with
+    ``confirm_reset_on_reacquire`` a re-acquired estimate confirms the pad again, so below the
+    floor the guard holds and the flight ends pad_not_found."""
     args = ("eval", "--policy", MODEL, "--scenario", "configs/scenario_ground_parking_lot.toml")
     args += ("--episodes", "1", "--seed", "500", "--json")
-    now, before = visland(*args), visland(*args, "--estimator", "confirm_reset_on_reacquire=false")
+    now, before = visland(*args, "--estimator", "confirm_reset_on_reacquire=true"), visland(*args)
     assert now.returncode == 0 and before.returncode == 0, now.stderr + before.stderr
     (row,) = json.loads(now.stdout)["per_episode"]
     assert row["failsafe"] == "pad_not_found" and not row["landed"], row

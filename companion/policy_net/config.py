@@ -187,12 +187,13 @@ class NetConfig:
     """Where the guard climbs to, to widen the view, and holds."""
     pad_timeout_s: float = 30.0
     """Time in the guard without a confirmed pad after which the flight ends: pad not found."""
-    confirm_reset_on_reacquire: bool = True
+    confirm_reset_on_reacquire: bool = False
     """A re-acquisition (the estimate restarted from a fix the innovation gate had refused
     ``gate_reset_steps`` times in a row) starts the pad's confirmation again: the fixes that
-    confirmed the old estimate were of another place (a parking bay taken for the pad). On by
-    default, old checkpoints included (docs/DESIGN.md, decisions: never land blind); False: the
-    fixes of the whole flight count, as before."""
+    confirmed the old estimate were of another place (a parking bay taken for the pad). Off by
+    default: on a moving pad a re-acquisition is also how the estimate catches up, and a
+    landing-target hand-off to a rover then holds where it should descend (docs/DESIGN.md,
+    decisions: never land blind)."""
     envelope_sink_m_s: float | None = None
     """The guard recovers the vehicle — levels it and arrests the descent — whenever the
     estimator's descent speed is above this (m/s), then holds until the pad is confirmed again
