@@ -103,17 +103,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_ship(args: argparse.Namespace) -> int:
-    from training.ship import ship
-    from training.ship_pad import is_pad_run
+    from training.ship import card_file, ship
 
     try:
         dst = ship(args.run, args.out, args.name, tuple(args.suite_report))
     except ValueError as exc:
         print(f"visland ship: {exc}", file=sys.stderr)
         return 2
-    pad_run = is_pad_run(args.run)
-    card = dst.with_suffix(".md") if pad_run or args.name else dst.parent / "MODEL_CARD.md"
-    print(f"shipped {dst} with {card}")
+    print(f"shipped {dst} with {card_file(dst)}")
     return 0
 
 

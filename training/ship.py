@@ -23,7 +23,7 @@ from training.report.targets import fmt, value_text
 from training.reports import SuiteReport
 from training.ship_pad import is_pad_run, load_pad_metrics, pad_card, stage_times
 
-__all__ = ["extra_suite_section", "ship", "variant_file"]
+__all__ = ["card_file", "extra_suite_section", "ship", "variant_file"]
 
 
 def variant_file(variant: str | None) -> str:
@@ -39,6 +39,16 @@ def variant_file(variant: str | None) -> str:
             "models/visland_vision_<name>.pt)"
         )
     return f"{SHIPPED_MODEL.stem}_{variant}{SHIPPED_MODEL.suffix}"
+
+
+def card_file(model: Path) -> Path:
+    """The card beside a shipped ``model``: ``MODEL_CARD.md`` for the default model,
+    ``<model stem>.md`` for any other (a variant, a taught pad)."""
+    return (
+        model.parent / "MODEL_CARD.md"
+        if model.name == SHIPPED_MODEL.name
+        else model.with_suffix(".md")
+    )
 
 
 def extra_suite_section(path: Path, model: Path) -> str:
@@ -251,7 +261,7 @@ def ship(
         pad = load_pad_metrics(run)
         name = variant_file(variant) if variant else f"visland_vision_{pad.pad.name}.pt"
         shipped = install_model(run, out, name, suite_reports)
-        shipped.path.with_suffix(".md").write_text(pad_card(run, pad, shipped, variant))
+        card_file(shipped.path).write_text(pad_card(run, pad, shipped, variant))
         return shipped.path
     name = variant_file(variant)
     metrics_path = run / "metrics.json"
@@ -375,5 +385,5 @@ rows are its Table 3 (§5.4): landing error only.
 
 {_limits(bool(worlds))}
 """
-    (out / ("MODEL_CARD.md" if variant is None else f"{dst.stem}.md")).write_text(card)
+    card_file(dst).write_text(card)
     return dst
