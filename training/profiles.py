@@ -44,6 +44,7 @@ NET_OPTIONS = (
     "unsure_threshold",
     "unsure_sigma_scale",
     "unsure_max_tilt_deg",
+    "radar_terrain_slope_deg",
 )
 """The profile keys that are :class:`companion.policy_net.NetConfig` fields of the same name
 (passed as they are to ``training.train.net_config_for``)."""
@@ -161,6 +162,9 @@ class Profile(Record):
     """Factor on an unsure fix's noise (``NetConfig.unsure_sigma_scale``)."""
     unsure_max_tilt_deg: float | None = field(default=None, metadata=ADDED)
     """No unsure fix from a view tilted beyond this (``NetConfig.unsure_max_tilt_deg``)."""
+    radar_terrain_slope_deg: float = field(default=0.0, metadata=ADDED)
+    """The steepest ground the radar's beam may meet (``NetConfig.radar_terrain_slope_deg``;
+    0: flat, the range is the height above the pad)."""
     vision_dagger_from_prior: bool = False
     """Vision DAgger rounds start from the best privileged controller fed by CNN + estimator
     (by validation) instead of vision BC, and train on the learner's relabelled flights only
@@ -343,6 +347,7 @@ PROFILES: dict[str, Profile] = {
         unsure_threshold=0.5,
         unsure_sigma_scale=3.0,
         unsure_max_tilt_deg=15.0,
+        radar_terrain_slope_deg=12.0,
         vision_dagger_from_prior=True,
         vision_label_gate=True,
         vision_truth_inputs=True,

@@ -300,6 +300,11 @@ def ship(
             (cfg.latency_compensation, "camera fixes at the image's exposure time"),
             (cfg.radar_gate_sigma > 0, f"a {cfg.radar_gate_sigma:g}-sigma radar gate"),
             (
+                cfg.radar_terrain_slope_deg > 0,
+                f"the radar read for ground up to {cfg.radar_terrain_slope_deg:g}° steep where "
+                "its beam meets it",
+            ),
+            (
                 cfg.acquire_threshold is not None,
                 f"a bearing is a fix at pad probability ≥ {cfg.visibility_threshold:g}, the "
                 f"first one at ≥ {cfg.acquire_threshold}",

@@ -148,13 +148,15 @@ class NetConfig:
     a tilted range read as an altitude moves the bias tens of m/s^2 in one accepted fix, and
     kept, it drives the altitude away from every later reading."""
     radar_terrain_slope_deg: float = 0.0
-    """The steepest ground the radar may look at between the vehicle and the pad (0: flat, the
-    radar's range below the vehicle is its height above the pad). The radar measures the ground
-    under the vehicle, which on a slope, among rocks or in a crater field lies up to ``tan(slope)
-    x horizontal distance`` above or below the pad: the altitude fix's 1-sigma grows by that
-    (in quadrature; the distance is the estimate's, once it has one), so far from the pad a
-    reading of the ground is a weak fix of the altitude above the pad — it cannot yank the
-    velocity and bias — and over the pad a precise one."""
+    """The steepest ground the radar may look at (0: flat, the radar's range is the height
+    above the pad). The radar measures the ground where its beam (body +z) meets it: below the
+    vehicle when level, ``altitude x tan(tilt)`` away along the tilt when not, and on a slope,
+    among rocks or in a crater field that ground lies up to ``tan(slope) x`` its horizontal
+    distance from the pad above or below the pad. The altitude fix's 1-sigma grows by that (in
+    quadrature; the vehicle's offset is the estimate's, once it has one), so a reading of
+    ground far from the pad — the vehicle's, or the beam's at 30 degrees of tilt from 90 m,
+    52 m away — is a weak fix of the altitude above the pad that cannot yank the velocity and
+    bias, and a level one over the pad a precise one."""
     bias_learn_min_altitude_m: float = 0.0
     """Below this altitude (m, the fix's: the radar's) the horizontal acceleration-bias states
     (``accel_bias_states``) are held: a camera fix still moves the position and velocity, with

@@ -34,6 +34,9 @@ class EstimatorState:
     a row (``NetConfig.confirm_reset_on_reacquire``: the pad is confirmed again)."""
 
 
+_MAX_BEAM_TILT_RAD = math.radians(80.0)
+"""The radar beam's reach (``radar_terrain_slope_deg``) is taken at no more than this tilt."""
+
 MAX_STEP_DT_S = 1.0
 """Longest gap between two steps the estimator predicts across (a longer one — a restarted
 camera, clocks that do not compare — is taken as one control period)."""
@@ -88,6 +91,18 @@ class PadEstimator:
             return np.array([z, 0.0]), np.diag([sigma**2, 4.0])
         bias_sigma = self.cfg.accel_bias_sigma_m_s2[axis]
         return np.array([z, 0.0, 0.0]), np.diag([sigma**2, 4.0, bias_sigma**2])
+
+    @staticmethod
+    def _beam_reach_m(x: np.ndarray, init: np.ndarray, rot: np.ndarray, alt: float) -> float:
+        """Horizontal distance from the pad to where the radar's beam (body +z) meets ground
+        level ``alt`` below the vehicle: the vehicle's offset (the estimate's, once it has one)
+        plus the beam's lean, ``alt x tan(tilt)`` along the tilt (a beam near the horizon
+        reaches no further than at :data:`_MAX_BEAM_TILT_RAD`)."""
+        down = max(float(rot[2, 2]), math.cos(_MAX_BEAM_TILT_RAD))
+        reach = alt * rot[:2, 2] / down
+        if init[0] and init[1]:
+            reach = reach + x[:2, 0]
+        return float(math.hypot(float(reach[0]), float(reach[1])))
 
     def step(
         self,
@@ -150,9 +165,10 @@ class PadEstimator:
             if vertical_sigma_m > 0.0:
                 sigma_v = math.hypot(sigma_v, float(vertical_sigma_m))
             slope = self.cfg.radar_terrain_slope_deg
-            if slope > 0.0 and init[0] and init[1]:  # the ground under the vehicle, not the pad's
-                away = math.hypot(float(x[0, 0]), float(x[1, 0]))
-                sigma_v = math.hypot(sigma_v, math.tan(math.radians(slope)) * away)
+            if slope > 0.0:  # the ground the radar's beam meets, not the pad's
+                sigma_v = math.hypot(
+                    sigma_v, math.tan(math.radians(slope)) * self._beam_reach_m(x, init, rot, alt)
+                )
             sigmas = (sigma_h, sigma_h, sigma_v)
             horizontal_fix = horizontal_fix and alt >= self.cfg.min_fix_altitude_m
             axes: tuple[int, ...] = (0, 1, 2) if horizontal_fix else (2,)
