@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from companion.contract import Command
+from companion.contract.topics import TOPIC_GROUNDTRUTH
+from companion.flightlog import read_log
 from companion.policy_net import (
     CheckpointError,
     EstimatorState,
@@ -89,6 +91,47 @@ def test_below_the_floor_without_a_confirmed_pad_it_climbs_level_then_gives_up()
         for _ in range(40):
             _, state = _step(guard, state, _estimate(10.0, False), 4)
     assert state.engaged == 2
+
+
+def test_the_guard_takes_over_where_its_hold_could_still_stop_above_the_floor():
+    """15 m up without a pad: sinking at 5 m/s the hold's 3 m/s^2 needs 4.2 m to stop it, so
+    the guard takes over now (it would stop at 10.8 m); at 2 m/s (0.7 m) or climbing, the
+    network flies on; a confirmed pad is the network's at any speed."""
+    guard = LandingGuard(NetConfig(land_floor_m=12.0, confirm_fixes=5))
+    cmd, state = _step(guard, GuardState(), _estimate(15.0, False, v_down=5.0), 0)
+    assert state.holding and cmd is not NETWORK and cmd.thrust_norm > 0.4
+    for v_down in (2.0, -3.0):
+        cmd, state = _step(guard, GuardState(), _estimate(15.0, False, v_down=v_down), 0)
+        assert cmd is NETWORK and not state.holding, v_down
+    cmd, state = _step(guard, GuardState(), _estimate(15.0, True, v_down=5.0), 5)
+    assert cmd is NETWORK and not state.holding
+
+
+def test_the_hold_brakes_with_the_planets_gravity():
+    """The hover thrust is the autopilot's on the planet flown, so the hold's 3 m/s^2 up is
+    ``hover x (1 + 3 / g)`` with that planet's g: the estimator's vertical bias state holds the
+    difference to the configured Earth gravity (Mars: -6.1 m/s^2). A bias that diverged is
+    bounded (30 % to 150 % of the configured g); an estimator without bias states flies with
+    the configured g."""
+    guard = LandingGuard(NetConfig(land_floor_m=12.0, confirm_fixes=5))
+
+    def hold_thrust(bias_down: float | None) -> float:
+        est = _estimate(11.0, False, v_down=5.0)
+        if bias_down is not None:
+            x = np.zeros((3, 3))
+            x[:, :2] = est.x
+            x[2, 2] = bias_down
+            est = dataclasses.replace(est, x=x, cov=np.tile(np.eye(3), (3, 1, 1)))
+        cmd, state = _step(guard, GuardState(), est, 0)
+        assert state.holding
+        return cmd.thrust_norm
+
+    g = NetConfig().gravity_m_s2
+    assert hold_thrust(None) == pytest.approx(0.4 * (1 + 3.0 / g))
+    assert hold_thrust(0.0) == pytest.approx(0.4 * (1 + 3.0 / g))
+    assert hold_thrust(3.71 - g) == pytest.approx(0.4 * (1 + 3.0 / 3.71))  # Mars: 0.72
+    assert hold_thrust(-50.0) == pytest.approx(0.4 * (1 + 3.0 / (0.3 * g)))
+    assert hold_thrust(+50.0) == pytest.approx(0.4 * (1 + 3.0 / (1.5 * g)))
 
 
 def test_outside_the_envelope_the_guard_recovers_level_then_hands_back():
@@ -210,9 +253,9 @@ def test_aborts_and_off_pad_touchdowns_are_counted_apart():
     assert EpisodeResult.read(held.to_dict()) == held and "took_over" not in ok.to_dict()
 
 
-def _eval(tmp_path, *extra: str, policy: str = MODEL) -> dict:
+def _eval(tmp_path, *extra: str, policy: str = MODEL, planet: str = "earth") -> dict:
     scenario = tmp_path / "no_pad_in_view.toml"
-    scenario.write_text(NO_PAD_IN_VIEW)
+    scenario.write_text(NO_PAD_IN_VIEW + f'\n[world]\nplanet = "{planet}"\n')
     run = visland(
         "eval", "--policy", policy, "--scenario", str(scenario), "--episodes", "2",
         "--seed", "3", "--json", *extra,
@@ -231,6 +274,21 @@ def test_eval_without_the_pad_in_view_aborts_instead_of_landing_blind(tmp_path):
     assert blind["estimator"] == {"land_floor_m": None}
     assert blind["off_pad"] == 2 and blind["aborts"] == 0
     assert all(row["landing_error_m"] > 100 for row in blind["per_episode"])
+
+
+def test_on_mars_without_the_pad_the_hold_stops_the_descent_at_the_floor(tmp_path):
+    """The shipped model on Mars with the pad out of view, descending at ~5 m/s: the guard
+    takes over where its hold can still stop above the 12 m floor and brakes with Mars's
+    gravity, so no flight goes below 10 m before it ends pad_not_found (with the guard taking
+    over at the floor and braking as on Earth, episode 0 sank to 1.5 m, where the CNN's false
+    fixes over bare ground are the closest and most confident)."""
+    logs = tmp_path / "logs"
+    mars = _eval(tmp_path, "--keep-logs", str(logs), "--keep", "all", planet="mars")
+    assert mars["aborts"] == 2 and mars["off_pad"] == 0, mars
+    for row in mars["per_episode"]:
+        states = read_log(row["log"], topics=[TOPIC_GROUNDTRUTH]).topic(TOPIC_GROUNDTRUTH)
+        lowest = min(-s["pos_ned_m"][2] for s in states)
+        assert row["failsafe"] == "pad_not_found" and lowest > 10.0, (row, lowest)
 
 
 def test_a_reacquired_estimate_ends_a_parking_lot_flight_in_the_air():

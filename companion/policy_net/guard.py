@@ -6,7 +6,9 @@ flight ends on whatever lies under it, tens of metres from the pad. :class:`Land
 between the controller and the autopilot:
 
 * above ``NetConfig.land_floor_m`` (the estimator's altitude, from the radar) the network flies,
-  pad or no pad — the view is wide and the pad may still come in;
+  pad or no pad — the view is wide and the pad may still come in — as long as the hold could
+  still stop its descent above the floor (:func:`_stop_altitude`: at 5 m/s it takes over 4 m
+  above it, so the vehicle stops at the floor, not under it);
 * below it, only with a **confirmed** pad: the estimator holds a horizontal position built
   from at least ``confirm_fixes`` fixes it took (a CNN bearing at or above the fix threshold,
   or an unsure one that the innovation gate let through). Without one the guard takes over: it
@@ -37,10 +39,11 @@ its commands are the network's, bit for bit. ``land_floor_m = None`` turns the l
 land_floor_m=15`` flies a checkpoint with another floor.
 
 The hold is a plain cascade on the estimator's state (no ground truth): vertical speed to a
-climb-rate target with an integral for the hover-thrust error (another planet, a heavier
-airframe), attitude to a level (or velocity-damping) target through body rates. It is not a
-position hold — without the pad nothing knows the position —, so in wind the vehicle drifts
-with the air while it holds and searches.
+climb-rate target with an integral for the hover-thrust error (a heavier airframe), attitude to
+a level (or velocity-damping) target through body rates; its accelerations are the planet's,
+whose gravity the estimator's vertical bias state learns (:meth:`LandingGuard._gravity`). It is
+not a position hold — without the pad nothing knows the position —, so in wind the vehicle
+drifts with the air while it holds and searches.
 """
 
 from __future__ import annotations
@@ -107,9 +110,24 @@ _MAX_RECOVERY_S = 3.0
 """A recovery ends after this long whatever the estimate says: its vertical law trusts the
 estimator's velocity, which may be what went wrong (a radar reading a slope); the hold, with
 its timeout, flies next."""
+_MIN_GRAVITY_FRACTION = 0.3
+_MAX_GRAVITY_FRACTION = 1.5
+"""The hold's gravity (the configured one plus the estimated vertical bias) is kept within
+these fractions of the configured one: a bias that diverged must not ask for a thrust of
+nothing or of everything."""
 _INVERTED_COS = 0.3
 """Below this cosine of the tilt a recovery cuts the thrust to its least: thrust would push the
 vehicle down."""
+
+
+def _stop_altitude(est: EstimatorState) -> float:
+    """Where a descent at the estimator's vertical speed would stop under the hold's largest
+    upward acceleration, :data:`_MAX_ACCEL_UP` (the altitude itself when climbing): the guard
+    takes over once this, not the altitude, is below the floor, so that its hold stops the
+    vehicle at the floor rather than metres under it (at 5 m/s, 4 m)."""
+    altitude = -float(est.x[2, 0])
+    sink = float(est.x[2, 1])
+    return altitude - max(sink, 0.0) ** 2 / (2.0 * _MAX_ACCEL_UP)
 
 
 class LandingGuard:
@@ -171,7 +189,7 @@ class LandingGuard:
         since = state.recheck_from
         counted = fixes - since if since is not None and fixes >= since else fixes
         confirmed = self.confirmed(est, counted)
-        if not state.holding and since is None and (altitude >= floor or confirmed):
+        if not state.holding and since is None and (_stop_altitude(est) >= floor or confirmed):
             return command, state
         if confirmed:  # the pad came into view (again) while holding: the network
             return command, GuardState(
@@ -222,6 +240,19 @@ class LandingGuard:
             tilt_limit is not None and tilt > math.radians(tilt_limit)
         )
 
+    def _gravity(self, est: EstimatorState) -> float:
+        """The planet's gravity (m/s^2): the configured one plus the estimator's vertical
+        acceleration bias where it has one (on Mars it learns the 6.1 m/s^2 between the two in
+        the first seconds), within [:data:`_MIN_GRAVITY_FRACTION`, :data:`_MAX_GRAVITY_FRACTION`]
+        of the configured one. The hover thrust is the autopilot's on this planet, so the
+        thrust for ``a_up`` is ``hover x (1 + a_up / g)`` with this g, not Earth's: with
+        Earth's the hold on Mars braked at a third of what it asked for."""
+        g = self.cfg.gravity_m_s2
+        if est.x.shape[1] == 3 and est.initialised[2]:
+            local = g + float(est.x[2, 2])
+            return float(np.clip(local, _MIN_GRAVITY_FRACTION * g, _MAX_GRAVITY_FRACTION * g))
+        return g
+
     def _fly(
         self,
         est: EstimatorState,
@@ -245,9 +276,8 @@ class LandingGuard:
         a_up = float(np.clip(_KV * err + thrust_i, -_MAX_ACCEL_UP, _MAX_ACCEL_UP))
         roll, pitch, yaw = (float(a) for a in attitude_rad)
         cos_tilt = math.cos(roll) * math.cos(pitch)
-        thrust = float(
-            np.clip(hover * (1.0 + a_up / cfg.gravity_m_s2) / max(cos_tilt, 0.5), 0.05, 0.95)
-        )
+        g = self._gravity(est)
+        thrust = float(np.clip(hover * (1.0 + a_up / g) / max(cos_tilt, 0.5), 0.05, 0.95))
         if recovering and cos_tilt < _INVERTED_COS:
             thrust = 0.05
         a_fwd = a_right = 0.0
@@ -255,7 +285,6 @@ class LandingGuard:
             a_n, a_e = (-_KD_HORIZONTAL * float(est.x[i, 1]) for i in (0, 1))
             c, s = math.cos(yaw), math.sin(yaw)
             a_fwd, a_right = c * a_n + s * a_e, -s * a_n + c * a_e
-        g = cfg.gravity_m_s2
         roll_t = float(np.clip(math.atan2(a_right, g), -_MAX_TILT_RAD, _MAX_TILT_RAD))
         pitch_t = float(np.clip(-math.atan2(a_fwd, g), -_MAX_TILT_RAD, _MAX_TILT_RAD))
         limits = np.asarray(cfg.max_rate_rad_s, float)
