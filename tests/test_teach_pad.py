@@ -313,6 +313,8 @@ def test_pad_run_evaluates_on_its_suite_and_ships_its_own_card(taught, tmp_path,
     assert sha256_file(model) == sha256_file(taught / "checkpoints" / "vision.pt")
     assert "pad `helipad_1m`" in card and "18.75 and 25 m" in card
     assert "--pad configs/pads/helipad_1m.toml --from" in card
+    # the profile's estimator settings that differ from the --from model's are named
+    assert "`radar_terrain_slope_deg` 12.0 (`visland_vision.pt`: 0.0)" in card
     for name in ("nominal", "low_sun", "unseen_terrain", "wind_moderate_gusts"):
         assert f"| {name} |" in card
     # under a variant's name (a run that taught the paper's pad in other worlds), with a suite

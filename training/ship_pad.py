@@ -16,12 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from companion.files import sha256_file
-from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, file_text
+from companion.policy_net import ESTIMATOR_FIELDS, NetConfig, load_networks
+from training.pad_teach import PAD_VALIDATION_SUCCESS, PadMetrics, SourceRecord, file_text
 from training.reports import EvalReport, SuiteReport
 
 __all__ = [
     "TARGET_MEAN_ERROR_M",
     "TARGET_SUCCESS",
+    "estimator_text",
     "is_pad_run",
     "load_pad_metrics",
     "pad_card",
@@ -120,6 +122,26 @@ def stage_times(run: Path) -> tuple[str, float, int]:
     return "; ".join(parts) or "not recorded", total, len(sessions)
 
 
+def estimator_text(source: SourceRecord, cfg: NetConfig) -> str:
+    """Whose controller and estimator the taught model flies: the ``--from`` model's, with the
+    estimator settings of the run's profile that differ from it named (``min_fix_altitude_m``,
+    scaled with the pad, is the card's own line). A ``--from`` file that is gone or changed
+    since the run cannot be compared, and the card says so rather than guess."""
+    path = Path(source.checkpoint)
+    model = f"`{path.name}` (sha256 `{source.sha256[:16]}…`)"
+    if not path.is_file() or sha256_file(path) != source.sha256:
+        return f"the controller of {model} with the estimator settings of the run's profile"
+    before = load_networks(path)[0]
+    changed = [
+        f"`{k}` {getattr(cfg, k)} (`{path.name}`: {getattr(before, k)})"
+        for k in ESTIMATOR_FIELDS
+        if k != "min_fix_altitude_m" and getattr(cfg, k) != getattr(before, k)
+    ]
+    if not changed:
+        return f"the controller and estimator of {model}"
+    return f"the controller and estimator of {model}, its estimator with {', '.join(changed)},"
+
+
 def pad_card(run: Path, m: PadMetrics, shipped: Any, variant: str | None) -> str:
     """The card of ``run``'s model as ``shipped`` (a :class:`training.ship.InstalledModel`)."""
     policy, dst, extra_sections = shipped.policy, shipped.path, shipped.extra_sections
@@ -153,11 +175,10 @@ def pad_card(run: Path, m: PadMetrics, shipped: Any, variant: str | None) -> str
     return f"""# visland vision landing policy `{dst.name}` for {title} — model card
 
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
-parameters): the controller and estimator of `{source.name}` (sha256
-`{m.source.sha256[:16]}…`) with its CNN retrained to see the pad `{m.pad.name}`
-(`{pad_file}`, {m.pad.size_m[0]:g} × {m.pad.size_m[1]:g} m). Same inputs and outputs as
-`{source.name}`; fly it only over this pad, started (or flown in) between {lo:g} and {hi:g} m —
-the pad's envelope (`visland pad info --pad {m.pad.name}`).
+parameters): {estimator_text(m.source, policy.config)} with its CNN retrained to see the pad
+`{m.pad.name}` (`{pad_file}`, {m.pad.size_m[0]:g} × {m.pad.size_m[1]:g} m). Same inputs and
+outputs as `{source.name}`; fly it only over this pad, started (or flown in) between {lo:g}
+and {hi:g} m — the pad's envelope (`visland pad info --pad {m.pad.name}`).
 
 ## How it was made
 
