@@ -177,8 +177,8 @@ def pad_card(run: Path, m: PadMetrics, shipped: Any, variant: str | None) -> str
 `{dst.name}` (sha256 `{sha256_file(dst)[:16]}…`, {dst.stat().st_size // 1024} KiB, {n_params}
 parameters): {estimator_text(m.source, policy.config)} with its CNN retrained to see the pad
 `{m.pad.name}` (`{pad_file}`, {m.pad.size_m[0]:g} × {m.pad.size_m[1]:g} m). Same inputs and
-outputs as `{source.name}`; fly it only over this pad, started (or flown in) between {lo:g}
-and {hi:g} m — the pad's envelope (`visland pad info --pad {m.pad.name}`).
+outputs as `{source.name}`; fly it only over this pad, started (or flown in) between
+{lo:g} and {hi:g} m — the pad's envelope (`visland pad info --pad {m.pad.name}`).
 
 ## How it was made
 
